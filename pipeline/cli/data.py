@@ -1,0 +1,1 @@
+"""`flowcast data` commands (being written)."""

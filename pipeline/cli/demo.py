@@ -1,0 +1,1 @@
+"""`flowcast demo` commands (being written)."""

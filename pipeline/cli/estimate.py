@@ -1,0 +1,1 @@
+"""`flowcast estimate` commands (being written)."""

@@ -1,0 +1,1 @@
+"""`flowcast forecast` commands (being written)."""

@@ -1,0 +1,1 @@
+"""`flowcast reproduce` commands (being written)."""

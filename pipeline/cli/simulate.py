@@ -1,0 +1,1 @@
+"""`flowcast simulate` commands (being written)."""

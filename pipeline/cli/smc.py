@@ -1,0 +1,1 @@
+"""`flowcast smc` commands (being written)."""

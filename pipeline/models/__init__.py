@@ -1,0 +1,1 @@
+"""Conditional density estimators: context encoders, flow backends, the combined estimator."""

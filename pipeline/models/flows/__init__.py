@@ -1,0 +1,1 @@
+"""Conditional masked autoregressive flow backends behind one interface."""

@@ -1,0 +1,1 @@
+"""Simulated dynamical systems: the SIR epidemic model and the switching autonomous vehicle."""

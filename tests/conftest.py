@@ -1,0 +1,28 @@
+"""Shared test configuration: offline, few threads, deterministic."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+DATASF = SHARED / "data" / "datasf"
+
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("DO_NOT_TRACK", "1")
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+
+@pytest.fixture(autouse=True)
+def _isolated_data_dir(tmp_path, monkeypatch):
+    """Every test gets its own cache directory; nothing touches the user's data/."""
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "flowcast-data"))
+
+
+@pytest.fixture(scope="session")
+def datasf_dir() -> Path:
+    if not DATASF.is_dir():
+        pytest.fail(f"real DataSF exports expected at {DATASF} (../shared beside the repo)")
+    return DATASF
