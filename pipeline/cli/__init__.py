@@ -9,7 +9,7 @@ app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="flowcast: conditional normalizing flows for epidemic forecasting.")
 
 # Modules that attach commands to ``app`` when imported.
-COMMAND_MODULES = ("simulate", "data", "train", "demo", "estimate", "smc", "reproduce", "forecast")
+COMMAND_MODULES = ("simulate", "data", "train", "demo", "estimate", "smc", "reproduce")
 
 
 def _register() -> None:

@@ -1,1 +1,0 @@
-"""`flowcast forecast` commands (being written)."""
