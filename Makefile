@@ -6,6 +6,8 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.flowcast-installed
+# torch's OpenMP threads spin-wait by default, which stalls 2-thread ops on a busy 2-core box.
+export OMP_WAIT_POLICY := PASSIVE
 
 .PHONY: forecast test venv sysdeps bench clean-venv
 
@@ -20,14 +22,21 @@ venv: $(STAMP)
 sysdeps:
 	bash scripts/install-system-deps.sh
 
+# Archived DataSF exports used to seed an empty cache when DataSF cannot be reached.
+ARCHIVE ?= ../shared/data/datasf
+
 forecast: venv sysdeps
-	$(VENV)/bin/flowcast forecast
+	@if [ -d "$(ARCHIVE)" ]; then \
+	  $(VENV)/bin/flowcast data import --if-empty $$(find "$(ARCHIVE)" -name '*.csv' | sort); fi
+	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
+	  $(VENV)/bin/python -m flows.weekly_forecast $(FORECAST_ARGS)
 
 test: venv sysdeps
 	$(VENV)/bin/python -m pytest -q
 
 bench: venv
-	$(VENV)/bin/python -m bench.run_all
+	for b in simulate training smc paper_tables e2e backtest; do \
+	  $(VENV)/bin/python -m bench.$$b || exit 1; done
 
 clean-venv:
 	rm -rf $(VENV)

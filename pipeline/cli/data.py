@@ -1,1 +1,160 @@
-"""`flowcast data` commands (being written)."""
+"""`flowcast data …`: import DataSF exports, fetch live, show the cache, convert to S/I/R, plot."""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import typer
+
+from pipeline.cli import app
+from pipeline.errors import FlowcastError
+
+data_app = typer.Typer(no_args_is_help=True, help="San Francisco COVID-19 data from DataSF.")
+app.add_typer(data_app, name="data")
+
+TrailingDays = typer.Option(14, "--trailing-days", min=0,
+                            help="Days dropped at the end of each dataset (DataSF revises them).")
+Offline = typer.Option(False, "--offline", help="Use the cache only; never contact DataSF.")
+
+
+def _fail(exc: Exception) -> None:
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(code=1)
+
+
+def _config(trailing_days: int):  # type: ignore[no-untyped-def]
+    from pipeline.data.series import SFDataConfig
+    return SFDataConfig(trailing_days=trailing_days)
+
+
+@data_app.command("import")
+def import_command(
+    files: list[Path] = typer.Argument(..., exists=True, dir_okay=False,
+                                       help="DataSF CSV exports (rows.csv?accessType=DOWNLOAD)."),
+    if_empty: bool = typer.Option(False, "--if-empty",
+                                  help="Import only datasets the cache does not hold yet."),
+) -> None:
+    """Validate DataSF CSV exports and put them into the cache ($FLOWCAST_DATA_DIR or ./data)."""
+    from pipeline.data.cache import data_dir
+    from pipeline.data.csv_import import import_csv_exports
+    try:
+        summaries = import_csv_exports(files, if_empty=if_empty)
+    except FlowcastError as exc:
+        _fail(exc)
+    for s in summaries:
+        total = f"{s.final_cumulative:,}" if s.final_cumulative is not None else "n/a"
+        action = "imported" if s.imported else "skipped"
+        typer.echo(f"{action} {s.path.name}: {s.dataset_key} ({s.dataset_id}), "
+                   f"{s.first_date} … {s.last_date}, {s.row_count} rows, "
+                   f"final cumulative {total}, data as of {s.data_as_of or 'unknown'}"
+                   + (f" — {s.note}" if s.note else ""))
+        for warning in s.warnings:
+            typer.echo(f"  warning: {warning}")
+    typer.echo(f"cache: {data_dir().resolve() / 'datasf'}")
+
+
+@data_app.command("fetch")
+def fetch_command(trailing_days: int = TrailingDays) -> None:
+    """Fetch cases, deaths and tests from DataSF (falls back to the cache when offline)."""
+    from pipeline.data.series import load_sf_series
+    try:
+        series = load_sf_series(_config(trailing_days))
+    except FlowcastError as exc:
+        _fail(exc)
+    for p in series.provenance.datasets:
+        where = f"cache (stale by {p.stale_days:.0f} days)" if p.from_cache else "DataSF"
+        typer.echo(f"{p.dataset_key} ({p.dataset_id}) from {where}: {p.row_count} rows, "
+                   f"{p.first_date} … {p.last_date}, data as of {p.data_as_of}")
+        for note in p.notes:
+            typer.echo(f"  note: {note}")
+    typer.echo(series.vintage.describe())
+
+
+@data_app.command("status")
+def status_command() -> None:
+    """What the cache holds and how old it is."""
+    from pipeline.data.cache import DatasetCache, utc_now
+    from pipeline.data.datasf import DATASETS
+    cache = DatasetCache.default()
+    typer.echo(f"cache: {cache.root.resolve() / 'datasf'}")
+    now = utc_now()
+    for spec in DATASETS.values():
+        try:
+            manifest = cache.read_manifest(spec)
+        except FlowcastError as exc:
+            typer.echo(f"{spec.key} ({spec.dataset_id}): {exc}")
+            continue
+        if manifest is None:
+            typer.echo(f"{spec.key} ({spec.dataset_id}): not cached — `flowcast data fetch` or "
+                       f"`flowcast data import FILE`")
+            continue
+        typer.echo(f"{spec.key} ({spec.dataset_id}): {manifest.source_kind} {manifest.source}; "
+                   f"{manifest.row_count} rows {manifest.first_date} … {manifest.last_date}; "
+                   f"data as of {manifest.data_as_of}; fetched {manifest.fetched_at} "
+                   f"({manifest.age_days(now):.1f} days ago)")
+
+
+def _sir_config(population: int, infectious_days: int, ascertainment: bool):  # type: ignore[no-untyped-def]
+    from pipeline.data.sir_transform import AscertainmentConfig, SIRConversionConfig
+    return SIRConversionConfig(population=population, infectious_period_days=infectious_days,
+                               ascertainment=AscertainmentConfig() if ascertainment else None)
+
+
+Population = typer.Option(873_965, "--population", min=1, help="Population N (2020 Census).")
+InfectiousDays = typer.Option(10, "--infectious-days", min=1, help="Infectious period L (days).")
+Ascertainment = typer.Option(False, "--ascertainment/--no-ascertainment",
+                             help="Correct cases for under-ascertainment from test positivity.")
+
+
+@data_app.command("sir")
+def sir_command(out: Path = typer.Option(..., "--out", help="CSV to write (date,S,I,R)."),
+                trailing_days: int = TrailingDays, offline: bool = Offline,
+                population: int = Population, infectious_days: int = InfectiousDays,
+                ascertainment: bool = Ascertainment) -> None:
+    """Write the S/I/R proportions of San Francisco, plus <out>.provenance.json (vintage)."""
+    from pipeline.data.series import load_sf_series
+    from pipeline.data.sir_transform import to_sir
+    from pipeline.io import atomic_write_json, atomic_write_text
+    try:
+        sir = to_sir(load_sf_series(_config(trailing_days), offline=offline),
+                     _sir_config(population, infectious_days, ascertainment))
+    except FlowcastError as exc:
+        _fail(exc)
+    frame = sir.frame.assign(date=sir.frame["date"].dt.strftime("%Y-%m-%d"))
+    atomic_write_text(out, frame.to_csv(index=False))
+    atomic_write_json(out.with_name(out.name + ".provenance.json"), sir.provenance.to_dict())
+    typer.echo(f"wrote {out} ({len(frame)} days); {sir.provenance.series.vintage.describe()}")
+
+
+@data_app.command("plot")
+def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output directory."),
+                 trailing_days: int = TrailingDays, offline: bool = Offline,
+                 population: int = Population, infectious_days: int = InfectiousDays,
+                 ascertainment: bool = Ascertainment,
+                 n_trajectories: int = typer.Option(500, "--n-trajectories", min=10),
+                 seed: int = typer.Option(0, "--seed")) -> None:
+    """Figures: the SF S/I/R series, and SF beside the sir-multi prior (+ measured overlap)."""
+    from pipeline.data.plots import (PriorEnsembleConfig, compare_with_prior, plot_sir_series,
+                                     plot_sir_vs_prior)
+    from pipeline.data.series import load_sf_series
+    from pipeline.data.sir_transform import to_sir
+    from pipeline.io import atomic_write_json
+    try:
+        sir = to_sir(load_sf_series(_config(trailing_days), offline=offline),
+                     _sir_config(population, infectious_days, ascertainment))
+    except FlowcastError as exc:
+        _fail(exc)
+    prior = PriorEnsembleConfig(n_trajectories=n_trajectories, seed=seed)
+    comparison = compare_with_prior(sir, prior)
+    paths = [plot_sir_series(sir, out / "sf_sir.png"),
+             plot_sir_vs_prior(sir, prior, out / "sf_sir_vs_prior.png", comparison)]
+    atomic_write_json(out / "sf_prior_comparison.json",
+                      {"comparison": asdict(comparison), "provenance": sir.provenance.to_dict()})
+    for path in paths:
+        typer.echo(f"wrote {path}")
+    inside = comparison.states_aligned.inside
+    typer.echo(f"SF days inside the prior's 1–99 % state band (offset 0): "
+               + ", ".join(f"{k} {v:.0%}" for k, v in inside.items()))
+    typer.echo(json.dumps({"best_offset": comparison.states_best.offset,
+                           "inside_at_best_offset": comparison.states_best.inside}))

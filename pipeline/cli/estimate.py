@@ -1,1 +1,194 @@
-"""`flowcast estimate` commands (being written)."""
+"""`flowcast estimate` and `flowcast rollout`: estimates and rollouts from a CSV of observations.
+
+CSV input: a ``time`` column (numbers) or a ``date`` column (ISO dates; time = days since the
+first date), plus the system's observed columns (SIR: S, I, R; vehicle: p_x, p_y), one row per
+observation, increasing in time.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import pandas as pd
+import typer
+
+from pipeline.cli import app
+from pipeline.errors import ConfigError, FlowcastError
+
+
+def read_observation_csv(path: Path, observed: tuple[str, ...]
+                         ) -> tuple[np.ndarray, np.ndarray, pd.Series | None]:
+    """(times (T,), values (T, C), dates or None) from a CSV; errors name the file and column."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: file not found")
+    try:
+        frame = pd.read_csv(path)
+    except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as error:
+        raise ConfigError(f"{path}: not a readable CSV ({error})") from None
+    missing = [c for c in observed if c not in frame.columns]
+    if missing:
+        raise ConfigError(f"{path}: missing column(s) {missing}; the model observes {list(observed)}"
+                          f" (found {list(frame.columns)})")
+    dates = None
+    if "time" in frame.columns:
+        times = pd.to_numeric(frame["time"], errors="coerce").to_numpy(dtype=np.float64)
+    elif "date" in frame.columns:
+        dates = pd.to_datetime(frame["date"], errors="coerce")
+        if dates.isna().any():
+            raise ConfigError(f"{path}: column 'date' has unparseable values at rows "
+                              f"{np.flatnonzero(dates.isna())[:5].tolist()}")
+        times = ((dates - dates.iloc[0]) / pd.Timedelta(days=1)).to_numpy(dtype=np.float64)
+    else:
+        raise ConfigError(f"{path}: needs a 'time' or a 'date' column")
+    values = frame[list(observed)].apply(pd.to_numeric, errors="coerce").to_numpy(np.float64)
+    bad = ~np.isfinite(values).all(axis=1) | ~np.isfinite(times)
+    if bad.any():
+        raise ConfigError(f"{path}: non-numeric or missing values at rows "
+                          f"{np.flatnonzero(bad)[:5].tolist()}")
+    if len(times) > 1 and not (np.diff(times) > 0).all():
+        raise ConfigError(f"{path}: times must be strictly increasing")
+    return times, np.array(values), dates
+
+
+def _load(checkpoint: Path):  # noqa: ANN202 - (estimator, ModelInfo)
+    from pipeline.checkpoints import load_checkpoint
+    from pipeline.estimate import ModelInfo
+
+    loaded = load_checkpoint(checkpoint)
+    info = ModelInfo.from_checkpoint_extra(loaded.meta.extra, str(checkpoint))
+    loaded.estimator.eval()
+    return loaded.estimator, info
+
+
+def _time_label(times: np.ndarray, dates: pd.Series | None) -> dict[str, object]:
+    if dates is None:
+        return {"time": times}
+    return {"date": (dates.iloc[0] + pd.to_timedelta(times, unit="D")).strftime("%Y-%m-%d")}
+
+
+def _fail(error: FlowcastError) -> None:
+    typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code=1) from error
+
+
+@app.command("estimate")
+def estimate_command(
+    checkpoint: Annotated[Path, typer.Option(help="model.pt written by `flowcast train`")],
+    window: Annotated[Path, typer.Option(help="CSV of the context observations (time or date "
+                                              "column + the observed columns)")],
+    out: Annotated[Path, typer.Option(help="samples CSV; the summary goes to <out>_summary.csv")],
+    direction: Annotated[str | None, typer.Option(help="forward | backward (default: the "
+                                                       "model's training direction)")] = None,
+    target_time: Annotated[float | None, typer.Option(
+        help="time (or days after the first date) to estimate; default one step after the "
+             "last row (forward) or before the first (backward)")] = None,
+    samples: Annotated[int, typer.Option(min=2, help="number of samples")] = 1000,
+    seed: Annotated[int, typer.Option(help="seed of the samples")] = 0,
+) -> None:
+    """Estimate the state at one time from a window of observations: samples + summary CSVs."""
+    from pipeline.estimate import ObservationWindow, estimate
+    from pipeline.io import atomic_write_text
+
+    try:
+        estimator, info = _load(checkpoint)
+        direction = direction or info.direction
+        if direction != info.direction:
+            raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
+                              f"--direction {direction} needs a {direction} model")
+        times, values, dates = read_observation_csv(window, info.observed_names)
+        step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
+        if target_time is None:
+            target_time = times[-1] + step if direction == "forward" else times[0] - step
+        result = estimate(estimator, ObservationWindow(times, values, target_time), direction,
+                          samples, seed, names=info.target_names, window_length=info.window)
+        sample_frame = pd.DataFrame(result.samples.double().numpy(), columns=list(result.names))
+        sample_frame.insert(0, "sample", np.arange(len(sample_frame)))
+        summary = pd.DataFrame(result.summary_rows())
+        label = _time_label(np.array([target_time]), dates)
+        for key, value in label.items():
+            summary.insert(0, key, np.repeat(value, len(summary)))
+        atomic_write_text(out, sample_frame.to_csv(index=False))
+        summary_path = out.with_name(f"{out.stem}_summary.csv")
+        atomic_write_text(summary_path, summary.to_csv(index=False))
+    except FlowcastError as error:
+        _fail(error)
+    typer.echo(f"{samples} samples -> {out}; summary -> {summary_path}")
+
+
+@app.command("rollout")
+def rollout_command(
+    checkpoint: Annotated[Path, typer.Option(help="model.pt written by `flowcast train`")],
+    series: Annotated[Path, typer.Option(help="CSV of observations (time or date column + the "
+                                              "observed columns)")],
+    out: Annotated[Path, typer.Option(help="output directory")],
+    horizon: Annotated[int, typer.Option(min=1, help="steps to roll out past the series' end "
+                                                     "(forward) or before its start (backward)")]
+    = 28,
+    window_every: Annotated[int | None, typer.Option(
+        min=1, help="also re-anchor on the observed series every W steps (rolling windows; the "
+                    "paper uses 7 and 28) and write bands over the whole series")] = None,
+    paths: Annotated[int, typer.Option(min=2, help="sample paths")] = 200,
+    direction: Annotated[str | None, typer.Option(help="forward | backward (default: the "
+                                                       "model's training direction)")] = None,
+    feedback_noise: Annotated[float | None, typer.Option(
+        help="σ of the noise added to fed-back predictions (default: the training data's "
+             "observation noise; 0 feeds back the bare state)")] = None,
+    seed: Annotated[int, typer.Option(help="seed of the paths")] = 0,
+) -> None:
+    """Roll the model out from a series (paths.csv, summary.csv; rolling.csv with --window-every)."""
+    from pipeline.estimate import ObservationWindow
+    from pipeline.io import atomic_write_text
+    from pipeline.rollout import RolloutConfig, rolling_rollout, rollout
+
+    try:
+        estimator, info = _load(checkpoint)
+        direction = direction or info.direction
+        if direction != info.direction:
+            raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
+                              f"--direction {direction} needs a {direction} model")
+        times, values, dates = read_observation_csv(series, info.observed_names)
+        if len(times) < info.window:
+            raise ConfigError(f"{series}: {len(times)} rows, the model needs at least "
+                              f"{info.window}")
+        step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
+        sigma = info.obs_sigma if feedback_noise is None else feedback_noise
+        config = RolloutConfig(n_paths=paths, feedback_noise_sigma=sigma, seed=seed)
+        if direction == "forward":
+            window = ObservationWindow(times[-info.window:], values[-info.window:],
+                                       times[-1] + step)
+        else:
+            window = ObservationWindow(times[:info.window], values[:info.window], times[0] - step)
+        result = rollout(estimator, window, horizon, step, direction, config,
+                         names=info.target_names, window_length=info.window)
+        out.mkdir(parents=True, exist_ok=True)
+        _write_rollout(result, dates, out / "summary.csv", out / "paths.csv")
+        written = ["summary.csv", "paths.csv"]
+        if window_every is not None:
+            rolling = rolling_rollout(estimator, times, values, window_every, direction, config,
+                                      names=info.target_names, window_length=info.window)
+            _write_rollout(rolling, dates, out / "rolling.csv", None)
+            written.append("rolling.csv")
+    except FlowcastError as error:
+        _fail(error)
+    typer.echo(f"{paths} paths x {horizon} steps ({direction}) -> {out}: {', '.join(written)}")
+
+
+def _write_rollout(result, dates: pd.Series | None, summary_path: Path,  # noqa: ANN001
+                   paths_path: Path | None) -> None:
+    from pipeline.io import atomic_write_text
+
+    summary = result.summary_frame()
+    label = _time_label(summary["time"].to_numpy(), dates)
+    summary = summary.drop(columns="time")
+    for key, value in label.items():
+        summary.insert(0, key, value)
+    atomic_write_text(summary_path, summary.to_csv(index=False))
+    if paths_path is None:
+        return
+    n_paths, n_steps, dim = result.samples.shape
+    frame = pd.DataFrame(result.samples.reshape(-1, dim).double().numpy(), columns=list(result.names))
+    frame.insert(0, "path", np.repeat(np.arange(n_paths), n_steps))
+    for key, value in _time_label(np.tile(result.times, n_paths), dates).items():
+        frame.insert(1, key, value)
+    atomic_write_text(paths_path, frame.to_csv(index=False))

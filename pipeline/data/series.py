@@ -1,0 +1,267 @@
+"""The combined San Francisco daily series (cases, deaths, tests) with its provenance.
+
+``load_sf_series`` is the entry point of the forecast flow:
+
+* live (default): fetch each dataset from DataSF, validate, cache; if DataSF is unreachable or
+  returns a bad payload, fall back to the cache and record why and how old the cache is;
+* ``offline=True``: cache only; without a cache an :class:`OfflineError` names
+  ``flowcast data import``.
+
+Vintage. DataSF revises recent days (two vintages of the cases series differ on 215 of 744 days,
+most at the trailing edge), so each dataset loses its last ``trailing_days`` days (default 14)
+before the datasets are combined. :class:`DataVintage` records DataSF's "data as of" stamps, when
+flowcast loaded the data, the last date kept and the number of days dropped; it travels with every
+output (SIR frame, CSV, figures, reports).
+
+Combination. The combined frame runs from the first cases date to the earliest trimmed last date
+of the datasets, so every column is defined on every day. Before a dataset's first row its daily
+counts are 0 (the deaths series begins with the first death; tests start before cases). The
+cumulative columns are rebuilt from the daily counts (offset by DataSF's total on the first day
+minus that day's count, 0 for the real exports), so they agree with the daily counts by
+construction; DataSF's own cumulative columns were compared in validation.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import requests
+
+from pipeline.data.cache import CachedPayload, DatasetCache, SourceKind, utc_now
+from pipeline.data.csv_import import read_csv_bytes
+from pipeline.data.datasf import (DATASETS, CASES, ClientConfig, DataSFClient, DatasetSpec,
+                                  NetworkError)
+from pipeline.data.validation import GapPolicy, ValidatedFrame, validate_frame
+from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TRAILING_DAYS = 14
+
+
+@dataclass(frozen=True)
+class SFDataConfig:
+    """Where and how to load the SF series. ``datasets`` must include ``cases``."""
+
+    datasets: tuple[str, ...] = ("cases", "deaths", "tests")
+    trailing_days: int = DEFAULT_TRAILING_DAYS
+    gap_policy: GapPolicy = GapPolicy.ZERO_FILL
+    client: ClientConfig = field(default_factory=ClientConfig)
+    data_dir: Path | None = None  # None -> $FLOWCAST_DATA_DIR or ./data
+
+    def __post_init__(self) -> None:
+        unknown = [d for d in self.datasets if d not in DATASETS]
+        if unknown:
+            raise ConfigError(f"unknown DataSF dataset(s) {unknown}; known: {sorted(DATASETS)}")
+        if "cases" not in self.datasets:
+            raise ConfigError("SFDataConfig.datasets must include 'cases'")
+        if self.trailing_days < 0:
+            raise ConfigError(f"trailing_days must be >= 0, got {self.trailing_days}")
+
+
+@dataclass(frozen=True)
+class DatasetProvenance:
+    dataset_key: str
+    dataset_id: str
+    source_kind: SourceKind
+    source: str
+    fetched_at: str
+    sha256: str
+    row_count: int
+    first_date: str
+    last_date: str          # last date in the payload, before trimming
+    data_as_of: str | None
+    from_cache: bool
+    stale_days: float       # age of the cached copy when it was used; 0 for a live fetch
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class DataVintage:
+    """What data a result rests on: DataSF's vintage, when loaded, what was kept."""
+
+    data_as_of: str | None    # earliest DataSF "data as of" stamp among the datasets
+    loaded_at: str            # when flowcast loaded (fetched or read from cache) the data
+    first_date: str
+    last_date_kept: str
+    trimmed_days: int
+
+    def describe(self) -> str:
+        return (f"DataSF data as of {self.data_as_of or 'unknown'}; days "
+                f"{self.first_date}…{self.last_date_kept} (last {self.trimmed_days} days of each "
+                f"dataset dropped as still under revision); loaded {self.loaded_at}")
+
+
+@dataclass(frozen=True)
+class SeriesProvenance:
+    vintage: DataVintage
+    datasets: tuple[DatasetProvenance, ...]
+
+    @property
+    def max_stale_days(self) -> float:
+        return max((d.stale_days for d in self.datasets), default=0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"vintage": asdict(self.vintage),
+                "datasets": [asdict(d) for d in self.datasets],
+                "max_stale_days": self.max_stale_days}
+
+
+@dataclass(frozen=True)
+class SFSeries:
+    """Daily frame ``date, new_cases, cumulative_cases, new_deaths, cumulative_deaths, tests,
+    positives, negatives, indeterminate`` (those of the loaded datasets) + provenance."""
+
+    frame: pd.DataFrame
+    provenance: SeriesProvenance
+
+    @property
+    def vintage(self) -> DataVintage:
+        return self.provenance.vintage
+
+
+def rows_frame(rows: list[dict[str, object]]) -> pd.DataFrame:
+    """Socrata JSON rows -> frame of strings (absent keys, i.e. nulls, become NA)."""
+    frame = pd.DataFrame.from_records(rows)
+    return frame.astype("string") if len(frame.columns) else frame
+
+
+def decode_cached(cached: CachedPayload, spec: DatasetSpec) -> pd.DataFrame:
+    source = str(cached.path)
+    if cached.path.suffix == ".csv":
+        return read_csv_bytes(cached.payload, source=source)
+    try:
+        rows = json.loads(cached.payload)
+    except json.JSONDecodeError as exc:
+        raise DataSourceError(f"{source}: cached JSON unreadable: {exc}") from exc
+    return rows_frame(rows)
+
+
+def _fetch_live(spec: DatasetSpec, client: DataSFClient, cache: DatasetCache,
+                gap_policy: GapPolicy) -> tuple[ValidatedFrame, DatasetProvenance]:
+    result = client.fetch(spec)
+    validated = validate_frame(rows_frame(result.rows), spec, source=result.url,
+                               gap_policy=gap_policy)
+    report = validated.report
+    manifest = cache.store(
+        spec, result.payload, suffix="json", source_kind="api", source=result.url,
+        row_count=report.row_count, first_date=str(report.first_date.date()),
+        last_date=str(report.last_date.date()),
+        data_as_of=report.data_as_of.isoformat() if report.data_as_of is not None else None,
+        final_cumulative=report.final_cumulative)
+    return validated, _provenance(manifest, from_cache=False, stale_days=0.0,
+                                  notes=report.warnings)
+
+
+def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
+                now: datetime, why: str | None) -> tuple[ValidatedFrame, DatasetProvenance]:
+    cached = cache.load(spec)
+    if cached is None:
+        reason = f" ({why})" if why else ""
+        raise OfflineError(
+            f"no cached DataSF {spec.key} data ({spec.dataset_id}) in "
+            f"{cache.directory(spec)}{reason}. Fetch it with `flowcast data fetch` when online, "
+            f"or import a DataSF CSV export ({spec.export_url()}) with "
+            f"`flowcast data import FILE`.")
+    validated = validate_frame(decode_cached(cached, spec), spec, source=str(cached.path),
+                               gap_policy=gap_policy)
+    stale = cached.manifest.age_days(now)
+    notes = ((why,) if why else ()) + (f"using cache, stale by {stale:.0f} days",)
+    log.warning("DataSF %s: %s", spec.key, "; ".join(notes))
+    return validated, _provenance(cached.manifest, from_cache=True, stale_days=stale,
+                                  notes=notes + validated.report.warnings)
+
+
+def _provenance(manifest, *, from_cache: bool, stale_days: float,  # type: ignore[no-untyped-def]
+                notes: tuple[str, ...]) -> DatasetProvenance:
+    return DatasetProvenance(
+        dataset_key=manifest.dataset_key, dataset_id=manifest.dataset_id,
+        source_kind=manifest.source_kind, source=manifest.source,
+        fetched_at=manifest.fetched_at, sha256=manifest.sha256, row_count=manifest.row_count,
+        first_date=manifest.first_date, last_date=manifest.last_date,
+        data_as_of=manifest.data_as_of, from_cache=from_cache, stale_days=stale_days,
+        notes=notes)
+
+
+def load_dataset(spec: DatasetSpec, config: SFDataConfig, *, offline: bool = False,
+                 session: requests.Session | None = None, now: datetime | None = None
+                 ) -> tuple[ValidatedFrame, DatasetProvenance]:
+    """One dataset, live with cache fallback (or cache only when ``offline``)."""
+    cache = DatasetCache.default(config.data_dir)
+    now = now or utc_now()
+    if offline:
+        return _from_cache(spec, cache, config.gap_policy, now, why=None)
+    client = DataSFClient(config.client, session=session)
+    try:
+        return _fetch_live(spec, client, cache, config.gap_policy)
+    except NetworkError as exc:
+        why = f"DataSF unreachable: {exc}"
+    except DataSourceError as exc:  # includes ValidationError: bad payload, 4xx
+        why = f"DataSF payload rejected, cache kept: {exc}"
+        if not cache.has(spec):
+            raise
+    return _from_cache(spec, cache, config.gap_policy, now, why=why)
+
+
+def trim_trailing_days(frame: pd.DataFrame, days: int) -> pd.DataFrame:
+    """Drop the last ``days`` calendar days (the frame is daily and gap-free)."""
+    if days == 0:
+        return frame
+    cutoff = frame["date"].iloc[-1] - pd.Timedelta(days=days)
+    return frame.loc[frame["date"] <= cutoff].reset_index(drop=True)
+
+
+def _daily_on(validated: ValidatedFrame, dates: pd.DatetimeIndex) -> pd.DataFrame:
+    """The dataset's daily counts on ``dates`` (0 outside its own range) + rebuilt cumulative."""
+    spec, frame = validated.spec, validated.frame
+    daily = frame.set_index("date")[list(spec.count_columns)].reindex(dates, fill_value=0)
+    if spec.cumulative is not None and spec.cumulative_of is not None:
+        first = frame.iloc[0]
+        offset = int(first[spec.cumulative.canonical]) - int(first[spec.cumulative_of])
+        before = frame.loc[frame["date"] < dates[0], spec.cumulative_of].sum()
+        daily[spec.cumulative.canonical] = (offset + int(before)
+                                            + daily[spec.cumulative_of].cumsum())
+    return daily.astype(np.int64)
+
+
+def combine(frames: dict[str, ValidatedFrame], trailing_days: int) -> pd.DataFrame:
+    trimmed = {k: ValidatedFrame(v.spec, trim_trailing_days(v.frame, trailing_days), v.report)
+               for k, v in frames.items()}
+    empty = [k for k, v in trimmed.items() if len(v.frame) == 0]
+    if empty:
+        raise ValidationError(f"no days left in {empty} after dropping the last "
+                              f"{trailing_days} days")
+    start = trimmed[CASES.key].frame["date"].iloc[0]
+    end = min(v.frame["date"].iloc[-1] for v in trimmed.values())
+    dates = pd.date_range(start, end, freq="D", name="date").astype("datetime64[us]")
+    parts = [_daily_on(trimmed[k], dates) for k in trimmed]
+    return pd.concat(parts, axis=1).rename_axis("date").reset_index()
+
+
+def load_sf_series(config: SFDataConfig = SFDataConfig(), *, offline: bool = False,
+                   session: requests.Session | None = None,
+                   now: datetime | None = None) -> SFSeries:
+    """Cases (+ deaths, tests) as one validated, vintage-trimmed daily frame with provenance."""
+    now = now or utc_now()
+    frames: dict[str, ValidatedFrame] = {}
+    provenance: list[DatasetProvenance] = []
+    for key in config.datasets:
+        validated, prov = load_dataset(DATASETS[key], config, offline=offline, session=session,
+                                       now=now)
+        frames[key] = validated
+        provenance.append(prov)
+    frame = combine(frames, config.trailing_days)
+    stamps = [p.data_as_of for p in provenance if p.data_as_of]
+    vintage = DataVintage(
+        data_as_of=min(stamps) if stamps else None,
+        loaded_at=now.isoformat(timespec="seconds"),
+        first_date=str(frame["date"].iloc[0].date()),
+        last_date_kept=str(frame["date"].iloc[-1].date()),
+        trimmed_days=config.trailing_days)
+    return SFSeries(frame, SeriesProvenance(vintage, tuple(provenance)))

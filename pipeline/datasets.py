@@ -1,0 +1,556 @@
+"""Windowed (context, target) training data built from simulated ensembles.
+
+A sample is a run of R + 1 consecutive *kept* (observed) times of one trajectory:
+
+* forward:  context = observations at the R kept times before the target time,
+            target  = the true state at the last of the R + 1 times;
+* backward: context = observations at the R kept times after the target time,
+            target  = the true state at the first of the R + 1 times.
+
+Context rows are in chronological order in both directions; each row is the observed values
+followed by one time channel ``t_obs - t_target`` (negative forward, positive backward). Under
+dropout the kept times are irregular, and the time channel is what tells the model how far each
+observation is from the target. Trajectories with fewer than R + 1 kept times give no sample;
+there is no padding, so ``mask`` is all True in the built datasets (it exists for consumers that
+feed shorter contexts, e.g. real data at the start of a series).
+
+Targets are the state (SIR: S, I, R; vehicle: p_x, p_y) or, for SIR with a parameter prior,
+state + parameters (S, I, R, beta, gamma) for joint estimation.
+
+The train/validation split is by trajectory (windows of one trajectory overlap, so a split by
+window would leak), and the standardization stored with a dataset is computed on its training
+trajectories only; ``split_by_trajectory(ds, ds.meta.val_fraction, ds.meta.seed)`` reproduces that
+split exactly. Files are written atomically and carry a format version, the config, the seed,
+the package version and a sha256 of the tensor contents that is verified on load.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+import pipeline
+from pipeline.errors import ConfigError, DatasetError
+from pipeline.io import atomic_open, sha256_file
+from pipeline.progress import ProgressReporter, SilentProgress
+from pipeline.systems import sir as sir_system
+from pipeline.systems import vehicle as vehicle_system
+
+FORMAT = "flowcast.windowed-dataset"
+FORMAT_VERSION = 1
+DIRECTIONS = ("forward", "backward")
+TARGET_KINDS = ("state", "state+params")
+SPLITS = ("all", "train", "validation")
+SIR_DATASETS = ("sir-single", "sir-multi")
+VEHICLE_DATASETS = ("vehicle-full", "vehicle-dropout", "vehicle-sparse")
+DATASET_NAMES = SIR_DATASETS + VEHICLE_DATASETS
+TIME_FEATURE = "t_obs-t_target"
+DEFAULT_WINDOW = 5
+DEFAULT_VAL_FRACTION = 0.1
+# A feature whose training spread is below this is constant (e.g. the time channel of a
+# fixed-step dataset would not be, but a fixed parameter would): it is centred, not scaled.
+_MIN_STD = 1e-12
+_TENSOR_FIELDS = ("context", "mask", "target", "trajectory", "target_time")
+_STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
+
+
+# --------------------------------------------------------------------------- configuration
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What to simulate and how to window it. ``n_trajectories=None`` = the named preset's size."""
+
+    name: str
+    direction: str = "forward"
+    target: str = "state"
+    window: int = DEFAULT_WINDOW
+    seed: int = 0
+    vehicle_model: str = "paper"
+    val_fraction: float = DEFAULT_VAL_FRACTION
+    n_trajectories: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.name not in DATASET_NAMES:
+            raise ConfigError(f"unknown dataset config {self.name!r}; known: {list(DATASET_NAMES)}")
+        _check_choice("direction", self.direction, DIRECTIONS)
+        _check_choice("target", self.target, TARGET_KINDS)
+        _check_choice("vehicle_model", self.vehicle_model, vehicle_system.MODELS)
+        if self.window < 1:
+            raise ConfigError(f"window={self.window} must be >= 1")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ConfigError(f"val_fraction={self.val_fraction} must be in [0, 1)")
+        if self.n_trajectories is not None and self.n_trajectories < 1:
+            raise ConfigError(f"n_trajectories={self.n_trajectories} must be >= 1")
+        if self.target == "state+params" and self.name != "sir-multi":
+            raise ConfigError(f"target 'state+params' needs varying parameters (sir-multi); "
+                              f"{self.name!r} has none to estimate")
+
+    @property
+    def system(self) -> str:
+        return "sir" if self.name in SIR_DATASETS else "vehicle"
+
+    def system_config(self) -> sir_system.SIRPrior | vehicle_system.VehicleConfig:
+        """The SIR prior or vehicle config this dataset simulates (size override applied)."""
+        if self.system == "sir":
+            base: Any = sir_system.get_prior(self.name)
+        else:
+            base = vehicle_system.get_vehicle_config(self.name, self.vehicle_model)
+        if self.n_trajectories is not None:
+            base = dataclasses.replace(base, n_trajectories=self.n_trajectories)
+        return base
+
+
+def _check_choice(field: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{field}={value!r}, expected one of {list(allowed)}")
+
+
+# --------------------------------------------------------------------------- standardization
+
+@dataclass(frozen=True)
+class Standardization:
+    """Per-feature affine standardization, z = (x - mean) / std, fitted on training data."""
+
+    context_mean: Tensor
+    context_std: Tensor
+    target_mean: Tensor
+    target_std: Tensor
+
+    def standardize_context(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``x (..., C)``; with ``mask (...)`` given, padding rows stay exactly zero."""
+        z = (x - self.context_mean.to(x)) / self.context_std.to(x)
+        return z if mask is None else z * mask.unsqueeze(-1).to(z.dtype)
+
+    def standardize_target(self, y: Tensor) -> Tensor:
+        return (y - self.target_mean.to(y)) / self.target_std.to(y)
+
+    def unstandardize_target(self, z: Tensor) -> Tensor:
+        return z * self.target_std.to(z) + self.target_mean.to(z)
+
+    @property
+    def log_abs_det(self) -> Tensor:
+        """log |det dz/dy| of the target transform (= -sum log std): log p(y) = log p(z) + this."""
+        return -torch.log(self.target_std.double()).sum().to(self.target_std.dtype)
+
+    def to(self, device: torch.device | str) -> Standardization:
+        return Standardization(*(getattr(self, f).to(device) for f in _STATS_FIELDS))
+
+    def as_dict(self) -> dict[str, Tensor]:
+        return {f: getattr(self, f) for f in _STATS_FIELDS}
+
+
+def _mean_std(rows: Tensor) -> tuple[Tensor, Tensor]:
+    """Column mean and population std of ``rows (M, K)``, accumulated in float64."""
+    if rows.shape[0] == 0:
+        raise DatasetError("cannot compute standardization: the training split has no samples")
+    std, mean = torch.std_mean(rows.double(), dim=0, correction=0)
+    std = torch.where(std > _MIN_STD, std, torch.ones_like(std))
+    return mean.float(), std.float()
+
+
+def compute_standardization(context: Tensor, mask: Tensor, target: Tensor) -> Standardization:
+    """Statistics over the real (mask True) context rows and over the targets given."""
+    context_mean, context_std = _mean_std(context[mask])
+    target_mean, target_std = _mean_std(target)
+    return Standardization(context_mean, context_std, target_mean, target_std)
+
+
+# --------------------------------------------------------------------------- dataset types
+
+@dataclass(frozen=True)
+class DatasetMeta:
+    """Provenance of a windowed dataset; ``config`` is the simulated system's config as plain data."""
+
+    system: str
+    config_name: str
+    direction: str
+    target_kind: str
+    context_features: tuple[str, ...]
+    target_features: tuple[str, ...]
+    window: int
+    seed: int
+    val_fraction: float
+    split: str
+    n_trajectories: int
+    n_observed_points: int
+    n_observed_values: int
+    config: dict[str, Any]
+    package_version: str
+    format_version: int
+    data_sha256: str
+
+    def as_dict(self) -> dict[str, Any]:
+        # JSON round trip: tuples -> lists, only plain types (loadable with weights_only=True).
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> DatasetMeta:
+        names = [f.name for f in dataclasses.fields(cls)]
+        missing = [n for n in names if n not in raw]
+        if missing:
+            raise KeyError(", ".join(missing))
+        values = {n: raw[n] for n in names}
+        values["context_features"] = tuple(values["context_features"])
+        values["target_features"] = tuple(values["target_features"])
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class WindowedDataset:
+    """``context (W, R, C)`` float32, ``mask (W, R)`` bool, ``target (W, D)`` float32,
+    ``trajectory (W,)`` int64 (source trajectory of each window), ``target_time (W,)`` float64,
+    ``stats`` (fitted on training trajectories), ``meta``."""
+
+    context: Tensor
+    mask: Tensor
+    target: Tensor
+    trajectory: Tensor
+    target_time: Tensor
+    stats: Standardization
+    meta: DatasetMeta
+
+    def __len__(self) -> int:
+        return int(self.context.shape[0])
+
+    def subset(self, index: Tensor, split: str) -> WindowedDataset:
+        """The windows selected by ``index`` (bool mask or indices), same stats, new split label."""
+        parts = {f: getattr(self, f)[index] for f in _TENSOR_FIELDS}
+        draft = dataclasses.replace(self, **parts,
+                                    meta=dataclasses.replace(self.meta, split=split))
+        return _with_hash(draft)
+
+
+def dataset_sha256(ds: WindowedDataset) -> str:
+    """sha256 over names, dtypes, shapes and bytes of all tensors (data and standardization)."""
+    digest = hashlib.sha256()
+    named = [(f, getattr(ds, f)) for f in _TENSOR_FIELDS] + list(ds.stats.as_dict().items())
+    for name, tensor in named:
+        array = tensor.detach().cpu().contiguous().numpy()
+        digest.update(f"{name}|{array.dtype.str}|{tuple(array.shape)};".encode())
+        digest.update(array.reshape(-1).view(np.uint8))
+    return digest.hexdigest()
+
+
+def _with_hash(ds: WindowedDataset) -> WindowedDataset:
+    meta = dataclasses.replace(ds.meta, data_sha256=dataset_sha256(ds))
+    return dataclasses.replace(ds, meta=meta)
+
+
+# --------------------------------------------------------------------------- windowing
+
+def window_indices(kept: Tensor, window: int) -> tuple[Tensor, Tensor]:
+    """All runs of ``window + 1`` consecutive kept times within one trajectory.
+
+    ``kept (N, T)`` bool. Returns ``trajectory (W,)`` and ``time_index (W, window + 1)``
+    (ascending within a row). Vectorized: the kept points are flattened in (trajectory, time)
+    order, and a run starting at flat position j is valid when points j and j + window belong
+    to the same trajectory (then so do all points between them).
+    """
+    traj, time_index = kept.nonzero(as_tuple=True)  # row-major: sorted by trajectory, then time
+    n_points = traj.numel()
+    if n_points <= window:
+        empty = torch.empty(0, dtype=torch.long)
+        return empty, torch.empty((0, window + 1), dtype=torch.long)
+    starts = torch.arange(n_points - window)
+    starts = starts[traj[starts] == traj[starts + window]]
+    offsets = starts.unsqueeze(1) + torch.arange(window + 1)
+    return traj[starts], time_index[offsets]
+
+
+def make_windows(times: Tensor, observations: Tensor, kept: Tensor, states: Tensor,
+                 parameters: Tensor | None, direction: str, window: int
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Cut windows from any ensemble on a shared time grid.
+
+    ``times (T,)``, ``observations (N, T, C_obs)``, ``kept (N, T)`` bool, ``states (N, T, D)``
+    (the target variables), ``parameters (N, P)`` or None (appended to the target).
+    Returns ``context (W, R, C_obs + 1)`` float32, ``mask (W, R)``, ``target (W, D [+ P])``
+    float32, ``trajectory (W,)`` int64, ``target_time (W,)`` float64.
+    """
+    _check_choice("direction", direction, DIRECTIONS)
+    traj, time_index = window_indices(kept, window)
+    if direction == "forward":
+        context_index, target_index = time_index[:, :window], time_index[:, window]
+    else:
+        context_index, target_index = time_index[:, 1:], time_index[:, 0]
+    times64 = times.to(torch.float64)
+    target_time = times64[target_index]
+    time_channel = (times64[context_index] - target_time.unsqueeze(1)).to(torch.float32)
+    observed = observations[traj.unsqueeze(1), context_index].to(torch.float32)
+    context = torch.cat([observed, time_channel.unsqueeze(-1)], dim=-1)
+    target = states[traj, target_index].to(torch.float32)
+    if parameters is not None:
+        target = torch.cat([target, parameters[traj].to(torch.float32)], dim=-1)
+    mask = torch.ones(context.shape[:2], dtype=torch.bool)
+    return context, mask, target, traj, target_time
+
+
+# --------------------------------------------------------------------------- splitting
+
+def validation_trajectories(trajectory_ids: Tensor, val_fraction: float, seed: int) -> Tensor:
+    """The trajectory ids held out for validation: a seeded random ``val_fraction`` of the ids
+    (rounded, at least one when ``val_fraction > 0``, and always leaving one for training)."""
+    ids = torch.unique(trajectory_ids)
+    if val_fraction <= 0.0:
+        return ids[:0]
+    if not val_fraction < 1.0:
+        raise ConfigError(f"val_fraction={val_fraction} must be in [0, 1)")
+    if ids.numel() < 2:
+        raise DatasetError(f"cannot split {ids.numel()} trajectory(ies) into training and "
+                           "validation: need at least 2")
+    n_val = min(max(1, round(val_fraction * ids.numel())), ids.numel() - 1)
+    permutation = torch.randperm(ids.numel(), generator=torch.Generator().manual_seed(seed))
+    return ids[permutation[:n_val]]
+
+
+def split_by_trajectory(ds: WindowedDataset, val_fraction: float, seed: int
+                        ) -> tuple[WindowedDataset, WindowedDataset]:
+    """(train, validation) with no trajectory in both; both carry stats fitted on train."""
+    is_validation = torch.isin(ds.trajectory, validation_trajectories(ds.trajectory, val_fraction,
+                                                                       seed))
+    train_index = ~is_validation
+    stats = compute_standardization(ds.context[train_index], ds.mask[train_index],
+                                    ds.target[train_index])
+    with_stats = dataclasses.replace(ds, stats=stats)
+    return with_stats.subset(train_index, "train"), with_stats.subset(is_validation, "validation")
+
+
+def train_validation_split(ds: WindowedDataset) -> tuple[WindowedDataset, WindowedDataset]:
+    """The split the dataset's stored standardization was fitted on."""
+    return split_by_trajectory(ds, ds.meta.val_fraction, ds.meta.seed)
+
+
+# --------------------------------------------------------------------------- assembling
+
+def _assemble(*, system: str, config_name: str, system_config: Any, seed: int, direction: str,
+              target_kind: str, window: int, val_fraction: float, context_features: tuple[str, ...],
+              target_features: tuple[str, ...], n_trajectories: int, n_observed_points: int,
+              n_observed_values: int, windows: tuple[Tensor, ...]) -> WindowedDataset:
+    context, mask, target, trajectory, target_time = windows
+    if context.shape[0] == 0:
+        raise DatasetError(f"{config_name}: no trajectory has {window + 1} kept times, so no "
+                           f"window of {window} observations + target can be cut")
+    is_validation = torch.isin(trajectory, validation_trajectories(trajectory, val_fraction, seed))
+    train = ~is_validation
+    stats = compute_standardization(context[train], mask[train], target[train])
+    meta = DatasetMeta(
+        system=system, config_name=config_name, direction=direction, target_kind=target_kind,
+        context_features=context_features, target_features=target_features, window=window,
+        seed=seed, val_fraction=val_fraction, split="all", n_trajectories=n_trajectories,
+        n_observed_points=n_observed_points, n_observed_values=n_observed_values,
+        config=json.loads(json.dumps(dataclasses.asdict(system_config))),
+        package_version=pipeline.__version__, format_version=FORMAT_VERSION, data_sha256="")
+    return _with_hash(WindowedDataset(context, mask, target, trajectory, target_time, stats, meta))
+
+
+def windows_from_sir(ensemble: sir_system.SIREnsemble, direction: str = "forward",
+                     target: str = "state", window: int = DEFAULT_WINDOW,
+                     val_fraction: float = DEFAULT_VAL_FRACTION) -> WindowedDataset:
+    """Windowed dataset of an SIR ensemble (every day observed); split seed = ensemble seed."""
+    _check_choice("target", target, TARGET_KINDS)
+    if target == "state+params" and ensemble.prior.parameters_fixed:
+        raise ConfigError(f"target 'state+params' needs varying parameters; prior "
+                          f"{ensemble.prior.name!r} fixes beta and gamma")
+    parameters = ensemble.parameters if target == "state+params" else None
+    kept = torch.ones(ensemble.observations.shape[:2], dtype=torch.bool)
+    windows = make_windows(ensemble.times, ensemble.observations, kept, ensemble.states,
+                           parameters, direction, window)
+    features = sir_system.COMPARTMENTS + (sir_system.PARAMETERS if parameters is not None else ())
+    prior = dataclasses.replace(ensemble.prior, n_trajectories=ensemble.n_trajectories)
+    return _assemble(
+        system="sir", config_name=ensemble.prior.name, system_config=prior, seed=ensemble.seed,
+        direction=direction, target_kind=target, window=window, val_fraction=val_fraction,
+        context_features=tuple(f"{c}_obs" for c in sir_system.COMPARTMENTS) + (TIME_FEATURE,),
+        target_features=features, n_trajectories=ensemble.n_trajectories,
+        n_observed_points=int(kept.sum()), n_observed_values=ensemble.n_observed_values,
+        windows=windows)
+
+
+def windows_from_vehicle(ensemble: vehicle_system.VehicleEnsemble, direction: str = "forward",
+                         target: str = "state", window: int = DEFAULT_WINDOW,
+                         val_fraction: float = DEFAULT_VAL_FRACTION) -> WindowedDataset:
+    """Windowed dataset of kept vehicle positions; target = true position (p_x, p_y)."""
+    _check_choice("target", target, TARGET_KINDS)
+    if target != "state":
+        raise ConfigError("vehicle datasets support target 'state' only (p_x, p_y); the switch "
+                          "psi is not a parameter to estimate")
+    windows = make_windows(ensemble.times, ensemble.observations, ensemble.kept,
+                           ensemble.states[..., :2], None, direction, window)
+    config = dataclasses.replace(ensemble.config, n_trajectories=ensemble.n_trajectories)
+    n_points = ensemble.n_points
+    return _assemble(
+        system="vehicle", config_name=ensemble.config.name, system_config=config,
+        seed=ensemble.seed, direction=direction, target_kind=target, window=window,
+        val_fraction=val_fraction,
+        context_features=tuple(f"{c}_obs" for c in vehicle_system.OBSERVED_NAMES) + (TIME_FEATURE,),
+        target_features=vehicle_system.OBSERVED_NAMES, n_trajectories=ensemble.n_trajectories,
+        n_observed_points=n_points, n_observed_values=2 * n_points, windows=windows)
+
+
+def progress_total(config: DatasetConfig) -> int:
+    """Units ``build_dataset`` reports: one per simulation step plus one for windowing."""
+    return config.system_config().n_steps + 1
+
+
+def build_dataset_from_config(config: DatasetConfig,
+                              progress: ProgressReporter | None = None) -> WindowedDataset:
+    reporter = progress or SilentProgress()
+    system_config = config.system_config()
+    if isinstance(system_config, sir_system.SIRPrior):
+        sir_ensemble = sir_system.simulate_ensemble(system_config, seed=config.seed,
+                                                    progress=reporter)
+        ds = windows_from_sir(sir_ensemble, config.direction, config.target, config.window,
+                              config.val_fraction)
+    else:
+        vehicle_ensemble = vehicle_system.simulate_vehicle(system_config, seed=config.seed,
+                                                           progress=reporter)
+        ds = windows_from_vehicle(vehicle_ensemble, config.direction, config.target,
+                                  config.window, config.val_fraction)
+    reporter.advance(1, windows=len(ds))
+    return ds
+
+
+def build_dataset(name: str, direction: str = "forward", target: str = "state",
+                  window: int = DEFAULT_WINDOW, seed: int = 0,
+                  progress: ProgressReporter | None = None, *, vehicle_model: str = "paper",
+                  val_fraction: float = DEFAULT_VAL_FRACTION,
+                  n_trajectories: int | None = None) -> WindowedDataset:
+    """Simulate the named config (sir-single, sir-multi, vehicle-full, vehicle-dropout,
+    vehicle-sparse) and window it. Deterministic from ``seed``."""
+    config = DatasetConfig(name=name, direction=direction, target=target, window=window,
+                           seed=seed, vehicle_model=vehicle_model, val_fraction=val_fraction,
+                           n_trajectories=n_trajectories)
+    return build_dataset_from_config(config, progress)
+
+
+# --------------------------------------------------------------------------- save / load
+
+def save_dataset(ds: WindowedDataset, path: str | os.PathLike[str]) -> str:
+    """Write ``ds`` atomically (tensors + plain Python types only); returns the file's sha256."""
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "tensors": {f: getattr(ds, f).detach().cpu().contiguous() for f in _TENSOR_FIELDS},
+        "stats": {k: v.detach().cpu().contiguous() for k, v in ds.stats.as_dict().items()},
+        "meta": ds.meta.as_dict(),
+    }
+    with atomic_open(path, "wb") as handle:
+        torch.save(payload, handle)
+    return sha256_file(path)
+
+
+def load_dataset(path: str | os.PathLike[str], *, system: str | None = None,
+                 config_name: str | None = None, direction: str | None = None,
+                 target: str | None = None, window: int | None = None,
+                 vehicle_model: str | None = None) -> WindowedDataset:
+    """Read a dataset written by :func:`save_dataset` and verify it.
+
+    Raises ``DatasetError`` naming the file when it is missing, unreadable (damaged, truncated,
+    not a torch file), not a flowcast dataset, of another format version, internally
+    inconsistent, altered (content hash), or when it does not match the keyword expectations.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise DatasetError(f"dataset file {file} does not exist")
+    try:
+        payload = torch.load(file, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises RuntimeError, EOFError, UnpicklingError, ...
+        raise DatasetError(f"dataset file {file} is damaged or truncated and cannot be read "
+                           f"({type(exc).__name__}: {exc})") from exc
+    marker = payload.get("format") if isinstance(payload, dict) else None
+    if marker != FORMAT:
+        raise DatasetError(f"dataset file {file} is not a flowcast windowed dataset "
+                           f"(format marker {marker!r}, expected {FORMAT!r})")
+    version = payload.get("format_version")
+    if version != FORMAT_VERSION:
+        raise DatasetError(f"dataset file {file} has format version {version!r}; this flowcast "
+                           f"({pipeline.__version__}) reads version {FORMAT_VERSION}: rebuild it "
+                           "with `flowcast simulate`")
+    ds = _dataset_from_payload(file, payload)
+    stored_hash = ds.meta.data_sha256
+    actual_hash = dataset_sha256(ds)
+    if stored_hash != actual_hash:
+        raise DatasetError(f"dataset file {file} is damaged: content sha256 {actual_hash[:12]}… "
+                           f"differs from the recorded {str(stored_hash)[:12]}…")
+    expected = {"system": system, "config_name": config_name, "direction": direction,
+                "target_kind": target, "window": window}
+    for field, wanted in expected.items():
+        if wanted is not None and getattr(ds.meta, field) != wanted:
+            raise DatasetError(f"dataset file {file} has {field}={getattr(ds.meta, field)!r}, "
+                               f"but {wanted!r} was asked for")
+    if vehicle_model is not None and ds.meta.config.get("model") != vehicle_model:
+        raise DatasetError(f"dataset file {file} has vehicle model "
+                           f"{ds.meta.config.get('model')!r}, but {vehicle_model!r} was asked for")
+    return ds
+
+
+def _dataset_from_payload(file: Path, payload: dict[str, Any]) -> WindowedDataset:
+    tensors, stats_raw, meta_raw = (payload.get("tensors"), payload.get("stats"),
+                                    payload.get("meta"))
+    if not all(isinstance(section, dict) for section in (tensors, stats_raw, meta_raw)):
+        raise DatasetError(f"dataset file {file} lacks its 'tensors', 'stats' or 'meta' section")
+    for section, names, raw in (("tensors", _TENSOR_FIELDS, tensors),
+                                ("stats", _STATS_FIELDS, stats_raw)):
+        for name in names:
+            if not isinstance(raw.get(name), Tensor):
+                raise DatasetError(f"dataset file {file}: {section}.{name} is missing or "
+                                   "not a tensor")
+    try:
+        meta = DatasetMeta.from_dict(meta_raw)
+    except (KeyError, TypeError) as exc:
+        raise DatasetError(f"dataset file {file}: metadata field(s) missing or invalid: "
+                           f"{exc}") from exc
+    stats = Standardization(*(stats_raw[name] for name in _STATS_FIELDS))
+    ds = WindowedDataset(*(tensors[name] for name in _TENSOR_FIELDS), stats=stats, meta=meta)
+    _check_shapes(file, ds)
+    return ds
+
+
+def _check_shapes(file: Path, ds: WindowedDataset) -> None:
+    if ds.context.dim() != 3:
+        raise DatasetError(f"dataset file {file} is inconsistent: context has shape "
+                           f"{tuple(ds.context.shape)}, expected (N, R, C)")
+    n, window, channels = ds.context.shape
+    n_targets = len(ds.meta.target_features)
+    problems = []
+    if window != ds.meta.window:
+        problems.append(f"context window {window} != meta.window {ds.meta.window}")
+    if channels != len(ds.meta.context_features):
+        problems.append(f"context has {channels} channels, meta names "
+                        f"{len(ds.meta.context_features)}")
+    expected_shapes = {"mask": (n, window), "target": (n, n_targets), "trajectory": (n,),
+                       "target_time": (n,)}
+    for name, shape in expected_shapes.items():
+        if tuple(getattr(ds, name).shape) != shape:
+            problems.append(f"{name} has shape {tuple(getattr(ds, name).shape)}, expected {shape}")
+    if ds.mask.dtype != torch.bool:
+        problems.append(f"mask has dtype {ds.mask.dtype}, expected torch.bool")
+    for name, tensor in ds.stats.as_dict().items():
+        size = channels if name.startswith("context") else n_targets
+        if tuple(tensor.shape) != (size,):
+            problems.append(f"stats.{name} has shape {tuple(tensor.shape)}, expected ({size},)")
+        elif name.endswith("std") and not bool(torch.all(tensor > 0)):
+            problems.append(f"stats.{name} has non-positive entries")
+    if problems:
+        raise DatasetError(f"dataset file {file} is inconsistent: " + "; ".join(problems))
+
+
+def describe(ds: WindowedDataset) -> dict[str, Any]:
+    """A small summary (for the CLI and logs)."""
+    n_validation = int(torch.isin(ds.trajectory, validation_trajectories(
+        ds.trajectory, ds.meta.val_fraction, ds.meta.seed)).sum()) if ds.meta.split == "all" else 0
+    return {"config": ds.meta.config_name, "direction": ds.meta.direction,
+            "target": ds.meta.target_kind, "window": ds.meta.window, "windows": len(ds),
+            "validation_windows": n_validation, "trajectories": ds.meta.n_trajectories,
+            "observed_points": ds.meta.n_observed_points,
+            "observed_values": ds.meta.n_observed_values,
+            "context_shape": tuple(ds.context.shape), "target_shape": tuple(ds.target.shape),
+            "data_sha256": ds.meta.data_sha256}

@@ -1,0 +1,1 @@
+"""Small self-contained demonstrations (e.g. the kinetic-energy double-moon figure)."""

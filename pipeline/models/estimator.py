@@ -1,0 +1,224 @@
+"""ConditionalEstimator = standardization + context encoder + conditional flow.
+
+Two unit systems:
+- *original units* (what users and the estimation code see): ``log_prob``, ``sample``,
+  ``noise_to_data`` take raw context windows and raw targets and return raw values/densities.
+  ``log_prob`` includes the Jacobian of the target standardization:
+  log p(y) = log p(z) - sum_d log std_d, with z = (y - mean) / std.
+- *standardized units* (what training uses, the dataset tensors are standardized once):
+  ``standardized_log_prob``, ``standardized_trajectory``, ``layer_outputs`` take standardized
+  targets and contexts (padding rows zero).
+
+The standardization is stored as buffers (``context_mean/std``, ``target_mean/std``), so a
+checkpoint's ``state_dict`` carries it; ``build_estimator(config, stats)`` followed by
+``load_state_dict`` rebuilds the identical model.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from pipeline.errors import ConfigError
+from pipeline.models.encoders import EncoderConfig, build_encoder, check_window
+from pipeline.models.flows import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
+
+STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Everything needed to rebuild an estimator (stored in checkpoints as a plain dict).
+
+    features D (target size), context_channels C (observed values + the time channel, last),
+    window R (maximum rows; the MLP encoder needs exactly R), encoder, flow. The flow's
+    ``features`` must equal D and its ``context_features`` the encoder's
+    ``embedding_features`` (``make_estimator_config`` fills them in).
+    """
+
+    features: int
+    context_channels: int
+    window: int
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    flow: FlowConfig | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("features", "context_channels", "window"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"EstimatorConfig.{name}={getattr(self, name)}: must be >= 1")
+        if self.flow is None:
+            object.__setattr__(self, "flow", FlowConfig(
+                features=self.features, context_features=self.encoder.embedding_features))
+        if self.flow.features != self.features:
+            raise ConfigError(f"EstimatorConfig.flow.features={self.flow.features} differs from "
+                              f"features={self.features}")
+        if self.flow.context_features != self.encoder.embedding_features:
+            raise ConfigError(f"EstimatorConfig.flow.context_features="
+                              f"{self.flow.context_features} differs from "
+                              f"encoder.embedding_features={self.encoder.embedding_features}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def make_estimator_config(features: int, context_channels: int, window: int,
+                          encoder: EncoderConfig = EncoderConfig(), **flow_options: Any
+                          ) -> EstimatorConfig:
+    """EstimatorConfig whose FlowConfig takes D and E from ``features`` and ``encoder``;
+    ``flow_options`` are the other FlowConfig fields (layers, hidden_features, backend, ...)."""
+    flow = FlowConfig(features=features, context_features=encoder.embedding_features,
+                      **flow_options)
+    return EstimatorConfig(features, context_channels, window, encoder, flow)
+
+
+def _stats_tensors(stats: Any) -> dict[str, Tensor]:
+    """The four standardization tensors from a ``Standardization``, a mapping, or any object
+    with those attributes."""
+    getter = stats.__getitem__ if isinstance(stats, Mapping) else lambda k: getattr(stats, k)
+    try:
+        return {k: torch.as_tensor(getter(k)).detach().to(torch.float32).reshape(-1).clone()
+                for k in STATS_FIELDS}
+    except (KeyError, AttributeError) as error:
+        raise ConfigError(f"standardization {type(stats).__name__} lacks {error}; it needs "
+                          f"{STATS_FIELDS}") from None
+
+
+class ConditionalEstimator(nn.Module):
+    """Density p(target | context window) in original units (module docstring)."""
+
+    def __init__(self, encoder: nn.Module, flow: ConditionalFlow, stats: Any,
+                 config: EstimatorConfig | None = None) -> None:
+        super().__init__()
+        self.encoder, self.flow, self.config = encoder, flow, config
+        tensors = _stats_tensors(stats)
+        for name, value in tensors.items():
+            if name.endswith("_std") and not bool((value > 0).all()):
+                raise ConfigError(f"standardization {name} must be > 0, got {value.tolist()}")
+            self.register_buffer(name, value)
+        if self.target_mean.shape != (flow.config.features,) or self.target_std.shape != self.target_mean.shape:
+            raise ConfigError(f"standardization target_mean/std have shape "
+                              f"{tuple(self.target_mean.shape)}/{tuple(self.target_std.shape)}, "
+                              f"the flow models D={flow.config.features}")
+        if self.context_std.shape != self.context_mean.shape:
+            raise ConfigError("standardization context_mean and context_std differ in shape")
+        if config is not None and self.context_mean.shape != (config.context_channels,):
+            raise ConfigError(f"standardization context_mean has shape "
+                              f"{tuple(self.context_mean.shape)}, the config has "
+                              f"C={config.context_channels} channels")
+
+    # --- metadata used by estimation / rollouts --------------------------------------------
+    @property
+    def window(self) -> int | None:
+        return self.config.window if self.config is not None else None
+
+    @property
+    def features(self) -> int:
+        return self.flow.config.features
+
+    @property
+    def stats(self) -> Any:
+        """The standardization as a ``pipeline.datasets.Standardization`` (buffers' values)."""
+        from pipeline.datasets import Standardization
+        return Standardization(self.context_mean, self.context_std, self.target_mean,
+                               self.target_std)
+
+    @property
+    def target_log_abs_det(self) -> Tensor:
+        """log |det dz/dy| of the target standardization = -sum log std."""
+        return -torch.log(self.target_std).sum()
+
+    # --- standardization -------------------------------------------------------------------
+    def standardize_context(self, context: Tensor, mask: Tensor) -> Tensor:
+        standardized = (context - self.context_mean) / self.context_std
+        return torch.where(mask[..., None], standardized, torch.zeros((), dtype=context.dtype))
+
+    def standardize_target(self, target: Tensor) -> Tensor:
+        return (target - self.target_mean) / self.target_std
+
+    def unstandardize_target(self, z: Tensor) -> Tensor:
+        return z * self.target_std + self.target_mean
+
+    # --- standardized units (training) -----------------------------------------------------
+    def embed(self, context: Tensor, mask: Tensor | None = None) -> Tensor:
+        """Flow context (B, E) of a *standardized* window (B, R, C)."""
+        mask = _full_mask(context) if mask is None else mask
+        check_window(context, mask, self.context_mean.shape[0])
+        return self.encoder(context, mask)
+
+    def standardized_log_prob(self, target: Tensor, context: Tensor,
+                              mask: Tensor | None = None) -> Tensor:
+        """log density of the standardized target given the standardized window, (B,)."""
+        return self.flow.log_prob(target, self.embed(context, mask))
+
+    def standardized_trajectory(self, target: Tensor, context: Tensor,
+                                mask: Tensor | None = None) -> tuple[FlowTrajectory, Tensor]:
+        """(flow trajectory f_0..f_L, embedding) for standardized inputs (kinetic loss)."""
+        embedding = self.embed(context, mask)
+        return self.flow.trajectory(target, embedding), embedding
+
+    def layer_outputs(self, target: Tensor, context: Tensor,
+                      mask: Tensor | None = None) -> list[Tensor]:
+        """[f_0 = target, ..., f_L] (standardized inputs), data -> base."""
+        return self.flow.layer_outputs(target, self.embed(context, mask))
+
+    # --- original units ----------------------------------------------------------------------
+    def _embed_raw(self, context: Tensor, mask: Tensor | None) -> Tensor:
+        mask = _full_mask(context) if mask is None else mask
+        return self.embed(self.standardize_context(context, mask), mask)
+
+    def log_prob(self, target: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
+        """log p(target | context) in original units, (B,)."""
+        log_prob = self.flow.log_prob(self.standardize_target(target), self._embed_raw(context, mask))
+        return log_prob + self.target_log_abs_det
+
+    def noise_to_data(self, eps: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
+        """Standard-normal noise (B, n, D) -> targets (B, n, D) in original units."""
+        return self.unstandardize_target(self.flow.noise_to_data(eps, self._embed_raw(context, mask)))
+
+    def sample(self, num_samples: int, context: Tensor, mask: Tensor | None = None,
+               generator: torch.Generator | None = None) -> Tensor:
+        """(B, num_samples, D) draws in original units."""
+        embedding = self._embed_raw(context, mask)
+        return self.unstandardize_target(self.flow.sample(num_samples, embedding, generator))
+
+    def forward(self, target: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
+        return self.log_prob(target, context, mask)
+
+
+def _full_mask(context: Tensor) -> Tensor:
+    return torch.ones(context.shape[:2], dtype=torch.bool, device=context.device)
+
+
+def build_estimator(config: EstimatorConfig, stats: Any, seed: int = 0) -> ConditionalEstimator:
+    """A freshly initialised estimator; the same ``seed`` gives the same weights. The global
+    RNG is used inside ``fork_rng``, so the caller's RNG state is left untouched."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        encoder = build_encoder(config.encoder, config.context_channels, config.window)
+        flow = build_flow(config.flow)
+    return ConditionalEstimator(encoder, flow, stats, config)
+
+
+def add_context_noise(context: Tensor, mask: Tensor, sigma: float, generator: torch.Generator,
+                      *, channel_std: Tensor | None = None, time_channel: int = -1) -> Tensor:
+    """The paper's context-noise augmentation (sigma = 1.0 vehicle, 0.01 SIR).
+
+    Adds N(0, sigma^2) to the observed-value channels of the real rows; the time channel
+    (``time_channel``, last by the dataset convention) and padding rows stay exact. sigma is in
+    the data's original units; for an already standardized context pass its ``channel_std`` and
+    the noise is divided by it. Returns a new tensor.
+    """
+    if sigma < 0:
+        raise ConfigError(f"context noise sigma={sigma}: must be >= 0")
+    scale = torch.full((context.shape[-1],), float(sigma), dtype=context.dtype,
+                       device=context.device)
+    if channel_std is not None:
+        scale = scale / channel_std.to(context)
+    scale[time_channel] = 0.0
+    noise = torch.randn(context.shape, generator=generator, dtype=context.dtype,
+                        device=context.device)
+    return context + noise * scale * mask[..., None].to(context.dtype)

@@ -1,0 +1,232 @@
+"""Typed report content: what a report says, with no HTML in it.
+
+The forecast flow builds figures with :mod:`pipeline.report.figures` (PNG bytes), puts them with
+tables (pandas DataFrames) into :class:`Section` objects and hands a :class:`ReportContent` to
+:func:`pipeline.report.render.write_report`. Every string here is plain text: the template
+escapes it, so data can never inject markup.
+
+Sections of the weekly report, in order (:class:`SectionKey`; titles in ``SECTION_TITLES``):
+SF S/I/R series and data vintage · 4-week forecast fan · forward/backward state estimates (2σ) · rollouts (7- and
+28-day windows, forward/backward, full and zoomed) · joint β, γ over time · NF-seeded SMC (3σ)
+· NLL table (paper Table 5 layout) · training/validation loss · backtest (relative WIS) ·
+provenance (rendered from :class:`Provenance`, not a section).
+"""
+from __future__ import annotations
+
+import datetime as dt
+import enum
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Literal
+
+import pandas as pd
+
+from pipeline.errors import FlowcastError
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+class ReportError(FlowcastError):
+    """Report content that cannot be rendered (bad image, duplicate section, empty table...)."""
+
+
+class SectionKey(enum.StrEnum):
+    SIR_SERIES = "sir-series"
+    FORECAST = "forecast"
+    STATE_ESTIMATES = "state-estimates"
+    ROLLOUTS = "rollouts"
+    PARAMETERS = "parameters"
+    SMC = "smc"
+    NLL = "nll"
+    TRAINING = "training"
+    BACKTEST = "backtest"
+
+
+SECTION_TITLES: Mapping[SectionKey, str] = MappingProxyType({
+    SectionKey.SIR_SERIES: "San Francisco S/I/R series",
+    SectionKey.FORECAST: "Forecast: the next four weeks",
+    SectionKey.STATE_ESTIMATES: "Forward and backward state estimates",
+    SectionKey.ROLLOUTS: "Rollouts: 7- and 28-day windows",
+    SectionKey.PARAMETERS: "Transmission (β) and recovery (γ) rates over time",
+    SectionKey.SMC: "NF-seeded particle filter (SMC)",
+    SectionKey.NLL: "Negative log-likelihood by model variant",
+    SectionKey.TRAINING: "Training and validation loss",
+    SectionKey.BACKTEST: "Backtest: forecast skill against baselines",
+})
+
+
+@dataclass(frozen=True)
+class FigureItem:
+    """A PNG figure with a caption (shown) and alt text (for screen readers and broken images).
+
+    ``width="half"`` places two consecutive half figures side by side.
+    """
+
+    png: bytes
+    caption: str
+    alt: str
+    width: Literal["full", "half"] = "full"
+
+    def __post_init__(self) -> None:
+        if not self.png.startswith(PNG_SIGNATURE):
+            raise ReportError(f"figure {self.caption[:60]!r} is not a PNG image "
+                              f"(first bytes {self.png[:8]!r})")
+        if not self.alt.strip():
+            raise ReportError(f"figure {self.caption[:60]!r} has no alt text")
+        if self.width not in ("full", "half"):
+            raise ReportError(f"figure width must be 'full' or 'half', got {self.width!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class TableItem:
+    """A table with a caption. ``frame`` may have a two-level column index (e.g. model × S/I/R
+    or value × paper/ours); its index is shown as row labels.
+
+    ``decimals``: digits after the point for floats. ``highlight``: bold the best value of each
+    row (``"row-min"``, as the paper's tables do for the lowest NLL/KL), or nothing.
+    """
+
+    frame: pd.DataFrame
+    caption: str
+    decimals: int = 3
+    highlight: Literal["row-min", "row-max"] | None = None
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        if self.frame.empty:
+            raise ReportError(f"table {self.caption[:60]!r} is empty")
+        if self.frame.columns.nlevels > 2:
+            raise ReportError(f"table {self.caption[:60]!r} has {self.frame.columns.nlevels} "
+                              "column levels; at most 2 are supported")
+        # a private copy: later changes to the caller's frame must not change the report
+        object.__setattr__(self, "frame", self.frame.copy(deep=True))
+
+
+@dataclass(frozen=True)
+class Section:
+    """One titled part of a report: an optional intro paragraph, then figures and tables."""
+
+    key: str
+    title: str
+    items: tuple[FigureItem | TableItem, ...]
+    intro: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "items", tuple(self.items))
+        bad = [type(i).__name__ for i in self.items if not isinstance(i, (FigureItem, TableItem))]
+        if bad:
+            raise ReportError(f"section {self.key!r} holds unsupported items {bad}")
+
+    @classmethod
+    def weekly(cls, key: SectionKey, items: Sequence[FigureItem | TableItem],
+               intro: str = "") -> Section:
+        """A section of the weekly report with its canonical anchor and title."""
+        return cls(key=str(key), title=SECTION_TITLES[key], items=tuple(items), intro=intro)
+
+
+def _freeze(mapping: Mapping[str, Any]) -> Mapping[str, Any]:
+    return MappingProxyType(dict(mapping))
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Where the numbers come from: enough to reproduce the run."""
+
+    package_version: str
+    versions: Mapping[str, str] = field(default_factory=dict)     # python, torch, numpy, ...
+    config: Mapping[str, Any] = field(default_factory=dict)       # the run's typed config, as dict
+    data_sha256: str = ""
+    checkpoint_sha256: str = ""
+    seed: int | None = None
+    extra: Mapping[str, str] = field(default_factory=dict)        # e.g. run id, command line
+
+    def __post_init__(self) -> None:
+        for name in ("versions", "config", "extra"):
+            object.__setattr__(self, name, _freeze(getattr(self, name)))
+
+    def rows(self) -> list[tuple[str, str]]:
+        """(label, value) pairs in display order."""
+        rows = [("flowcast version", self.package_version)]
+        rows += [(f"{name} version", str(v)) for name, v in sorted(self.versions.items())]
+        rows += [("data sha256", self.data_sha256 or "—"),
+                 ("model checkpoint sha256", self.checkpoint_sha256 or "—"),
+                 ("seed", "—" if self.seed is None else str(self.seed))]
+        rows += [(k, str(v)) for k, v in self.extra.items()]
+        return rows
+
+    def config_json(self) -> str:
+        return json.dumps(dict(self.config), indent=2, sort_keys=True, default=str)
+
+
+@dataclass(frozen=True)
+class ReportContent:
+    """Everything one report shows. Build it in the flow; render it with ``render_html``."""
+
+    title: str
+    reference_date: dt.date
+    data_vintage: str                     # e.g. "DataSF export, data as of 2022-03-21 04:30"
+    sections: tuple[Section, ...]
+    provenance: Provenance
+    warnings: tuple[str, ...] = ()        # e.g. "Data are stale by 9 days (fetch failed)."
+    summary: str = ""                     # a short lead paragraph under the title
+    generated_at: dt.datetime | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sections", tuple(self.sections))
+        object.__setattr__(self, "warnings", tuple(self.warnings))
+        keys = [s.key for s in self.sections]
+        duplicates = sorted({k for k in keys if keys.count(k) > 1})
+        if duplicates:
+            raise ReportError(f"duplicate section keys {duplicates}")
+        if not isinstance(self.reference_date, dt.date):
+            raise ReportError(f"reference_date must be a date, got {self.reference_date!r}")
+
+
+def stale_data_warning(latest_data_date: dt.date, as_of: dt.date, tolerance_days: int = 7,
+                       as_of_label: str = "the run date") -> str | None:
+    """The warning text when the newest data point is more than ``tolerance_days`` older than
+    ``as_of`` (e.g. the day the run happened), else None."""
+    age = (as_of - latest_data_date).days
+    if age <= tolerance_days:
+        return None
+    return (f"Data are stale: the newest observation is from {latest_data_date.isoformat()}, "
+            f"{age} days before {as_of_label} ({as_of.isoformat()}).")
+
+
+def nll_table(nll: Mapping[tuple[str, str], float],
+              variants: Sequence[str] = ("Transformer", "Transformer + KE", "Mamba-SSM"),
+              directions: Sequence[str] = ("fw", "bw")) -> pd.DataFrame:
+    """The paper's Table 5 layout: rows fw/bw, one column per model variant.
+
+    ``nll[(direction, variant)]`` = mean NLL aggregated over S, I, R; missing cells are NaN
+    (shown as "—").
+    """
+    unknown = sorted({k for k in nll} - {(d, v) for d in directions for v in variants})
+    if unknown:
+        raise ReportError(f"NLL entries {unknown} are not among directions {list(directions)} "
+                          f"× variants {list(variants)}")
+    data = [[nll.get((d, v), float("nan")) for v in variants] for d in directions]
+    frame = pd.DataFrame(data, index=pd.Index(list(directions), name="direction"),
+                         columns=pd.Index(list(variants), name="model"))
+    return frame
+
+
+def paper_vs_ours(paper: pd.DataFrame, ours: pd.DataFrame) -> pd.DataFrame:
+    """Interleave two same-shaped tables: columns (column, "paper") and (column, "ours").
+
+    Rows and columns of ``ours`` must match ``paper``'s (missing ours → NaN, shown "—").
+    """
+    extra = [c for c in ours.columns if c not in paper.columns]
+    if extra:
+        raise ReportError(f"our table has columns {extra} that the paper's table lacks")
+    ours = ours.reindex(index=paper.index, columns=paper.columns)
+    pieces = {}
+    for column in paper.columns:
+        label = column if isinstance(column, tuple) else (column,)
+        pieces[(" ".join(map(str, label)), "paper")] = paper[column]
+        pieces[(" ".join(map(str, label)), "ours")] = ours[column]
+    frame = pd.DataFrame(pieces, index=paper.index)
+    frame.columns = pd.MultiIndex.from_tuples(frame.columns)
+    return frame

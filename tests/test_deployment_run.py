@@ -1,0 +1,134 @@
+"""Integration: a real Prefect server on 127.0.0.1, the served deployment, `prefect deployment run`.
+
+Starts `prefect server start` (temporary PREFECT_HOME, free port), serves
+`weekly_forecast/sf-weekly` from flows/deploy.py, triggers it with the CLI (`--watch`, bounded),
+then checks the run COMPLETED, its report exists, and the deployment carries the Monday 06:00
+America/Los_Angeles cron schedule and is not paused. Every process started here is stopped (its
+whole process group) in a `finally`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
+
+REPO = Path(__file__).resolve().parents[1]
+PREFECT = str(Path(sys.executable).with_name("prefect"))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen(cmd, env=env, cwd=REPO, stdout=log.open("wb"),
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    """SIGTERM the process group, wait, then SIGKILL what is left."""
+    if proc.poll() is not None:
+        return
+    for sig, wait in ((signal.SIGTERM, 10), (signal.SIGKILL, 5)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            proc.wait(wait)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+def wait_healthy(api: str, proc: subprocess.Popen, log: Path, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            pytest.fail(f"prefect server exited early:\n{log.read_text()[-3000:]}")
+        try:
+            with urllib.request.urlopen(f"{api}/health", timeout=2) as r:
+                if r.status == 200:
+                    return
+        except OSError:
+            pass
+        time.sleep(0.5)
+    pytest.fail(f"prefect server not healthy after {timeout} s:\n{log.read_text()[-3000:]}")
+
+
+def api_post(api: str, path: str, body: dict) -> object:
+    req = urllib.request.Request(f"{api}{path}", data=json.dumps(body).encode(),
+                                 headers={"Content-Type": "application/json"}, method="POST")
+    with urllib.request.urlopen(req, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def test_serve_and_run_deployment(tmp_path, datasf_dir):
+    port = free_port()
+    api = f"http://127.0.0.1:{port}/api"
+    data_dir = tmp_path / "data"
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect-home"), "PREFECT_API_URL": api,
+           "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
+           "PREFECT_RUNNER_POLL_FREQUENCY": "1", "PREFECT_LOGGING_LEVEL": "INFO",
+           "FLOWCAST_DATA_DIR": str(data_dir), "PYTHONUNBUFFERED": "1"}
+    from pipeline.forecast import import_exports
+
+    os.environ["FLOWCAST_DATA_DIR"] = str(data_dir)  # the autouse fixture restores it
+    import_exports([str(datasf_dir)])
+    reports = tmp_path / "reports"
+    procs: list[subprocess.Popen] = []
+    try:
+        server_log = tmp_path / "server.log"
+        procs.append(start([PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port),
+                            "--analytics-off"], env, server_log))
+        wait_healthy(api, procs[0], server_log, 60)
+
+        serve_log = tmp_path / "serve.log"
+        procs.append(start([sys.executable, "-m", "flows.deploy", "--preset", "tiny",
+                            "--data-source", "cache", "--output-dir", str(reports)],
+                           env, serve_log))
+        deadline = time.monotonic() + 40
+        deployments: list = []
+        while time.monotonic() < deadline and not deployments:
+            deployments = api_post(api, "/deployments/filter",
+                                   {"deployments": {"name": {"any_": ["sf-weekly"]}}})
+            time.sleep(0.5)
+        assert deployments, f"deployment never registered:\n{serve_log.read_text()[-3000:]}"
+        deployment = deployments[0]
+        schedule = deployment["schedules"][0]["schedule"]
+        assert schedule["cron"] == "0 6 * * 1"
+        assert schedule["timezone"] == "America/Los_Angeles"
+        assert deployment["paused"] is False
+
+        run = subprocess.run([PREFECT, "deployment", "run", "weekly_forecast/sf-weekly",
+                              "--param", "seed=3", "--watch", "--watch-timeout", "150"],
+                             env=env, cwd=REPO, capture_output=True, text=True, timeout=170)
+        assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:] + \
+            serve_log.read_text()[-3000:]
+        assert "COMPLETED" in (run.stdout + run.stderr).upper()
+
+        runs = api_post(api, "/flow_runs/filter",
+                        {"deployments": {"id": {"any_": [deployment["id"]]}}})
+        manual = [r for r in runs if r["parameters"].get("seed") == 3]
+        assert manual and manual[0]["state"]["type"] == "COMPLETED"
+
+        index = json.loads((reports / "index.json").read_text())
+        latest = index["runs"][0]
+        assert latest["reference_date"] == "2022-03-02" and latest["seed"] == 3
+        assert (reports / "2022-03-02" / "report.html").stat().st_size > 0
+    finally:
+        for proc in reversed(procs):
+            stop(proc)
+    assert all(p.poll() is not None for p in procs)

@@ -1,0 +1,160 @@
+"""The weekly_forecast flow end to end under prefect_test_harness, on the tiny preset and the
+recorded real DataSF exports (imported into a temporary FLOWCAST_DATA_DIR, run offline), plus the
+fetch faults: DataSF down with a cache (completes, stale) and without one (fails, last good kept).
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import requests
+import responses
+
+
+pytestmark = pytest.mark.slow
+
+# Cases end 2022-03-16; minus the 14 days still under revision -> the last day kept.
+EXPECTED_REFERENCE_DATE = "2022-03-02"
+HUB_LEVELS = 23
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=60):
+        yield
+
+
+@pytest.fixture(scope="module")
+def good_run(prefect_harness, datasf_dir, tmp_path_factory):
+    """One tiny run importing the real exports; shared by the checks below."""
+    from flows.weekly_forecast import weekly_forecast
+
+    root = tmp_path_factory.mktemp("good-run")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
+        result = weekly_forecast(preset="tiny", data_source="import",
+                                 import_from=[str(datasf_dir)], output_dir=str(root / "reports"),
+                                 seed=0)
+    return root, result
+
+
+def test_outputs_exist_with_real_numbers(good_run):
+    root, result = good_run
+    out = Path(result["output_dir"])
+    assert result["reference_date"] == EXPECTED_REFERENCE_DATE
+    assert out == root / "reports" / EXPECTED_REFERENCE_DATE and not result["data_stale"]
+    for name in result["files"]:
+        assert (out / name).stat().st_size > 0, name
+
+    sir = pd.read_csv(out / "sir_series.csv")
+    assert sir["date"].iloc[0] == "2020-03-03" and sir["date"].iloc[-1] == EXPECTED_REFERENCE_DATE
+    np.testing.assert_allclose(sir[["S", "I", "R"]].sum(axis=1), 1.0, atol=1e-12)
+
+    for name in ["rollout_forward_7d.csv", "rollout_backward_28d.csv"]:
+        roll = pd.read_csv(out / name).dropna(subset=["mean"])
+        assert len(roll) > 0
+        assert (roll["lower_2sigma"] <= roll["mean"]).all() and (roll["mean"] <= roll["upper_2sigma"]).all()
+
+    params = pd.read_csv(out / "parameter_estimates.csv")
+    assert set(params["component"]) == {"S", "I", "R", "beta", "gamma"}
+    assert (params["q0.025"] <= params["q0.5"]).all() and (params["q0.5"] <= params["q0.975"]).all()
+    assert np.isfinite(params[["mean", "std"]].to_numpy()).all() and (params["std"] > 0).all()
+
+    nll = pd.read_csv(out / "nll_table.csv")
+    assert list(nll["direction"]) == ["forward", "backward"] and np.isfinite(nll["mean_nll"]).all()
+
+    smc = pd.read_csv(out / "smc_bands.csv")
+    assert (smc["lower_3sigma"] <= smc["mean"]).all() and (smc["mean"] <= smc["upper_3sigma"]).all()
+
+    hub = pd.read_csv(out / "hub_forecast.csv")
+    quantiles = hub[hub["output_type"] == "quantile"]
+    assert quantiles["output_type_id"].nunique() == HUB_LEVELS
+    assert (pd.to_datetime(hub["reference_date"]) == pd.Timestamp(EXPECTED_REFERENCE_DATE)).all()
+
+    report = (out / "report.html").read_text()
+    assert EXPECTED_REFERENCE_DATE in report and "Stale data" not in report
+    index = json.loads((root / "reports" / "index.json").read_text())
+    assert [r["reference_date"] for r in index["runs"]] == [EXPECTED_REFERENCE_DATE]
+    assert index["runs"][0]["data_vintage"].startswith("2022-03-21")
+
+
+def test_artifacts_published_with_stable_keys(good_run):
+    from prefect.artifacts import Artifact
+
+    from flows.weekly_forecast import (ARTIFACT_NLL, ARTIFACT_PARAMS, ARTIFACT_REPORT,
+                                       ARTIFACT_SUMMARY)
+
+    nll = Artifact.get(ARTIFACT_NLL)
+    assert nll is not None and nll.type == "table"
+    rows = json.loads(nll.data) if isinstance(nll.data, str) else nll.data
+    assert {r["direction"] for r in rows} == {"forward", "backward"}
+    params = Artifact.get(ARTIFACT_PARAMS)
+    assert params is not None and params.type == "table"
+    report = Artifact.get(ARTIFACT_REPORT)
+    assert report is not None and report.type == "markdown"  # link artifacts render as markdown
+    assert "report.html" in report.data
+    assert Artifact.get(ARTIFACT_SUMMARY) is not None
+
+
+def test_second_run_reuses_model_and_reproduces(good_run, tmp_path, monkeypatch):
+    """Same data dir, same seed, data from the cache: model reused, numbers identical."""
+    from flows.weekly_forecast import weekly_forecast
+
+    root, first = good_run
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
+    again = weekly_forecast(preset="tiny", data_source="cache", output_dir=str(tmp_path), seed=0)
+    assert again["model_reused"] and again["model_key"] == first["model_key"]
+    for name in ["latest_estimates.csv", "parameter_estimates.csv", "smc_bands.csv"]:
+        assert (Path(again["output_dir"]) / name).read_bytes() == \
+            (Path(first["output_dir"]) / name).read_bytes(), name
+
+
+def _datasf_down(rsps: responses.RequestsMock) -> None:
+    rsps.add(responses.GET, re.compile(r"https://data\.sfgov\.org/.*"),
+             body=requests.ConnectionError("network unreachable (test)"))
+
+
+def test_fetch_fails_with_cache_completes_and_says_stale(good_run, tmp_path, monkeypatch):
+    """The good run's data dir holds the imported cache (and its trained model)."""
+    from flows.weekly_forecast import weekly_forecast
+
+    root, _ = good_run
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
+    with responses.RequestsMock(assert_all_requests_are_fired=False) as rsps:
+        _datasf_down(rsps)
+        result = weekly_forecast(preset="tiny", data_source="live",
+                                 output_dir=str(tmp_path / "reports"))
+        attempts = len(rsps.calls)
+    assert attempts == 3 * 3  # 3 datasets x (1 + 2 HTTP retries of the tiny preset)
+    assert result["data_stale"]
+    report = (Path(result["output_dir"]) / "report.html").read_text()
+    assert "Stale data" in report and "DataSF unreachable" in report
+    index = json.loads((tmp_path / "reports" / "index.json").read_text())
+    assert index["runs"][0]["data_stale"] is True
+
+
+def test_fetch_fails_without_cache_fails_clearly_and_keeps_last_good(good_run, tmp_path,
+                                                                     monkeypatch):
+    from flows.weekly_forecast import weekly_forecast
+
+    root, first = good_run
+    reports = root / "reports"
+    before = {p: p.read_bytes() for p in reports.rglob("*") if p.is_file()}
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "empty-data"))
+    with responses.RequestsMock(assert_all_requests_are_fired=False) as rsps:
+        _datasf_down(rsps)
+        state = weekly_forecast(preset="tiny", data_source="live", output_dir=str(reports),
+                                return_state=True)
+        attempts = len(rsps.calls)
+    assert state.is_failed()
+    with pytest.raises(Exception, match=r"flowcast data import"):
+        state.result()
+    assert attempts == 2 * 3  # (1 + 1 task retry) x (1 + 2 HTTP retries) on the first dataset
+    after = {p: p.read_bytes() for p in reports.rglob("*") if p.is_file()}
+    assert after == before

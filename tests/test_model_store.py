@@ -1,0 +1,82 @@
+"""The trained-model cache: reuse on same config+data, rebuild on change, damage or retrain."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from pipeline.errors import CheckpointError
+from pipeline.io import sha256_bytes
+from pipeline.model_store import ENTRY_FILE, ModelStore, canonical_json, model_key
+
+CONFIG = {"preset": "sir-joint", "recipe": "fast", "encoder": "mlp", "seed": 3, "window": (5,)}
+
+
+class CountingBuilder:
+    """Writes a deterministic 'checkpoint' and counts how often training actually ran."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, out_dir):
+        self.calls += 1
+        (out_dir / "forward.pt").write_bytes(b"forward-weights")
+        (out_dir / "backward.pt").write_bytes(b"backward-weights")
+        return {"final_val_nll": -2.5}
+
+
+def test_key_is_canonical_and_sensitive_to_config_and_data():
+    reordered = dict(reversed(list(CONFIG.items())))
+    assert model_key(CONFIG, "abc") == model_key(reordered, "abc")
+    assert model_key(CONFIG, "abc") != model_key(CONFIG, "abd")
+    assert model_key(CONFIG, "abc") != model_key({**CONFIG, "seed": 4}, "abc")
+    # tuples and lists hash alike (configs round-trip through JSON as lists)
+    assert model_key(CONFIG, "abc") == model_key({**CONFIG, "window": [5]}, "abc")
+    assert canonical_json({"b": 1, "a": (1, 2)}) == '{"a":[1,2],"b":1}'
+
+
+def test_reuses_until_config_or_data_changes(tmp_path):
+    store, build = ModelStore(tmp_path / "models"), CountingBuilder()
+    first = store.get_or_build(CONFIG, "data-1", build)
+    assert (first.reused, build.calls) == (False, 1)
+    again = store.get_or_build(CONFIG, "data-1", build)
+    assert (again.reused, build.calls) == (True, 1)
+    assert again.path == first.path and again.meta["final_val_nll"] == -2.5
+    assert again.meta["data_sha256"] == "data-1" and again.meta["config"]["preset"] == "sir-joint"
+    assert store.get_or_build(CONFIG, "data-2", build).reused is False
+    assert store.get_or_build({**CONFIG, "encoder": "transformer"}, "data-1", build).reused is False
+    assert build.calls == 3
+    recorded = json.loads((first.path / ENTRY_FILE).read_text())
+    assert recorded["files"]["forward.pt"] == sha256_bytes(b"forward-weights")
+
+
+def test_retrain_forces_a_rebuild(tmp_path):
+    store, build = ModelStore(tmp_path), CountingBuilder()
+    store.get_or_build(CONFIG, "d", build)
+    forced = store.get_or_build(CONFIG, "d", build, retrain=True)
+    assert (forced.reused, build.calls) == (False, 2)
+    assert store.get_or_build(CONFIG, "d", build).reused is True
+
+
+def test_damaged_entry_is_rebuilt_not_trusted(tmp_path):
+    store, build = ModelStore(tmp_path), CountingBuilder()
+    entry = store.get_or_build(CONFIG, "d", build)
+    (entry.path / "forward.pt").write_bytes(b"bit rot")
+    assert store.get(entry.key) is None
+    rebuilt = store.get_or_build(CONFIG, "d", build)
+    assert rebuilt.reused is False and build.calls == 2
+    assert (rebuilt.path / "forward.pt").read_bytes() == b"forward-weights"
+
+
+def test_failed_build_leaves_no_entry(tmp_path):
+    store = ModelStore(tmp_path)
+
+    def crashing(out_dir):
+        (out_dir / "forward.pt").write_bytes(b"half")
+        raise RuntimeError("training diverged")
+
+    with pytest.raises(RuntimeError, match="diverged"):
+        store.get_or_build(CONFIG, "d", crashing)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(CheckpointError, match="no files"):
+        store.get_or_build(CONFIG, "d", lambda out_dir: None)

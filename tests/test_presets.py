@@ -1,0 +1,116 @@
+"""Presets: the paper's numbers, every preset × encoder × recipe builds, CLI end to end."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from pipeline.datasets import build_dataset, save_dataset
+from pipeline.errors import ConfigError
+from pipeline.models.estimator import build_estimator
+from pipeline.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Small models: one thread avoids oversubscribing the shared 2-core machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def _unit_stats(channels: int, features: int):
+    from pipeline.datasets import Standardization
+
+    return Standardization(torch.zeros(channels), torch.ones(channels), torch.zeros(features),
+                           torch.ones(features))
+
+
+@pytest.mark.parametrize("recipe", RECIPES)
+@pytest.mark.parametrize("encoder", ENCODER_CHOICES)
+@pytest.mark.parametrize("name", PRESET_NAMES)
+def test_every_preset_builds_a_working_estimator(name, encoder, recipe):
+    preset = get_preset(name, encoder, recipe=recipe)
+    config = preset.estimator
+    estimator = build_estimator(config, _unit_stats(config.context_channels, config.features))
+    context = torch.randn(4, config.window, config.context_channels)
+    mask = torch.ones(4, config.window, dtype=torch.bool)
+    log_prob = estimator.log_prob(torch.randn(4, config.features), context, mask)
+    assert log_prob.shape == (4,) and bool(torch.isfinite(log_prob).all())
+    assert preset.train.batch_size <= get_preset(name, encoder, recipe="paper").train.batch_size
+    assert preset.kinetic.is_plain_likelihood == (encoder != "transformer-ke")
+
+
+def test_paper_numbers():
+    vehicle = get_preset("vehicle", "transformer", recipe="paper")
+    flow, train = vehicle.estimator.flow, vehicle.train
+    assert (flow.layers, flow.hidden_features, flow.context_features, flow.features) == (
+        10, 4, 4, 2)
+    assert (train.iterations, train.batch_size, train.lr, train.schedule) == (10_000, 2048, 1e-3,
+                                                                             "constant")
+    assert vehicle.estimator.window == 5 and vehicle.dataset.name == "vehicle-dropout"
+    sparse = get_preset("vehicle-sparse", "mamba", recipe="paper")
+    assert (sparse.estimator.flow.layers, sparse.train.iterations, sparse.train.batch_size) == (
+        4, 5_000, 128)
+    for name in ("sir-single", "sir-multi", "sir-joint"):
+        sir = get_preset(name, "mlp", recipe="paper")
+        assert (sir.estimator.flow.hidden_features, sir.estimator.flow.context_features) == (6, 6)
+        assert sir.train.context_noise_sigma == 0.01
+    joint = get_preset("sir-joint", "mamba")
+    assert joint.estimator.features == 5 and joint.dataset.target == "state+params"
+    ke = get_preset("sir-multi", "transformer-ke").kinetic
+    assert ke.path_length > 0 and ke.intermediate_nll > 0 and ke.nll == 1.0
+
+
+def test_backend_and_direction_are_passed_through():
+    preset = get_preset("sir-multi", "mlp", backend="nflows", direction="backward")
+    assert preset.estimator.flow.backend == "nflows" and preset.dataset.direction == "backward"
+    assert preset.run_name == "sir-multi-backward-mlp-nflows-fast"
+    tuned = preset.with_overrides(iterations=7, batch_size=3, lr=0.5, seed=9)
+    assert (tuned.train.iterations, tuned.train.batch_size, tuned.train.lr, tuned.train.seed) == (
+        7, 3, 0.5, 9)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(name="sir-double"), "unknown preset 'sir-double'"),
+    (dict(name="sir-multi", encoder="lstm"), "unknown encoder 'lstm'"),
+    (dict(name="sir-multi", recipe="slow"), "unknown recipe 'slow'"),
+    (dict(name="sir-multi", backend="pyro"), "backend"),
+])
+def test_bad_names_are_rejected(kwargs, match):
+    name = kwargs.pop("name")
+    with pytest.raises(ConfigError, match=match):
+        get_preset(name, **kwargs)
+
+
+@pytest.mark.parametrize("name,dataset", [("sir-joint", "sir-multi"),
+                                          ("vehicle-sparse", "vehicle-sparse")])
+def test_preset_shapes_match_the_datasets(name, dataset):
+    preset = get_preset(name, "mlp")
+    ds = build_dataset(dataset, target=preset.dataset.target, n_trajectories=3)
+    assert ds.context.shape[1:] == (preset.estimator.window, preset.estimator.context_channels)
+    assert ds.target.shape[1] == preset.estimator.features
+
+
+def test_cli_trains_and_writes_a_loadable_checkpoint(tmp_path):
+    from typer.testing import CliRunner
+
+    from pipeline.checkpoints import load_checkpoint
+    from pipeline.cli import _register, app
+
+    data_file = tmp_path / "sir.pt"
+    save_dataset(build_dataset("sir-multi", n_trajectories=4, seed=1), data_file)
+    _register()
+    result = CliRunner().invoke(app, ["train", "sir-multi", "--encoder", "mlp", "--iterations",
+                                      "20", "--batch-size", "64", "--dataset", str(data_file),
+                                      "--threads", "1", "--out", str(tmp_path / "runs")])
+    assert result.exit_code == 0, result.output
+    assert "best validation NLL" in result.output
+    run = tmp_path / "runs" / "sir-multi-forward-mlp-zuko-fast"
+    assert {"model.pt", "history.csv", "history.json", "loss.png", "preset.json"} <= {
+        p.name for p in run.iterdir()}
+    expected = get_preset("sir-multi", "mlp").estimator
+    loaded = load_checkpoint(run / "model.pt", expected_config=expected)
+    assert loaded.meta.extra["train_config"]["iterations"] == 20
+    help_text = CliRunner().invoke(app, ["train", "--help"])
+    assert help_text.exit_code == 0 and "--encoder" in help_text.output
