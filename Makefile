@@ -22,12 +22,17 @@ venv: $(STAMP)
 sysdeps:
 	bash scripts/install-system-deps.sh
 
-# Archived DataSF exports used to seed an empty cache when DataSF cannot be reached.
+# Archived DataSF exports used to seed an empty cache when DataSF cannot be reached. Only the
+# three datasets the forecast reads (cases gyr2-k29z, deaths g2di-xufg, tests nfpa-mg4g): the
+# archive also holds other exports (vaccinations, ...) that `flowcast data import` rejects.
 ARCHIVE ?= ../shared/data/datasf
+ARCHIVE_FILES = -name 'COVID-19_Cases_Over_Time.csv' -o -name 'COVID-19_Deaths_Over_Time.csv' \
+                -o -name 'Covid-19_Tests.csv'
 
 forecast: venv sysdeps
 	@if [ -d "$(ARCHIVE)" ]; then \
-	  $(VENV)/bin/flowcast data import --if-empty $$(find "$(ARCHIVE)" -name '*.csv' | sort); fi
+	  $(VENV)/bin/flowcast data import --if-empty \
+	    $$(find "$(ARCHIVE)" \( $(ARCHIVE_FILES) \) | sort); fi
 	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
 	  $(VENV)/bin/python -m flows.weekly_forecast $(FORECAST_ARGS)
 

@@ -1,64 +1,116 @@
-"""End-to-end wall-clock of one weekly run: from scratch (no model cache) and with a cached model.
+"""End-to-end wall-clock of one weekly run: from scratch (empty model store) and with a cached model.
 
     python -m bench.e2e            # default preset (targets: scratch <= 15 min, cached <= 60 s)
-    python -m bench.e2e --quick    # tiny preset, seconds
+    python -m bench.e2e --quick    # tiny preset, seconds; writes bench/results/e2e-quick.json
 
-Runs the real ``weekly_forecast`` flow (Prefect ephemeral API) twice in one fresh temporary data
-directory, importing the recorded DataSF exports (offline, so network time is not measured):
-run 1 trains (scratch), run 2 reuses the trained model (cached). Writes bench/results/e2e.json.
+What is measured, exactly (both in one fresh temporary FLOWCAST_DATA_DIR):
+
+0. (untimed) the recorded DataSF exports are imported into the data cache, so both runs read
+   the same data offline and network time is never measured;
+1. ``scratch_seconds``: one weekly run, ``python -m flows.weekly_forecast --data-source cache``,
+   with an *empty model store* — it simulates the synthetic ensemble and trains both models;
+2. ``cached_seconds``: the same command again — it finds the trained pair in the model store.
+
+Each run is a fresh process, as a user or a served deployment runs it: the wall-clock includes
+the Python/torch imports and the start of Prefect's ephemeral API, not only the flow body
+(each run's log states the flow's own time: "weekly forecast ... done in N s"). The runs must report
+``model_reused`` False then True, else the benchmark fails.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-from pipeline.io import atomic_write_json
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
 DATASF = ROOT.parent / "shared" / "data" / "datasf"
+TARGETS = {"cached_seconds": 60, "scratch_seconds": 900}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="tiny preset (smoke test)")
-    parser.add_argument("--datasf", default=str(DATASF), help="folder of DataSF CSV exports")
-    parser.add_argument("--out", default=str(ROOT / "bench" / "results" / "e2e.json"))
-    args = parser.parse_args(argv)
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("DO_NOT_TRACK", "1")
+def _env(data_dir: Path) -> dict[str, str]:
+    env = dict(os.environ, FLOWCAST_DATA_DIR=str(data_dir),
+               PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1",
+               OMP_WAIT_POLICY="PASSIVE")
     # Under load the ephemeral API can take longer than Prefect's default 20 s to come up.
-    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
-    preset = "tiny" if args.quick else "default"
-    with tempfile.TemporaryDirectory(prefix="flowcast-e2e-") as tmp:
-        os.environ["FLOWCAST_DATA_DIR"] = str(Path(tmp) / "data")
-        from flows.weekly_forecast import weekly_forecast
+    env.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+    return env
 
-        timings = {}
-        for label, kwargs in [("scratch", {"data_source": "import",
-                                            "import_from": [args.datasf]}),
-                              ("cached", {"data_source": "cache"})]:
-            start = time.perf_counter()
-            result = weekly_forecast(preset=preset, output_dir=str(Path(tmp) / "reports"),
-                                     **kwargs)
-            timings[label] = time.perf_counter() - start
-            expected_reuse = label == "cached"
-            if result["model_reused"] != expected_reuse:
-                raise SystemExit(f"{label} run: model_reused={result['model_reused']}")
-    payload = {"preset": preset, "cached_seconds": round(timings["cached"], 2),
+
+def _import_data(datasf: str, env: dict[str, str]) -> None:
+    code = ("import sys; from pipeline.forecast import import_exports; "
+            "import_exports(sys.argv[1:])")
+    subprocess.run([sys.executable, "-c", code, datasf], env=env, cwd=ROOT, check=True,
+                   stdout=subprocess.DEVNULL)
+
+
+def _weekly_run(preset: str, out_dir: Path, env: dict[str, str], log: Path) -> tuple[float, dict]:
+    """Wall-clock of one ``python -m flows.weekly_forecast`` process and its results.json."""
+    cmd = [sys.executable, "-m", "flows.weekly_forecast", "--preset", preset,
+           "--data-source", "cache", "--output-dir", str(out_dir)]
+    start = time.perf_counter()
+    with log.open("wb") as handle:
+        proc = subprocess.run(cmd, env=env, cwd=ROOT, stdout=handle, stderr=subprocess.STDOUT)
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"weekly run failed (exit {proc.returncode}); log:\n"
+                         f"{log.read_text(errors='replace')[-4000:]}")
+    index = json.loads((out_dir / "index.json").read_text())
+    latest = out_dir / index["runs"][0]["reference_date"]
+    results = json.loads((latest / "results.json").read_text())
+    return seconds, results
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="tiny preset (smoke test)")
+    parser.add_argument("--preset", default=None, help="forecast preset (default: 'default', "
+                                                       "'tiny' with --quick)")
+    parser.add_argument("--datasf", default=str(DATASF), help="folder of DataSF CSV exports")
+    parser.add_argument("--out", default=None, help="output JSON path")
+    args = parser.parse_args(argv)
+    preset = args.preset or ("tiny" if args.quick else "default")
+    out = Path(args.out) if args.out else RESULTS / ("e2e-quick.json" if args.quick
+                                                     else "e2e.json")
+    with tempfile.TemporaryDirectory(prefix="flowcast-e2e-") as tmp:
+        env = _env(Path(tmp) / "data")
+        _import_data(args.datasf, env)
+        timings: dict[str, float] = {}
+        for label, reused in (("scratch", False), ("cached", True)):
+            reports = Path(tmp) / f"reports-{label}"
+            seconds, results = _weekly_run(preset, reports, env, Path(tmp) / f"{label}.log")
+            if results["model_reused"] is not reused:
+                raise SystemExit(f"{label} run: model_reused={results['model_reused']}, "
+                                 f"expected {reused}")
+            timings[label] = seconds
+            print(f"{label}: {seconds:.1f} s (model {'reused' if reused else 'trained'})",
+                  flush=True)
+    payload = {"preset": preset,
+               "cached_seconds": round(timings["cached"], 2),
                "scratch_seconds": round(timings["scratch"], 2),
-               "targets": {"cached_seconds": 60, "scratch_seconds": 900},
-               "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
-               "note": "wall-clock of the whole flow incl. Prefect ephemeral API start-up; data "
-                       "imported from recorded DataSF exports (no network)"}
-    atomic_write_json(args.out, payload)
-    print(payload)
-    return 0
+               "targets": TARGETS,
+               "within_targets": {k: timings[k.split("_")[0]] <= v for k, v in TARGETS.items()},
+               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
+                           "python": platform.python_version()},
+               "quick": args.quick,
+               "note": "wall-clock of `python -m flows.weekly_forecast --data-source cache` as a "
+                       "fresh process (imports + Prefect ephemeral API start-up included); data "
+                       "imported beforehand from recorded DataSF exports (no network); scratch = "
+                       "empty model store, cached = the model it trained"}
+    from pipeline.io import atomic_write_json
+
+    atomic_write_json(out, payload)
+    print(json.dumps(payload, indent=2))
+    return payload
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -129,8 +129,13 @@ def parameter_track(models: Any, sir: Any, config: fc.ForecastConfig) -> Any:
 
 
 @task(name="nll-table", **_task)
-def nll_table(models: Any, sir: Any, config: fc.ForecastConfig) -> Any:
-    return fc.nll_table(models, sir.frame, config)
+def nll_table(models: Any, sir: Any, config: fc.ForecastConfig, data: fc.TrainingData) -> Any:
+    """NLL of this run's models plus any other encoder variant already in the model store (e.g.
+    trained by ``flows.scale_out``), so the report's Table 5 fills up without retraining."""
+    variants = fc.cached_variant_models(config, data)
+    get_run_logger().info("NLL table: %s%s", config.encoder,
+                          f" + cached variants {sorted(variants)}" if variants else "")
+    return fc.nll_table_variants(models, variants, sir.frame, config)
 
 
 @task(name="nf-seeded-smc", **_task)
@@ -139,6 +144,22 @@ def seeded_smc(models: Any, sir: Any, config: fc.ForecastConfig) -> Any:
     get_run_logger().info("NF-seeded SMC over %d days, min ESS %.0f of %d particles",
                           len(run.dates), float(run.result.ess.min()), config.smc_particles)
     return run
+
+
+@task(name="backtest", **_task)
+def backtest(models: Any, sir: Any, config: fc.ForecastConfig) -> Any:
+    logger = get_run_logger()
+    result = fc.backtest(models, sir.frame, config)
+    if result is None:
+        logger.info("backtest disabled (backtest_origins=0)")
+        return None
+    summary = fc.backtest_summary(result)
+    logger.info("backtest over %d origins (%s … %s): relative WIS vs persistence %.3f, vs SMC "
+                "%.3f; NF 50%%/90%% coverage %.2f/%.2f", summary["n_origins"],
+                *summary["origins"], summary["relative_wis"]["persistence"],
+                summary["relative_wis"]["smc"], summary["coverage"][fc.NF_FORECASTER]["50"],
+                summary["coverage"][fc.NF_FORECASTER]["90"])
+    return result
 
 
 @task(name="render-report", **_task)
@@ -169,14 +190,14 @@ def _publish_artifacts(results: fc.ForecastResults, final_dir: Path, files: list
 
 @flow(name="weekly_forecast", log_prints=True)
 def weekly_forecast(preset: Literal["default", "tiny"] = "default",
-                    encoder: Literal["mlp", "transformer", "mamba"] | None = None,
+                    encoder: Literal["mlp", "transformer", "transformer-ke", "mamba"] | None = None,
                     data_source: Literal["live", "cache", "import"] = "live",
                     import_from: list[str] | None = None,
                     output_dir: str = "reports",
                     seed: int = 0,
                     retrain: bool = False) -> dict[str, Any]:
     """Fetch DataSF → S/I/R → synthetic ensemble → (cached) joint estimators → estimates,
-    rollouts, β/γ, NLL, NF-seeded SMC → report in ``<output_dir>/<reference-date>/``."""
+    rollouts, β/γ, NLL, NF-seeded SMC, backtest → report in ``<output_dir>/<reference-date>/``."""
     logger = get_run_logger()
     started = time.monotonic()
     base = fc.resolve_config(preset)
@@ -196,14 +217,15 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     rolled = rollouts(models, sir, config)
     future = future_paths(models, sir, config)
     params = parameter_track(models, sir, config)
-    nll = nll_table(models, sir, config)
+    nll = nll_table(models, sir, config, data)
     smc = seeded_smc(models, sir, config)
+    scored = backtest(models, sir, config)
     results = fc.ForecastResults(
         config=config, sir_frame=sir.frame, vintage=series.vintage.describe(),
         stale=fc.data_is_stale(series, data_source),
         stale_notes=tuple(fc.staleness_notes(series)) if fc.data_is_stale(series, data_source)
         else (), models=models, latest=latest, rollouts=rolled, future=future,
-        parameters=params, nll=nll, smc=smc)
+        parameters=params, nll=nll, smc=smc, backtest=scored)
 
     outputs = RunOutputs(output_dir)
     reference_date = str(future.reference_date)
@@ -216,7 +238,9 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
             data_stale=results.stale, data_vintage=series.vintage.data_as_of or "unknown",
             model_key=models.key, seed=seed, preset=preset, files=tuple(files),
             summary={"model_reused": models.reused,
-                     "nll": results.nll.to_dict(orient="records")})
+                     "nll": results.nll.to_dict(orient="records"),
+                     "backtest": (fc.backtest_summary(scored)["relative_wis"]
+                                  if scored is not None else None)})
         final_dir = outputs.promote(staging, record)
     _publish_artifacts(results, final_dir, files)
     if results.stale:
@@ -232,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m flows.weekly_forecast",
                                      description="Run the weekly SF forecast once, locally.")
     parser.add_argument("--preset", default="default", choices=FORECAST_PRESETS_CHOICES)
-    parser.add_argument("--encoder", default=None, choices=["mlp", "transformer", "mamba"])
+    parser.add_argument("--encoder", default=None,
+                        choices=["mlp", "transformer", "transformer-ke", "mamba"])
     parser.add_argument("--data-source", default="live", choices=["live", "cache", "import"])
     parser.add_argument("--import-from", nargs="*", default=None,
                         help="DataSF CSV exports (files or folders) for --data-source import")

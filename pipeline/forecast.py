@@ -20,6 +20,11 @@ Steps, each a function here so it can be called, tested and timed without Prefec
    marginal at random days along the SF trajectory (forward / backward).
 8. :func:`seeded_smc` — the paper's hybrid: particles drawn from the forward joint estimate seed a
    bootstrap filter over the following observations; 3σ bands.
+9. :func:`backtest` — rolling-origin backtest of the forward flow over the latest weekly origins
+   against persistence and the plain bootstrap SMC (relative WIS, 50 %/90 % coverage).
+
+Models come from :mod:`pipeline.presets` (``sir-joint`` × encoder × recipe, one preset per
+direction) and are trained and saved with :func:`pipeline.training.train_and_save`.
 
 Reading of the paper: the context window R = 5 ("five-observation context"); rollouts and the
 joint estimates use the transformer encoder in the paper; here the encoder is a parameter.
@@ -50,9 +55,14 @@ DataSourceKind = Literal["live", "cache", "import"]
 STATE_NAMES = ("S", "I", "R")
 JOINT_NAMES = ("S", "I", "R", "beta", "gamma")
 DIRECTIONS = ("forward", "backward")
+NF_FORECASTER = "nf-rollout"
+# Encoder choice -> the paper's Table 5 column name.
+VARIANT_LABELS = {"transformer": "Transformer", "transformer-ke": "Transformer + KE",
+                  "mamba": "Mamba-SSM", "mlp": "MLP"}
+BACKTEST_BASELINES = ("persistence", "smc")
 # Per-step seed offsets: changing one step's draws never shifts another's.
 _SEED_OFFSETS = {"simulate": 0, "train_forward": 11, "train_backward": 12, "latest": 21,
-                 "rollout": 31, "future": 41, "params": 51, "nll": 61, "smc": 71}
+                 "rollout": 31, "future": 41, "params": 51, "nll": 61, "smc": 71, "backtest": 81}
 
 
 @dataclass(frozen=True)
@@ -80,59 +90,103 @@ class DataSourceConfig:
 
 @dataclass(frozen=True)
 class ForecastConfig:
-    """Everything that determines one weekly run (with the data and the seed)."""
+    """Everything that determines one weekly run (with the data and the seed).
+
+    The models come from one named training preset (:func:`pipeline.presets.get_preset`:
+    ``training_preset`` × ``encoder`` × ``recipe``, one per direction) — the single source of the
+    dataset, estimator and optimiser settings. ``n_trajectories``, ``horizon_days``,
+    ``train_iterations``, ``train_batch_size`` and ``eval_every`` only shrink it (None = the
+    preset's), so the ``tiny`` preset is the same model family at toy size.
+    """
 
     preset: str = "default"
     training_preset: str = "sir-joint"
     recipe: str = "fast"
-    encoder: str | None = None            # None: transformer (the paper's SF runs)
-    n_trajectories: int = 500             # synthetic sir-multi ensemble size
+    encoder: str = "transformer"          # the paper's SF runs use the transformer
+    n_trajectories: int | None = None     # synthetic sir-multi ensemble size (None: the prior's)
     horizon_days: int | None = None       # None: the prior's 1000 days
     train_iterations: int | None = None   # None: the recipe's
-    window: int = 5                       # R, the paper's five-observation context
+    train_batch_size: int | None = None   # None: the recipe's
+    eval_every: int | None = None         # None: the recipe's
     rollout_windows: tuple[int, ...] = (7, 28)
-    rollout_paths: int = 200
+    # Rolling rollouts cover the whole history (~740 days x 4 views): sampling the MAF inverse
+    # for anchors x paths rows dominates a cached run, so 64 paths (enough for 2-sigma bands)
+    # keep the weekly run near a minute; the 4-week hub forecast still uses hub_paths.
+    rollout_paths: int = 64
     forecast_days: int = 28               # future paths: 4 weeks for the hub CSV
     hub_paths: int = 200
-    n_samples: int = 1000                 # draws per estimate
-    parameter_stride_days: int = 1
+    n_samples: int = 500                  # draws per estimate
+    parameter_stride_days: int = 2
     nll_locations: int = 100
     smc_particles: int = 1000
     smc_days: int = 56                    # observations the seeded filter runs over
+    backtest_origins: int = 8             # latest weekly origins scored (0: no backtest)
+    backtest_paths: int = 200
+    backtest_smc_particles: int = 2000
     trailing_days: int = 14
     seed: int = 0
     data: DataSourceConfig = field(default_factory=DataSourceConfig)
 
     def __post_init__(self) -> None:
-        if self.window < 1 or any(w < 1 for w in self.rollout_windows):
-            raise ConfigError(f"window={self.window} and rollout_windows={self.rollout_windows} "
-                              "must be >= 1")
-        for name in ("n_trajectories", "rollout_paths", "forecast_days", "hub_paths", "n_samples",
-                     "parameter_stride_days", "nll_locations", "smc_particles", "smc_days"):
+        if any(w < 1 for w in self.rollout_windows):
+            raise ConfigError(f"rollout_windows={self.rollout_windows} must all be >= 1")
+        for name in ("rollout_paths", "forecast_days", "hub_paths", "n_samples",
+                     "parameter_stride_days", "nll_locations", "smc_particles", "smc_days",
+                     "backtest_paths", "backtest_smc_particles"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"ForecastConfig.{name}={getattr(self, name)} must be >= 1")
+        for name in ("n_trajectories", "horizon_days", "train_iterations", "train_batch_size",
+                     "eval_every"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ConfigError(f"ForecastConfig.{name}={value} must be >= 1 (or None)")
+        if self.backtest_origins < 0:
+            raise ConfigError(f"ForecastConfig.backtest_origins={self.backtest_origins} < 0")
+        self.training_preset_for("forward")  # unknown preset/encoder/recipe fail here, early
 
     def step_seed(self, step: str) -> int:
         return self.seed * 1000 + _SEED_OFFSETS[step]
 
+    def training_preset_for(self, direction: str) -> Any:
+        """The :class:`~pipeline.presets.TrainingPreset` of the ``direction`` model."""
+        from pipeline.presets import get_preset
+
+        preset = get_preset(self.training_preset, self.encoder, recipe=self.recipe,
+                            direction=direction, seed=self.step_seed(f"train_{direction}"),
+                            dataset_seed=self.step_seed("simulate"),
+                            n_trajectories=self.n_trajectories)
+        preset = preset.with_overrides(iterations=self.train_iterations,
+                                       batch_size=self.train_batch_size)
+        if self.eval_every is not None:
+            preset = dataclasses.replace(preset, train=dataclasses.replace(
+                preset.train, eval_every=self.eval_every))
+        return preset
+
+    @property
+    def window(self) -> int:
+        """R, the context length of the preset (the paper's five observations)."""
+        return int(self.training_preset_for("forward").dataset.window)
+
     def training_identity(self) -> dict[str, Any]:
         """What determines the trained models (the model-cache key is built from this)."""
-        return {"training_preset": self.training_preset, "recipe": self.recipe,
-                "encoder": self.encoder, "n_trajectories": self.n_trajectories,
-                "horizon_days": self.horizon_days, "train_iterations": self.train_iterations,
-                "window": self.window, "seed": self.seed}
+        return {"presets": {d: self.training_preset_for(d).to_dict() for d in DIRECTIONS},
+                "horizon_days": self.horizon_days}
 
 
 FORECAST_PRESETS: dict[str, ForecastConfig] = {
-    # The product: sir-joint on the full synthetic ensemble with the fast recipe (fits the
-    # 15-minute budget on 2 cores; `recipe="paper"` is the paper's 10k iterations).
-    "default": ForecastConfig(preset="default"),
-    # Seconds, for tests and smoke runs: small ensemble, short horizon, few iterations/samples.
-    "tiny": ForecastConfig(preset="tiny", recipe="fast", encoder="mlp", n_trajectories=24,
-                           horizon_days=200, train_iterations=20, rollout_paths=16,
-                           forecast_days=28, hub_paths=200, n_samples=128,
+    # The product: sir-joint × transformer × fast recipe on the full sir-multi ensemble (500
+    # trajectories × 1000 days). The recipe's 6,000 iterations per direction (~75–90 ms per
+    # batch-512 transformer step on one core) would take ~18 min for the pair; 2,500 with the
+    # same cosine schedule fit the 15-minute from-scratch budget (docs/orchestration.md).
+    "default": ForecastConfig(preset="default", train_iterations=2_500),
+    # Seconds, for tests and smoke runs: same preset family with the MLP encoder, a small
+    # ensemble, a short horizon, few iterations, samples, particles and backtest origins.
+    "tiny": ForecastConfig(preset="tiny", encoder="mlp", n_trajectories=16, horizon_days=160,
+                           train_iterations=30, train_batch_size=256, eval_every=10,
+                           rollout_paths=16, hub_paths=200, n_samples=128,
                            parameter_stride_days=7, nll_locations=20, smc_particles=200,
-                           smc_days=28,
+                           smc_days=28, backtest_origins=2, backtest_paths=40,
+                           backtest_smc_particles=200,
                            data=DataSourceConfig(http_retries=2, http_backoff_s=0.0,
                                                  task_retries=1, task_retry_delay_s=0.0)),
 }
@@ -225,8 +279,8 @@ def series_to_sir(series: Any) -> Any:
 def sir_arrays(sir_frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, pd.DatetimeIndex]:
     """(times in days since the first date (T,), values (T, 3), dates) of an S/I/R frame."""
     dates = pd.DatetimeIndex(pd.to_datetime(sir_frame["date"]))
-    times = ((dates - dates[0]) / pd.Timedelta(days=1)).to_numpy(dtype=np.float64)
-    values = sir_frame[list(STATE_NAMES)].to_numpy(dtype=np.float64)
+    times = ((dates - dates[0]) / pd.Timedelta(days=1)).to_numpy(dtype=np.float64, copy=True)
+    values = sir_frame[list(STATE_NAMES)].to_numpy(dtype=np.float64, copy=True)  # writable
     return times, values, dates
 
 
@@ -244,19 +298,23 @@ class TrainingData:
 
 def simulate_training_data(config: ForecastConfig,
                            progress: ProgressReporter | None = None) -> TrainingData:
+    """One synthetic ensemble (the preset's dataset, ``horizon_days`` override applied) cut into
+    the forward and backward windows of the two presets, each split into train/validation."""
     from pipeline.datasets import dataset_sha256, train_validation_split, windows_from_sir
     from pipeline.io import sha256_bytes
-    from pipeline.systems.sir import get_prior, simulate_ensemble
+    from pipeline.systems.sir import simulate_ensemble
 
-    prior = get_prior("sir-multi")
+    dataset = config.training_preset_for("forward").dataset
+    prior = dataset.system_config()
     if config.horizon_days is not None:
         prior = dataclasses.replace(prior, horizon_days=config.horizon_days)
-    ensemble = simulate_ensemble(prior, config.n_trajectories, seed=config.step_seed("simulate"),
+    ensemble = simulate_ensemble(prior, prior.n_trajectories, seed=dataset.seed,
                                  progress=progress)
     splits, hashes = {}, []
     for direction in DIRECTIONS:
-        ds = windows_from_sir(ensemble, direction=direction, target="state+params",
-                              window=config.window)
+        ds_config = config.training_preset_for(direction).dataset
+        ds = windows_from_sir(ensemble, direction=direction, target=ds_config.target,
+                              window=ds_config.window, val_fraction=ds_config.val_fraction)
         hashes.append(dataset_sha256(ds))
         splits[direction] = train_validation_split(ds)
     return TrainingData(splits=splits, data_sha256=sha256_bytes("|".join(hashes).encode()),
@@ -291,7 +349,6 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
                           store_root: Path | None = None,
                           progress: ProgressReporter | None = None) -> TrainedModels:
     """Forward + backward joint estimators, from the cache unless config/data changed."""
-    from pipeline.checkpoints import load_checkpoint
     from pipeline.model_store import ModelStore
 
     store = ModelStore(store_root or model_store_root())
@@ -305,70 +362,59 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
 
     entry = store.get_or_build(config.training_identity(), data.data_sha256, build,
                                retrain=retrain)
-    loaded = {d: load_checkpoint(entry.path / d / "model.pt") for d in DIRECTIONS}
+    return _load_models(config, entry)
+
+
+def _load_models(config: ForecastConfig, entry: Any) -> TrainedModels:
+    """The forward/backward pair of a model-store entry, checked against the presets' configs."""
+    from pipeline.checkpoints import load_checkpoint
+
+    loaded = {d: load_checkpoint(entry.path / d / "model.pt",
+                                 expected_config=config.training_preset_for(d).estimator)
+              for d in DIRECTIONS}
     for model in loaded.values():
         model.estimator.eval()
-    encoder = _encoder_name(loaded["forward"].config)
     return TrainedModels(
         forward=loaded["forward"].estimator, backward=loaded["backward"].estimator,
         key=entry.key, reused=entry.reused, path=entry.path,
         histories={d: list(loaded[d].meta.history) for d in DIRECTIONS},
         best_val_nll={d: float(loaded[d].meta.extra.get("best_val_nll_original", float("nan")))
                       for d in DIRECTIONS},
-        encoder=encoder)
+        encoder=config.encoder)
 
 
-def _encoder_name(estimator_config: Any) -> str:
-    encoder = getattr(estimator_config, "encoder", None)
-    return str(getattr(encoder, "kind", None) or getattr(encoder, "name", None) or encoder)
+def cached_variant_models(config: ForecastConfig, data: TrainingData, *,
+                          store_root: Path | None = None) -> dict[str, TrainedModels]:
+    """The other encoder variants (paper Table 5 columns) already in the model store for the
+    same preset, recipe and training data — e.g. trained by ``flows.scale_out``. Never trains."""
+    from pipeline.model_store import ModelStore, model_key
+    from pipeline.presets import ENCODER_CHOICES
 
-
-@dataclass(frozen=True)
-class TrainingPlan:
-    estimator: Any   # pipeline.models.estimator.EstimatorConfig
-    train: Any       # pipeline.training.TrainConfig
-
-
-# Recipes for the weekly joint model. "paper": the paper's training section (Adam 1e-3, 10,000
-# iterations, batch 2,048, context noise 0.01 for SIR). "fast": fewer, smaller steps so a
-# from-scratch weekly run with the transformer encoder fits 15 minutes on 2 cores.
-_RECIPES = {"paper": {"iterations": 10_000, "batch_size": 2048},
-            "fast": {"iterations": 3_000, "batch_size": 512}}
-_SIR_CONTEXT_NOISE = 0.01
-
-
-def training_plan(config: ForecastConfig) -> TrainingPlan:
-    """Estimator + training config of the joint (S, I, R, β, γ) model for ``config``."""
-    from pipeline.models.encoders import EncoderConfig
-    from pipeline.models.estimator import make_estimator_config
-    from pipeline.training import TrainConfig
-
-    if config.recipe not in _RECIPES:
-        raise ConfigError(f"unknown recipe {config.recipe!r}; known: {sorted(_RECIPES)}")
-    recipe = dict(_RECIPES[config.recipe])
-    if config.train_iterations is not None:
-        recipe["iterations"] = config.train_iterations
-    encoder = EncoderConfig(kind=config.encoder or "transformer")
-    estimator = make_estimator_config(len(JOINT_NAMES), len(STATE_NAMES) + 1, config.window,
-                                      encoder)
-    train = TrainConfig(**recipe, eval_every=max(1, min(100, recipe["iterations"] // 4)),
-                        context_noise_sigma=_SIR_CONTEXT_NOISE)
-    return TrainingPlan(estimator, train)
+    store = ModelStore(store_root or model_store_root())
+    out = {}
+    for encoder in ENCODER_CHOICES:
+        if encoder == config.encoder:
+            continue
+        variant = dataclasses.replace(config, encoder=encoder)
+        entry = store.get(model_key(variant.training_identity(), data.data_sha256))
+        if entry is not None:
+            out[encoder] = _load_models(variant, entry)
+    return out
 
 
 def _train_direction(config: ForecastConfig, data: TrainingData, direction: str, out_dir: Path,
                      progress: ProgressReporter | None) -> float:
+    """Train the ``direction`` preset and write it with ``training.train_and_save``."""
     from pipeline.models.estimator import build_estimator
     from pipeline.training import train_and_save
 
-    plan = training_plan(config)
-    seed = config.step_seed(f"train_{direction}")
-    train_config = dataclasses.replace(plan.train, seed=seed)
+    preset = config.training_preset_for(direction)
     train_ds, val_ds = data.splits[direction]
-    estimator = build_estimator(plan.estimator, train_ds.stats, seed=seed)
-    result = train_and_save(estimator, train_ds, val_ds, train_config, None, out_dir,
-                            estimator_config=plan.estimator, progress=progress,
-                            extra={"direction": direction, "forecast_preset": config.preset})
+    estimator = build_estimator(preset.estimator, train_ds.stats, seed=preset.train.seed)
+    result = train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic, out_dir,
+                            estimator_config=preset.estimator, progress=progress,
+                            extra={"direction": direction, "forecast_preset": config.preset,
+                                   "training_preset": preset.run_name})
     log.info("trained %s model: best validation NLL %.3f at iteration %d (%s)", direction,
              result.best_val_nll_original, result.best_iteration, result.stop_reason)
     return float(result.best_val_nll_original)
@@ -500,8 +546,8 @@ def parameter_track(models: TrainedModels, sir_frame: pd.DataFrame,
     return pd.concat(frames, ignore_index=True)
 
 
-def nll_table(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig,
-              variant: str | None = None) -> pd.DataFrame:
+def nll_table(models: TrainedModels, sir_frame: pd.DataFrame,
+              config: ForecastConfig) -> pd.DataFrame:
     """Mean NLL of the observed (S, I, R) at ``nll_locations`` random days, fw and bw.
 
     The joint flow models (S, I, R, β, γ); the true β, γ of SF are unknown, so we score the
@@ -528,9 +574,17 @@ def nll_table(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastCo
         samples = sample_conditional(models.by_direction(direction), context, mask,
                                      config.n_samples, config.step_seed("nll")).double()
         log_p = kde_log_prob(samples[..., :3], torch.as_tensor(values[targets]))
-        rows.append({"direction": direction, "variant": variant or models.encoder,
+        rows.append({"direction": direction,
+                     "variant": VARIANT_LABELS.get(models.encoder, models.encoder),
                      "locations": len(targets), "mean_nll": mean_nll(log_p.numpy())})
     return pd.DataFrame(rows)
+
+
+def nll_table_variants(models: TrainedModels, variants: dict[str, TrainedModels],
+                       sir_frame: pd.DataFrame, config: ForecastConfig) -> pd.DataFrame:
+    """:func:`nll_table` of the run's models and of every cached variant, same days and seed."""
+    frames = [nll_table(m, sir_frame, config) for m in (models, *variants.values())]
+    return pd.concat(frames, ignore_index=True)
 
 
 def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig) -> Any:
@@ -549,7 +603,7 @@ def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastC
     particles[..., :3] = particles[..., :3].clamp_min(0.0)
     particles[..., :3] /= particles[..., :3].sum(-1, keepdim=True)
     particles[..., 3:] = particles[..., 3:].clamp_min(0.0)
-    model = SIRParamsModel.create(prior_mean=torch.as_tensor(values[start]))
+    model = SIRParamsModel.create(prior_mean=values[start])
     observations = torch.as_tensor(values[start:])[None]
     result = seeded_filter(particles, observations, model,
                            SMCConfig(num_particles=config.smc_particles,
@@ -575,6 +629,49 @@ class SMCRun:
         return pd.concat(frames, ignore_index=True)
 
 
+def backtest(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig,
+             progress: ProgressReporter | None = None) -> Any:
+    """Rolling-origin backtest of the forward flow over the latest ``backtest_origins`` weekly
+    origins against persistence and the plain bootstrap SMC (``pipeline.backtest``), or None
+    when ``backtest_origins`` is 0. Returns a :class:`pipeline.backtest.BacktestResult`.
+
+    No leakage: the flow is trained on synthetic SIR trajectories only, and each forecaster sees
+    the SF series up to the origin.
+    """
+    from pipeline.backtest import BacktestConfig, PersistenceForecaster, run_backtest
+    from pipeline.forecasters import NFRolloutForecaster, SMCForecaster
+
+    if config.backtest_origins == 0:
+        return None
+    forecasters = [PersistenceForecaster(),
+                   SMCForecaster(n_particles=config.backtest_smc_particles),
+                   NFRolloutForecaster(estimator=models.forward, name=NF_FORECASTER)]
+    bt_config = BacktestConfig(n_samples=config.backtest_paths,
+                               max_origins=config.backtest_origins,
+                               seed=config.step_seed("backtest"))
+    return run_backtest(sir_frame[["date", *STATE_NAMES]], forecasters, bt_config, progress)
+
+
+def backtest_summary(result: Any) -> dict[str, Any]:
+    """Relative WIS of the NF rollout vs persistence and vs plain SMC, and coverage (JSON-able)."""
+    from pipeline.backtest import relative_wis, summarize
+
+    s = result.scores
+    summary = summarize(result)
+    return {
+        "relative_wis": {b: float(relative_wis(s, NF_FORECASTER, b)) for b in BACKTEST_BASELINES},
+        "relative_wis_by_compartment": {
+            c: {b: float(relative_wis(s[s["compartment"] == c], NF_FORECASTER, b))
+                for b in BACKTEST_BASELINES} for c in STATE_NAMES},
+        "coverage": {str(name): {"50": float(row["coverage_50"]), "90": float(row["coverage_90"])}
+                     for name, row in summary.iterrows()},
+        "mean_wis": {str(name): float(row["mean_wis"]) for name, row in summary.iterrows()},
+        "n_origins": int(s["origin"].nunique()),
+        "origins": [str(s["origin"].min().date()), str(s["origin"].max().date())],
+        "n_samples": result.config.n_samples,
+    }
+
+
 # ------------------------------------------------------------------------------- outputs
 
 
@@ -592,6 +689,7 @@ class ForecastResults:
     parameters: pd.DataFrame
     nll: pd.DataFrame
     smc: SMCRun
+    backtest: Any = None          # pipeline.backtest.BacktestResult, or None (no backtest)
 
 
 def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
@@ -608,6 +706,10 @@ def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
               "smc_bands.csv": results.smc.band_frame(3.0)}
     for (direction, every), roll in results.rollouts.items():
         tables[f"rollout_{direction}_{every}d.csv"] = roll.summary_frame()
+    if results.backtest is not None:
+        tables["backtest_scores.csv"] = results.backtest.scores.assign(
+            origin=lambda f: f["origin"].dt.strftime("%Y-%m-%d"),
+            target_end_date=lambda f: f["target_end_date"].dt.strftime("%Y-%m-%d"))
     for name, frame in tables.items():
         atomic_write_text(out_dir / name, frame.to_csv(index=False))
     hub = hub_forecast_frame(results.future.samples[..., :3].double().numpy(),
@@ -630,46 +732,13 @@ def results_summary(results: ForecastResults) -> dict[str, Any]:
                                      "q0.025": float(fw.loc[c, "q0.025"]),
                                      "q0.975": float(fw.loc[c, "q0.975"])} for c in fw.index},
             "nll": results.nll.to_dict(orient="records"),
+            "backtest": (backtest_summary(results.backtest) if results.backtest is not None
+                         else None),
             "config": dataclasses.asdict(results.config)}
 
 
 def write_report(results: ForecastResults, out_dir: Path) -> list[str]:
-    """The HTML (and PDF) report via ``pipeline.report`` when it is installed, else a plain
-    self-contained HTML page with the stale-data banner, provenance and the tables."""
-    try:
-        from pipeline.report import build_forecast_report  # the reports issue's renderer
-    except ImportError:
-        build_forecast_report = None
-    if build_forecast_report is not None:
-        return list(build_forecast_report(results, out_dir))
-    return [_write_basic_report(results, out_dir)]
+    """report.html + report.pdf (``pipeline.report.weekly``); returns the file names written."""
+    from pipeline.report import build_forecast_report
 
-
-def _write_basic_report(results: ForecastResults, out_dir: Path) -> str:
-    import html
-
-    from pipeline.io import atomic_write_text
-
-    banner = ""
-    if results.stale:
-        notes = "<br>".join(html.escape(n) for n in results.stale_notes)
-        banner = (f'<p class="stale"><strong>Stale data:</strong> DataSF could not be reached; '
-                  f"this forecast uses cached data.<br>{notes}</p>")
-    latest = results.latest.table.to_html(index=False, float_format=lambda v: f"{v:.5g}")
-    nll = results.nll.to_html(index=False, float_format=lambda v: f"{v:.4f}")
-    params = results.parameters[results.parameters["component"].isin(["beta", "gamma"])]
-    params = params.groupby(["direction", "component"]).tail(5).to_html(
-        index=False, float_format=lambda v: f"{v:.5g}")
-    page = f"""<!doctype html><html lang="en"><head><meta charset="utf-8">
-<title>San Francisco SIR forecast {results.future.reference_date}</title>
-<style>body{{font-family:sans-serif;margin:2em}} .stale{{background:#fde2e2;padding:1em}}
-table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 6px}}</style></head>
-<body><h1>San Francisco SIR forecast — reference date {results.future.reference_date}</h1>
-{banner}<p>{html.escape(results.vintage)}</p>
-<p>Model {results.models.key[:12]} ({html.escape(results.models.encoder)} encoder,
-{"reused from cache" if results.models.reused else "trained in this run"}).</p>
-<h2>Latest estimates</h2>{latest}<h2>NLL</h2>{nll}<h2>β, γ (latest days)</h2>{params}
-</body></html>
-"""
-    atomic_write_text(out_dir / "report.html", page)
-    return "report.html"
+    return list(build_forecast_report(results, out_dir))

@@ -37,7 +37,7 @@ from torch import Tensor
 from pipeline.errors import ConfigError
 from pipeline.metrics import SIGMA_LEVELS
 from pipeline.progress import ProgressReporter, SilentProgress
-from pipeline.smc_models import is_planar, planar_empty
+from pipeline.smc_models import planar_empty
 
 _RESULT_DTYPE = torch.float64
 
@@ -58,7 +58,8 @@ class StateSpaceModel(Protocol):
         ...
 
     def transition(self, x: Tensor, t: float, dt: float, generator: torch.Generator) -> Tensor:
-        """One draw of x_{t+dt} ~ p(· | x_t) for every particle: (F, N, D) -> (F, N, D)."""
+        """One draw of x_{t+dt} ~ p(· | x_t) for every particle: (F, N, D) -> (F, N, D), a new
+        tensor (the filter may modify it in place); x is left unchanged."""
         ...
 
     def observation_log_prob(self, x: Tensor, observation: Tensor) -> Tensor:
@@ -112,7 +113,7 @@ class SMCResult:
     sample size 1/Σw² after the update. ``resampled``: (F, T) whether the filter resampled at t.
     ``log_evidence``: (F,) estimate of log p(o_{0:T−1}) (unbiased for p, not for log p).
     ``particles`` (F, N, D) and ``log_weights`` (F, N) (normalized) at the last step.
-    All tensors are float64 (whatever the working precision) and contiguous.
+    All tensors are float64 whatever the working precision (``particles`` keeps the planar layout).
     """
 
     times: Tensor
@@ -248,6 +249,7 @@ def run_filter(model: StateSpaceModel, observations: Tensor, config: SMCConfig =
     ess_history = torch.empty((num_filters, num_steps), dtype=_RESULT_DTYPE)
     resampled = torch.zeros((num_filters, num_steps), dtype=torch.bool)
     threshold = config.ess_threshold * n
+    scratch = torch.empty((num_filters, state_dim, n), dtype=dtype)
 
     for step in range(num_steps):
         if step > 0:
@@ -261,7 +263,7 @@ def run_filter(model: StateSpaceModel, observations: Tensor, config: SMCConfig =
             w = log_w.exp()
         ess = 1.0 / torch.linalg.vecdot(w, w)                                   # (F,)
         ess_history[:, step] = ess
-        mean, std = _weighted_moments(x, w)
+        mean, std = _weighted_moments(x, w, scratch)
         means[:, step] = mean
         stds[:, step] = std
         if config.quantiles:
@@ -280,7 +282,7 @@ def run_filter(model: StateSpaceModel, observations: Tensor, config: SMCConfig =
     return SMCResult(times=times, state_names=tuple(model.state_names), mean=means, std=stds,
                      quantile_levels=tuple(config.quantiles), quantiles=quantiles,
                      ess=ess_history, resampled=resampled, log_evidence=log_evidence,
-                     particles=x.to(_RESULT_DTYPE, memory_format=torch.contiguous_format),
+                     particles=x.to(_RESULT_DTYPE),
                      log_weights=log_w.to(_RESULT_DTYPE), num_particles=n)
 
 
@@ -308,18 +310,22 @@ def _reweight(log_w: Tensor, log_lik: Tensor, observed: Tensor) -> tuple[Tensor,
     return unnormalized.sub_(increment), w, increment.squeeze(-1)
 
 
-def _weighted_moments(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+def _weighted_moments(x: Tensor, w: Tensor, scratch: Tensor | None = None
+                      ) -> tuple[Tensor, Tensor]:
     """Weighted mean and std (F, D) of particles (F, N, D) under normalized weights (F, N).
 
-    Batched matrix products over the (F, D, N) view (contiguous for planar particles); the
-    variance is taken about the mean (not E[x²] − mean², which cancels badly in float32).
+    Batched dot products over the (F, D, N) view (contiguous for planar particles;
+    ``linalg.vecdot`` measured ~5x faster than ``bmm``/``einsum`` for these shapes); the variance
+    is taken about the mean (not E[x²] − mean², which cancels badly in float32). ``scratch``:
+    an optional (F, D, N) buffer for the centred values — reusing it avoids a fresh ~1 MB
+    allocation per step, which glibc serves with new pages (measured ~0.9 ms per step here).
     """
     planes = x.transpose(1, 2)                                            # (F, D, N)
-    weights = w[:, :, None]
-    mean = torch.bmm(planes, weights)                                     # (F, D, 1)
-    centred = torch.sub(planes, mean).square_()
-    variance = torch.bmm(centred, weights).clamp_(min=0.0)
-    return mean.squeeze(-1), variance.squeeze(-1).sqrt_()
+    weights = w[:, None, :]
+    mean = torch.linalg.vecdot(planes, weights)                           # (F, D)
+    centred = torch.sub(planes, mean[:, :, None], out=scratch).square_()
+    variance = torch.linalg.vecdot(centred, weights).clamp_(min=0.0)
+    return mean, variance.sqrt_()
 
 
 def _resample_where(needs: Tensor, x: Tensor, log_w: Tensor, w: Tensor,

@@ -20,13 +20,15 @@ pytestmark = pytest.mark.slow
 # Cases end 2022-03-16; minus the 14 days still under revision -> the last day kept.
 EXPECTED_REFERENCE_DATE = "2022-03-02"
 HUB_LEVELS = 23
+HUB_SAMPLES = 200
 
 
 @pytest.fixture(scope="session")
 def prefect_harness():
     from prefect.testing.utilities import prefect_test_harness
 
-    with prefect_test_harness(server_startup_timeout=60):
+    # generous start-up bound: the ephemeral server is slow to come up on a loaded 2-core box
+    with prefect_test_harness(server_startup_timeout=120):
         yield
 
 
@@ -49,6 +51,7 @@ def test_outputs_exist_with_real_numbers(good_run):
     out = Path(result["output_dir"])
     assert result["reference_date"] == EXPECTED_REFERENCE_DATE
     assert out == root / "reports" / EXPECTED_REFERENCE_DATE and not result["data_stale"]
+    assert not result["model_reused"]  # a fresh data dir: the flow trained the pair
     for name in result["files"]:
         assert (out / name).stat().st_size > 0, name
 
@@ -75,10 +78,39 @@ def test_outputs_exist_with_real_numbers(good_run):
     hub = pd.read_csv(out / "hub_forecast.csv")
     quantiles = hub[hub["output_type"] == "quantile"]
     assert quantiles["output_type_id"].nunique() == HUB_LEVELS
+    assert hub.loc[hub["output_type"] == "sample", "output_type_id"].nunique() == HUB_SAMPLES
+    assert set(hub["target"]) == {"S prop", "I prop", "R prop"}
+    assert sorted(hub["horizon"].unique()) == [1, 2, 3, 4]
     assert (pd.to_datetime(hub["reference_date"]) == pd.Timestamp(EXPECTED_REFERENCE_DATE)).all()
+    end = pd.to_datetime(hub["target_end_date"]) - pd.Timestamp(EXPECTED_REFERENCE_DATE)
+    assert (end.dt.days == 7 * hub["horizon"]).all()
+    # quantiles are non-decreasing in the level for every target and horizon
+    q = quantiles.assign(level=quantiles["output_type_id"].astype(float)).sort_values("level")
+    assert (q.groupby(["target", "horizon"])["value"].diff().dropna() >= 0).all()
 
+    # backtest: the NF rollout against persistence and plain SMC, over the tiny preset's origins
+    summary = json.loads((out / "results.json").read_text())
+    bt = summary["backtest"]
+    assert bt["n_origins"] == 2 and set(bt["relative_wis"]) == {"persistence", "smc"}
+    assert all(np.isfinite(v) and v > 0 for v in bt["relative_wis"].values())
+    scores = pd.read_csv(out / "backtest_scores.csv")
+    assert set(scores["forecaster"]) == {"persistence", "smc", "nf-rollout"}
+    assert len(scores) == 3 * 2 * 4 * 3  # forecasters × origins × horizons × compartments
+    nf = scores[scores["forecaster"] == "nf-rollout"]
+    np.testing.assert_allclose(bt["coverage"]["nf-rollout"]["90"], nf["covered_90"].mean())
+    both = scores.pivot_table(index=["origin", "compartment", "horizon"], columns="forecaster",
+                              values="wis")
+    np.testing.assert_allclose(bt["relative_wis"]["smc"],
+                               both["nf-rollout"].sum() / both["smc"].sum())
+    np.testing.assert_allclose(scores["wis"], scores[["dispersion", "overprediction",
+                                                      "underprediction"]].sum(axis=1))
+
+    assert (out / "report.pdf").read_bytes()[:5] == b"%PDF-"
     report = (out / "report.html").read_text()
     assert EXPECTED_REFERENCE_DATE in report and "Stale data" not in report
+    for heading in ("rel. WIS vs persistence", "rel. WIS vs plain SMC", "Transformer + KE",
+                    "Mamba-SSM", "MLP"):
+        assert heading in report, heading
     index = json.loads((root / "reports" / "index.json").read_text())
     assert [r["reference_date"] for r in index["runs"]] == [EXPECTED_REFERENCE_DATE]
     assert index["runs"][0]["data_vintage"].startswith("2022-03-21")
@@ -110,7 +142,8 @@ def test_second_run_reuses_model_and_reproduces(good_run, tmp_path, monkeypatch)
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
     again = weekly_forecast(preset="tiny", data_source="cache", output_dir=str(tmp_path), seed=0)
     assert again["model_reused"] and again["model_key"] == first["model_key"]
-    for name in ["latest_estimates.csv", "parameter_estimates.csv", "smc_bands.csv"]:
+    for name in ["latest_estimates.csv", "parameter_estimates.csv", "smc_bands.csv",
+                 "nll_table.csv", "hub_forecast.csv", "backtest_scores.csv"]:
         assert (Path(again["output_dir"]) / name).read_bytes() == \
             (Path(first["output_dir"]) / name).read_bytes(), name
 
@@ -134,7 +167,7 @@ def test_fetch_fails_with_cache_completes_and_says_stale(good_run, tmp_path, mon
     assert attempts == 3 * 3  # 3 datasets x (1 + 2 HTTP retries of the tiny preset)
     assert result["data_stale"]
     report = (Path(result["output_dir"]) / "report.html").read_text()
-    assert "Stale data" in report and "DataSF unreachable" in report
+    assert "Stale data" in report and "DataSF could not be reached" in report
     index = json.loads((tmp_path / "reports" / "index.json").read_text())
     assert index["runs"][0]["data_stale"] is True
 

@@ -80,3 +80,58 @@ def test_failed_build_leaves_no_entry(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(CheckpointError, match="no files"):
         store.get_or_build(CONFIG, "d", lambda out_dir: None)
+
+
+# ------------------------------------------------------- the forecast's models come from presets
+
+
+def test_forecast_models_are_the_training_presets():
+    """pipeline.presets is the single source of the weekly models' settings: the default forecast
+    is sir-joint × transformer × fast with only the iteration count shortened; tiny only shrinks."""
+    import dataclasses
+
+    from pipeline.forecast import resolve_config
+    from pipeline.presets import get_preset
+
+    default = resolve_config("default")
+    for direction in ("forward", "backward"):
+        ours = default.training_preset_for(direction)
+        theirs = get_preset("sir-joint", "transformer", recipe="fast", direction=direction,
+                            seed=ours.train.seed, dataset_seed=ours.dataset.seed)
+        assert ours.estimator == theirs.estimator and ours.kinetic == theirs.kinetic
+        assert ours.dataset == theirs.dataset and ours.dataset.direction == direction
+        assert ours.train == dataclasses.replace(theirs.train,
+                                                 iterations=default.train_iterations)
+    assert default.window == 5  # the paper's R
+
+    tiny = resolve_config("tiny").training_preset_for("forward")
+    mlp = get_preset("sir-joint", "mlp", recipe="fast", seed=tiny.train.seed,
+                     dataset_seed=tiny.dataset.seed, n_trajectories=16)
+    assert tiny.estimator == mlp.estimator and tiny.dataset == mlp.dataset
+    assert (tiny.train.iterations, tiny.train.batch_size, tiny.train.eval_every) == (30, 256, 10)
+    assert tiny.train.lr == mlp.train.lr and tiny.train.schedule == mlp.train.schedule
+
+
+def test_forecast_model_key_follows_encoder_recipe_and_seed():
+    from pipeline.forecast import resolve_config
+
+    base = resolve_config("tiny")
+    keys = {model_key(c.training_identity(), "data") for c in (
+        base, resolve_config("tiny", encoder="transformer"), resolve_config("tiny", seed=1),
+        resolve_config("tiny", recipe="paper"), resolve_config("tiny", train_iterations=31))}
+    assert len(keys) == 5
+    # parameters that do not touch training (sample counts, data source) keep the key
+    assert model_key(resolve_config("tiny", n_samples=7, backtest_origins=0)
+                     .training_identity(), "data") == model_key(base.training_identity(), "data")
+
+
+def test_forecast_config_rejects_unknown_preset_parts():
+    from pipeline.errors import ConfigError
+    from pipeline.forecast import resolve_config
+
+    with pytest.raises(ConfigError, match="unknown encoder 'lstm'"):
+        resolve_config("tiny", encoder="lstm")
+    with pytest.raises(ConfigError, match="unknown recipe"):
+        resolve_config("tiny", recipe="slow")
+    with pytest.raises(ConfigError, match="unknown forecast preset 'huge'"):
+        resolve_config("huge")

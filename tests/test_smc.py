@@ -12,7 +12,8 @@ from pipeline.errors import ConfigError
 from pipeline.smc import (SMCConfig, run_filter, seeded_filter, systematic_resample_indices,
                           weighted_quantiles)
 from pipeline.smc_models import (LinearGaussianModel, SIRParamsModel, SIRStateModel, VehicleModel,
-                                 kalman_filter, project_to_simplex)
+                                 gaussian_log_likelihood, is_planar, kalman_filter,
+                                 project_to_simplex)
 from pipeline.systems.sir import rk4_step, simulate_ensemble
 from pipeline.systems.vehicle import get_vehicle_config, simulate_vehicle
 
@@ -116,7 +117,43 @@ def test_sir_transition_conserves_the_simplex_and_reduces_to_rk4():
     assert torch.allclose(moved.sum(-1), torch.ones(4, 300, dtype=torch.float64))
     assert bool((moved >= 0).all())
     exact = SIRStateModel.create(0.03, 0.01, [0.9, 0.1, 0.0], process_sigma=0.0)
-    assert torch.equal(exact.transition(x, 0.0, 1.0, g), rk4_step(x, 0.03, 0.01, 1.0))
+    # The columnwise RK4 is the same scheme as rk4_step: equal to float64 rounding (the RK4
+    # increment itself is ~1e-2, so 1e-15 is a few ulps of the state).
+    torch.testing.assert_close(exact.transition(x, 0.0, 1.0, g), rk4_step(x, 0.03, 0.01, 1.0),
+                               rtol=0.0, atol=1e-15)
+
+
+def test_columnwise_rk4_matches_rk4_step_for_per_filter_and_per_particle_parameters():
+    g = torch.Generator().manual_seed(1)
+    x = project_to_simplex(torch.rand((5, 200, 3), generator=g, dtype=torch.float64))
+    beta = 0.1 + 0.4 * torch.rand(5, generator=g, dtype=torch.float64)
+    gamma = 0.05 + 0.1 * torch.rand(5, generator=g, dtype=torch.float64)
+    per_filter = SIRStateModel.create(beta, gamma, [0.9, 0.1, 0.0], process_sigma=0.0)
+    expected = rk4_step(x, beta[:, None], gamma[:, None], 2.5)
+    torch.testing.assert_close(per_filter.transition(x, 0.0, 2.5, g), expected, rtol=0, atol=1e-14)
+    # SIRParamsModel: β, γ per particle, carried unchanged without jitter.
+    params = torch.stack([beta[:, None].expand(5, 200), gamma[:, None].expand(5, 200)], -1)
+    joint = SIRParamsModel.create(prior_mean=[0.9, 0.1, 0.0], process_sigma=0.0)
+    moved = joint.transition(torch.cat([x, params], -1), 0.0, 2.5, g)
+    torch.testing.assert_close(moved[..., :3], expected, rtol=0, atol=1e-14)
+    assert torch.equal(moved[..., 3:], params)
+    # S + I + R is conserved by construction (R is advanced by −(ΔS + ΔI)).
+    torch.testing.assert_close(moved[..., :3].sum(-1), x.sum(-1), rtol=0, atol=1e-15)
+
+
+def test_transition_leaves_its_input_unchanged_and_returns_planar_particles():
+    g = torch.Generator().manual_seed(2)
+    model = SIRParamsModel.create(prior_mean=[0.9, 0.1, 0.0], param_jitter=0.01)
+    x = model.initial(3, 50, g)
+    assert is_planar(x) and torch.allclose(x[..., :3].sum(-1), torch.ones(3, 50, dtype=x.dtype))
+    before = x.clone()
+    moved = model.transition(x, 0.0, 1.0, g)
+    assert torch.equal(x, before) and is_planar(moved)
+    assert bool((moved[..., 3:] != x[..., 3:]).all())  # jitter moved every β and γ
+    contiguous = x.contiguous()  # a non-planar input gives the same answer
+    g1, g2 = torch.Generator().manual_seed(7), torch.Generator().manual_seed(7)
+    assert torch.equal(model.transition(x, 0.0, 1.0, g1),
+                       model.transition(contiguous, 0.0, 1.0, g2))
 
 
 @pytest.fixture(scope="module")
@@ -161,7 +198,12 @@ def test_sir_params_model_recovers_beta_and_gamma():
     truth = torch.stack([ensemble.beta, ensemble.gamma], -1)
     assert bool(((truth >= lower[:, -1, 3:]) & (truth <= upper[:, -1, 3:])).all())
     prior_sd = torch.tensor([0.02, 0.02], dtype=torch.float64) / math.sqrt(12)
-    assert bool((result.std[:, -1, 3:] < 0.7 * prior_sd).all())  # the data were informative
+    # The data were informative. Trajectory 2 (R0 ≈ 1.2, a weak epidemic) identifies β least:
+    # its posterior sd is 0.47-0.74 prior sd across seeds and dtypes, hence the per-trajectory
+    # bound 0.8 and the tighter bound on the average over trajectories.
+    posterior_sd = result.std[:, -1, 3:]
+    assert bool((posterior_sd < 0.8 * prior_sd).all())
+    assert bool((posterior_sd.mean(0) < 0.5 * prior_sd).all())
 
 
 def test_vehicle_model_draws_psi_at_the_switch_and_tracks_positions():
@@ -236,3 +278,56 @@ def test_cli_filter_writes_means_bands_and_ess(tmp_path):
                               "--out", str(out)])
     assert bad.exit_code == 2 and "file not found" in bad.output
     assert runner.invoke(app, ["smc", "filter", "--help"]).exit_code == 0
+
+
+def test_gaussian_log_likelihood_equals_scipy_and_ignores_missing_components():
+    from scipy.stats import norm
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand((2, 40, 3), generator=g, dtype=torch.float64)
+    obs = torch.tensor([[0.5, 0.2, 0.3], [0.4, NAN, 0.1]], dtype=torch.float64)
+    ours = gaussian_log_likelihood(x, obs, 0.027)
+    expected = norm.logpdf(obs[0].numpy(), x[0].numpy(), 0.027).sum(-1)
+    np.testing.assert_allclose(ours[0].numpy(), expected, rtol=1e-12)
+    expected = norm.logpdf(obs[1, [0, 2]].numpy(), x[1][:, [0, 2]].numpy(), 0.027).sum(-1)
+    np.testing.assert_allclose(ours[1].numpy(), expected, rtol=1e-12)
+    assert torch.equal(gaussian_log_likelihood(x, torch.full((2, 3), NAN, dtype=torch.float64),
+                                               0.027), torch.zeros(2, 40, dtype=torch.float64))
+
+
+def test_sir_models_default_to_float32_with_float64_results_close_to_float64(sir_windows):
+    """float32 is the SIR default; results come back as float64 and, with the same seed (the
+    same random numbers), differ from a float64 run by far less than the Monte-Carlo error."""
+    obs, _, prior = sir_windows
+    model = SIRStateModel.create(0.03, 0.01, prior)
+    assert SMCConfig().resolve_dtype(model) == torch.float32
+    assert SMCConfig().resolve_dtype(LinearGaussianModel()) == torch.float64
+    single = run_filter(model, obs, SMCConfig(quantiles=()))
+    double = run_filter(model, obs, SMCConfig(quantiles=(), dtype=torch.float64))
+    for name in ("mean", "std", "ess", "log_evidence", "particles", "log_weights"):
+        assert getattr(single, name).dtype == torch.float64, name
+    monte_carlo_se = double.std / double.ess[..., None].sqrt()
+    ratio = ((single.mean - double.mean).abs() / monte_carlo_se)[:, 1:]
+    assert float(ratio.median()) < 0.05 and float(ratio.quantile(0.99)) < 1.0
+    with pytest.raises(ConfigError, match="dtype"):
+        SMCConfig(dtype=torch.float16)
+
+
+def test_only_flagged_filters_are_resampled_and_their_particles_come_from_their_own_past():
+    """Sub-batch resampling: filters that do not need it keep particles and weights bit for bit;
+    resampled ones hold copies of their own pre-resampling particles with uniform weights."""
+    model = LinearGaussianModel(p0=4.0, r=0.1)
+    obs = torch.tensor([[[NAN], [0.0]], [[NAN], [NAN]], [[NAN], [0.5]]], dtype=torch.float64)
+    config = SMCConfig(num_particles=300, seed=0, quantiles=())
+    result = run_filter(model, obs, config)
+    assert result.resampled[:, 1].tolist() == [True, False, True]
+    assert torch.allclose(result.log_weights[[0, 2]], torch.full((2, 300), -math.log(300),
+                                                                dtype=torch.float64))
+    # Filter 1 (no data) is the plain propagation of the prior: its particles are exactly the
+    # propagated initial draws of an unresampled run of it alone with the same random numbers.
+    propagated = run_filter(model, obs, SMCConfig(num_particles=300, seed=0, quantiles=(),
+                                                  ess_threshold=1e-9))
+    assert torch.equal(result.particles[1], propagated.particles[1])
+    assert torch.equal(result.log_weights[1], propagated.log_weights[1])
+    for f in (0, 2):  # every resampled particle is one of the unresampled run's particles
+        assert bool(torch.isin(result.particles[f, :, 0], propagated.particles[f, :, 0]).all())

@@ -133,6 +133,9 @@ def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output
                  population: int = Population, infectious_days: int = InfectiousDays,
                  ascertainment: bool = Ascertainment,
                  n_trajectories: int = typer.Option(500, "--n-trajectories", min=10),
+                 i0: float = typer.Option(0.01, "--i0", min=1e-9, max=0.5,
+                                          help="Prior initial infected share (S0 = 1 - I0); "
+                                               "sir-multi uses 0.01."),
                  seed: int = typer.Option(0, "--seed")) -> None:
     """Figures: the SF S/I/R series, and SF beside the sir-multi prior (+ measured overlap)."""
     from pipeline.data.plots import (PriorEnsembleConfig, compare_with_prior, plot_sir_series,
@@ -145,7 +148,7 @@ def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output
                      _sir_config(population, infectious_days, ascertainment))
     except FlowcastError as exc:
         _fail(exc)
-    prior = PriorEnsembleConfig(n_trajectories=n_trajectories, seed=seed)
+    prior = PriorEnsembleConfig(n_trajectories=n_trajectories, seed=seed, i0=i0, s0=1.0 - i0)
     comparison = compare_with_prior(sir, prior)
     paths = [plot_sir_series(sir, out / "sf_sir.png"),
              plot_sir_vs_prior(sir, prior, out / "sf_sir_vs_prior.png", comparison)]

@@ -53,9 +53,19 @@ def read_csv_bytes(data: bytes, *, source: str) -> pd.DataFrame:
 
 
 def detect_dataset(columns: Sequence[str], *, source: str) -> DatasetSpec:
-    """The spec whose fields ``columns`` match best; the date column must be among them."""
+    """The spec whose fields ``columns`` match best.
+
+    A candidate must carry its date column *and* at least one of its count columns: a shared
+    date name ("Specimen Collection Date") plus a vintage stamp is not enough, otherwise other
+    DataSF exports (e.g. tvq9-ec9w, cases by transmission) would be taken for the tests dataset
+    and fail with a misleading list of "missing" columns. One renamed count column (``New
+    Kases``) still identifies the cases export by its other columns, so its error names the
+    missing field.
+    """
     scored = sorted(((column_match_count(columns, s), s) for s in DATASETS.values()
-                     if find_column(columns, s.date) is not None),
+                     if find_column(columns, s.date) is not None
+                     and any(find_column(columns, f) is not None
+                             for f in s.required if f is not s.date)),
                     key=lambda pair: pair[0], reverse=True)
     if not scored or scored[0][0] < 2 or (len(scored) > 1 and scored[0][0] == scored[1][0]):
         known = "; ".join(f"{s.key} ({s.dataset_id}): "

@@ -65,7 +65,8 @@ def _fig(png: bytes, caption: str, alt: str) -> FigureItem:
 def _series_section(r: Any) -> Section:
     sir = r.sir_frame
     last = pd.to_datetime(sir["date"]).max().date()
-    png = figures.sir_series_figure(sir, vintage=r.vintage)
+    # the figure's subtitle gets the short vintage; the caption carries the full one
+    png = figures.sir_series_figure(sir, vintage=str(r.vintage).split(";", 1)[0])
     return Section.weekly(SectionKey.SIR_SERIES, [_fig(
         png, f"S, I and R as fractions of the San Francisco population, derived from DataSF "
              f"cases, tests and deaths; last day {last}. Data: {r.vintage}.",
@@ -173,19 +174,28 @@ def _smc_section(r: Any) -> Section:
         "Particle filter estimates of S, I, R with 3 sigma bands and effective sample size")])
 
 
+# The paper's Table 5 columns, then any other variant this store holds (e.g. MLP).
+_PAPER_VARIANTS = ("Transformer", "Transformer + KE", "Mamba-SSM")
+
+
 def _nll_section(r: Any) -> Section:
     frame = r.nll
     short = {"forward": "fw", "backward": "bw"}
-    variants = list(dict.fromkeys(frame["variant"].astype(str)))
+    ours = list(dict.fromkeys(frame["variant"].astype(str)))
+    variants = [*_PAPER_VARIANTS, *(v for v in ours if v not in _PAPER_VARIANTS)]
     values = {(short.get(d, d), str(v)): float(x)
               for d, v, x in zip(frame["direction"], frame["variant"], frame["mean_nll"])}
     table = nll_table(values, variants=variants)
     n = int(frame["locations"].max()) if "locations" in frame else None
     where = f" at {n} random days" if n else ""
+    missing = [v for v in _PAPER_VARIANTS if v not in ours]
+    absent = (f" “—”: no trained {', '.join(missing)} model in the model store for this "
+              "configuration (train them with `python -m flows.scale_out`; the next weekly run "
+              "scores every cached variant)." if missing else "")
     return Section.weekly(SectionKey.NLL, [TableItem(
         table, f"Mean negative log-likelihood of the observed (S, I, R){where} under the "
                "estimated conditional density, forward (fw) and backward (bw), aggregated "
-               "across compartments (layout of the paper's Table 5; lower is better).",
+               "across compartments (layout of the paper's Table 5; lower is better)." + absent,
         highlight="row-min")])
 
 
@@ -206,19 +216,47 @@ def _training_section(r: Any) -> Section:
         "Training and validation loss curves")])
 
 
+_BACKTEST_LABELS = {"nf-rollout": "NF rollout (this model)", "smc": "plain SMC",
+                    "persistence": "persistence"}
+
+
+def backtest_table(result: Any) -> pd.DataFrame:
+    """One row per forecaster: relative WIS against persistence and against the plain SMC,
+    mean WIS and its parts, 50%/90% interval coverage, number of scored cells."""
+    from pipeline.backtest import relative_wis, summarize
+
+    summary = summarize(result)
+    names = list(summary.index)
+    vs_smc = ([relative_wis(result.scores, name, "smc") for name in names]
+              if "smc" in names else [float("nan")] * len(names))
+    return pd.DataFrame({
+        "rel. WIS vs persistence": summary["relative_wis"].to_numpy(),
+        "rel. WIS vs plain SMC": vs_smc,
+        "mean WIS": summary["mean_wis"].to_numpy(),
+        "50% coverage": summary["coverage_50"].to_numpy(),
+        "90% coverage": summary["coverage_90"].to_numpy(),
+        "scored cells": summary["n_forecasts"].to_numpy()},
+        index=pd.Index([_BACKTEST_LABELS.get(n, n) for n in names], name="forecaster"))
+
+
 def _backtest_section(r: Any) -> Section:
-    from pipeline.backtest import summarize, summary_by_horizon
+    from pipeline.backtest import summary_by_horizon
 
     result = r.backtest
+    scores = result.scores
+    origins = pd.to_datetime(scores["origin"])
     by_h = summary_by_horizon(result)
-    summary = summarize(result)[["relative_wis", "mean_wis", "coverage_50", "coverage_90",
-                                 "n_forecasts"]]
     return Section.weekly(SectionKey.BACKTEST, [
         _fig(figures.backtest_figure(by_h), "Relative WIS against the persistence baseline by "
-             "horizon (left) and 50%/90% interval coverage (right).",
+             "horizon (left; below 1 beats persistence) and 50%/90% interval coverage (right).",
              "Bar chart of relative WIS by horizon and coverage lines"),
-        TableItem(summary, "Backtest summary over all origins, compartments and horizons.",
-                  decimals=3)])
+        TableItem(backtest_table(result),
+                  f"Rolling-origin backtest: forecasts from {origins.nunique()} weekly origins "
+                  f"({origins.min().date()} … {origins.max().date()}), "
+                  f"{result.config.n_samples} sample paths each, scored at 1–4 weeks on S, I and "
+                  "R with the weighted interval score of the 23 hub quantiles. Relative WIS = "
+                  "Σ WIS(row) / Σ WIS(baseline) over the same forecasts (below 1: better than "
+                  "the baseline).", decimals=3)])
 
 
 _BUILDERS: Sequence[tuple[str, Callable[[Any], Section]]] = (
@@ -250,21 +288,47 @@ def _provenance(r: Any) -> Provenance:
     config = r.config
     cfg = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else dict(config)
     extra = {"model cache key": str(getattr(models, "key", "—")),
+             "model": ("reused from the model cache" if getattr(models, "reused", False)
+                       else "trained in this run"),
              "forward checkpoint": str(path) if checkpoint else "—"}
+    preset_for = getattr(config, "training_preset_for", None)
+    if preset_for is not None:  # the resolved pipeline.presets entries the models come from
+        for direction in ("forward", "backward"):
+            p = preset_for(direction)
+            extra[f"{direction} training preset"] = (
+                f"{p.run_name}: {p.train.iterations} iterations, batch {p.train.batch_size}, "
+                f"lr {p.train.lr:g} ({p.train.schedule}), {p.dataset.name} "
+                f"{p.dataset.n_trajectories or 'all'} trajectories")
     return Provenance(package_version=__version__, versions=_versions(), config=cfg,
                       data_sha256=sha256_bytes(csv), checkpoint_sha256=checkpoint,
                       seed=getattr(config, "seed", None), extra=extra)
 
 
+STALE_HEADLINE = ("Stale data: DataSF could not be reached (every retry failed), so this "
+                  "forecast was made from the cached data")
+
+
+def stale_warnings(results: Any, last_day: dt.date) -> list[str]:
+    """The report's stale-data warnings: why (DataSF unreachable, cache used), how old, and the
+    per-dataset cache notes."""
+    headline = f"{STALE_HEADLINE} ({results.vintage})."
+    age = stale_data_warning(last_day, dt.date.today(), as_of_label="today (the run date)")
+    notes = [_short_note(str(n)) for n in getattr(results, "stale_notes", ())]
+    details = ["Per dataset: " + "; ".join(notes) + "."] if notes else []
+    return [headline, *([age] if age else []), *details]
+
+
+def _short_note(note: str, limit: int = 160) -> str:
+    """A cache note without the transport's nested exception text (the run log keeps it)."""
+    note = note.split(" (Caused by", 1)[0].split("; last: ", 1)[0].rstrip(" .;")
+    return note if len(note) <= limit else note[: limit - 1] + "…"
+
+
 def forecast_report_content(results: Any) -> ReportContent:
     """The ``ReportContent`` of one weekly run (sections that cannot be drawn become warnings)."""
-    warnings = [str(n) for n in getattr(results, "stale_notes", ())] if results.stale else []
     reference = results.future.reference_date
     last = pd.to_datetime(results.sir_frame["date"]).max().date()
-    stale = (stale_data_warning(last, dt.date.today(), as_of_label="today (the run date)")
-             if results.stale else None)
-    if stale:
-        warnings.insert(0, stale)
+    warnings = stale_warnings(results, last) if results.stale else []
     sections = []
     for name, build in _BUILDERS:
         if name == "backtest" and getattr(results, "backtest", None) is None:
