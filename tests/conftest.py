@@ -15,7 +15,8 @@ DATASF = SHARED / "data" / "datasf"
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("DO_NOT_TRACK", "1")
-torch.set_num_threads(min(2, os.cpu_count() or 1))
+# Test models are tiny: one thread is as fast and never stalls on a shared 2-core machine.
+torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

@@ -16,14 +16,6 @@ from pipeline.models.estimator import EstimatorConfig, build_estimator, make_est
 WINDOW, CHANNELS, FEATURES = 4, 4, 3
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small models: one thread avoids oversubscribing the shared 2-core machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 def _config(kind: str = "mamba", backend: str = "zuko") -> EstimatorConfig:
     return make_estimator_config(FEATURES, CHANNELS, WINDOW,

@@ -26,13 +26,6 @@ from pipeline.systems.vehicle import simulate_vehicle
 R = 5
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Small tensors: 2 OpenMP threads on a loaded 2-core machine only add stalls."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")

@@ -11,13 +11,6 @@ from pipeline.models.encoders import (ENCODER_KINDS, EncoderConfig, TransformerE
 CHANNELS, WINDOW, EMBEDDING = 3, 6, 5
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 def make_encoder(kind: str, seed: int = 0):
     torch.manual_seed(seed)

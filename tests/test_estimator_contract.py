@@ -25,13 +25,6 @@ STATS = Standardization(context_mean=torch.tensor([1.0, -2.0, -3.0]),
                         target_std=torch.tensor([2.0, 0.1]))
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 def config_for(kind: str, backend: str) -> EstimatorConfig:
     return make_estimator_config(D, C, R, EncoderConfig(kind=kind, embedding_features=E),

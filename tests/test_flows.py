@@ -16,15 +16,6 @@ from pipeline.models.flows import BACKENDS, FlowConfig, build_flow
 BACKEND_PARAMS = pytest.mark.parametrize("backend", BACKENDS)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: a second intra-op thread only adds spin-wait, which on a loaded
-    2-core machine made single tests 25x slower."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 def make_flow(backend: str, features: int, context: int, layers: int = 3, seed: int = 0,
               double: bool = True, **options):

@@ -12,13 +12,6 @@ from pipeline.kinetic import KineticWeights, kinetic_loss, kinetic_loss_terms, p
 from pipeline.models.flows import BACKENDS, ConditionalFlow, FlowConfig, build_flow
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 class ReverseAffineFlow(ConditionalFlow):
     """Layer l: y = a_l * reverse(x) + b_l, base N(0, I) (unconditional, untrained)."""

@@ -11,13 +11,6 @@ from pipeline.models.encoders.mamba import (MambaMixer, selective_scan,
                                             selective_scan_sequential)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 def random_scan_inputs(length: int, seed: int = 0, d: int = 3, n: int = 4):
     g = torch.Generator().manual_seed(seed)

@@ -10,14 +10,6 @@ from pipeline.models.estimator import build_estimator
 from pipeline.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small models: one thread avoids oversubscribing the shared 2-core machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 
 def _unit_stats(channels: int, features: int):
     from pipeline.datasets import Standardization

@@ -18,14 +18,6 @@ from pipeline.systems.sir import (SIR_PRIORS, SIRPrior, observation_log_likeliho
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """These tensors are small; with 2 OpenMP threads on a loaded 2-core machine each parallel
-    region (e.g. cos of 2,000 doubles) was measured to stall for ~4 ms, 40x the 1-thread time."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 X0 = (0.99, 0.01, 0.0)
 # The four corners of the sir-multi prior, its centre and the sir-single parameters.
 PARAMETER_SETS = [(0.02, 0.005), (0.02, 0.025), (0.04, 0.005), (0.04, 0.025), (0.03, 0.015),

@@ -17,14 +17,6 @@ from pipeline.systems.vehicle import (VEHICLE_CONFIGS, VehicleConfig, draw_proce
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """These tensors are small; with 2 OpenMP threads on a loaded 2-core machine each parallel
-    region (e.g. cos of 2,000 doubles) was measured to stall for ~4 ms, 40x the 1-thread time."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 def scalar_trajectory(psi: float, steps_per_unit: int, t_end: int, model: str) -> list[list[float]]:
