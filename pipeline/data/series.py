@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import asdict, dataclass, field
-from datetime import datetime
+from datetime import date, datetime
 from pathlib import Path
 from typing import Any
 
@@ -172,7 +172,11 @@ def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
     validated = validate_frame(decode_cached(cached, spec), spec, source=str(cached.path),
                                gap_policy=gap_policy)
     stale = cached.manifest.age_days(now)
-    notes = ((why,) if why else ()) + (f"using cache, stale by {stale:.0f} days",)
+    # The cache's age alone hides an archived export: also say how old the data themselves are.
+    data_age = (now.date() - date.fromisoformat(str(cached.manifest.last_date)[:10])).days
+    notes = ((why,) if why else ()) + (
+        f"using cache, stale by {stale:.0f} days (its last day, {cached.manifest.last_date}, "
+        f"is {data_age} days before today)",)
     log.warning("DataSF %s: %s", spec.key, "; ".join(notes))
     return validated, _provenance(cached.manifest, from_cache=True, stale_days=stale,
                                   notes=notes + validated.report.warnings)
