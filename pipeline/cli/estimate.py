@@ -14,41 +14,19 @@ import pandas as pd
 import typer
 
 from pipeline.cli import app
+from pipeline.cli.csv_input import read_timed_csv
 from pipeline.errors import ConfigError, FlowcastError
 
 
 def read_observation_csv(path: Path, observed: tuple[str, ...]
                          ) -> tuple[np.ndarray, np.ndarray, pd.Series | None]:
-    """(times (T,), values (T, C), dates or None) from a CSV; errors name the file and column."""
-    if not path.is_file():
-        raise ConfigError(f"{path}: file not found")
-    try:
-        frame = pd.read_csv(path)
-    except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as error:
-        raise ConfigError(f"{path}: not a readable CSV ({error})") from None
-    missing = [c for c in observed if c not in frame.columns]
-    if missing:
-        raise ConfigError(f"{path}: missing column(s) {missing}; the model observes {list(observed)}"
-                          f" (found {list(frame.columns)})")
-    dates = None
-    if "time" in frame.columns:
-        times = pd.to_numeric(frame["time"], errors="coerce").to_numpy(dtype=np.float64)
-    elif "date" in frame.columns:
-        dates = pd.to_datetime(frame["date"], errors="coerce")
-        if dates.isna().any():
-            raise ConfigError(f"{path}: column 'date' has unparseable values at rows "
-                              f"{np.flatnonzero(dates.isna())[:5].tolist()}")
-        times = ((dates - dates.iloc[0]) / pd.Timedelta(days=1)).to_numpy(dtype=np.float64)
-    else:
-        raise ConfigError(f"{path}: needs a 'time' or a 'date' column")
-    values = frame[list(observed)].apply(pd.to_numeric, errors="coerce").to_numpy(np.float64)
-    bad = ~np.isfinite(values).all(axis=1) | ~np.isfinite(times)
+    """(times (T,), values (T, C), dates or None); every observed value must be a number."""
+    times, values, dates = read_timed_csv(path, observed)
+    bad = ~np.isfinite(values).all(axis=1)
     if bad.any():
         raise ConfigError(f"{path}: non-numeric or missing values at rows "
                           f"{np.flatnonzero(bad)[:5].tolist()}")
-    if len(times) > 1 and not (np.diff(times) > 0).all():
-        raise ConfigError(f"{path}: times must be strictly increasing")
-    return times, np.array(values), dates
+    return times, values, dates
 
 
 def _load(checkpoint: Path):  # noqa: ANN202 - (estimator, ModelInfo)

@@ -18,6 +18,7 @@ import torch
 import typer
 
 from pipeline.cli import app
+from pipeline.cli.csv_input import read_timed_csv
 from pipeline.errors import ConfigError, FlowcastError
 from pipeline.io import atomic_write_text
 from pipeline.progress import rich_progress
@@ -34,32 +35,8 @@ _OBSERVED = {"sir": ("S", "I", "R"), "sir-params": ("S", "I", "R"), "vehicle": (
 
 
 def read_observations(path: Path, columns: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """(times (T,), values (T, C) with NaN for empty cells); errors name the file and column."""
-    if not path.is_file():
-        raise ConfigError(f"{path}: file not found")
-    try:
-        frame = pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as error:
-        raise ConfigError(f"{path}: not a readable CSV ({error})") from None
-    missing = [c for c in columns if c not in frame.columns]
-    if missing:
-        raise ConfigError(f"{path}: missing column(s) {missing}; expected {list(columns)} and "
-                          f"'time' or 'date'")
-    if "time" in frame.columns:
-        times = pd.to_numeric(frame["time"], errors="coerce").to_numpy(dtype=np.float64)
-    elif "date" in frame.columns:
-        dates = pd.to_datetime(frame["date"], errors="coerce")
-        if dates.isna().any():
-            raise ConfigError(f"{path}: column 'date' has unparseable values at rows "
-                              f"{list(np.flatnonzero(dates.isna().to_numpy()))[:5]}")
-        times = ((dates - dates.iloc[0]).dt.total_seconds() / 86400.0).to_numpy(np.float64)
-    else:
-        raise ConfigError(f"{path}: needs a 'time' or 'date' column")
-    if len(times) < 1 or np.isnan(times).any():
-        raise ConfigError(f"{path}: column 'time' is empty or not numeric")
-    if len(times) > 1 and not (np.diff(times) > 0).all():
-        raise ConfigError(f"{path}: times must be strictly increasing")
-    values = frame[list(columns)].apply(pd.to_numeric, errors="coerce").to_numpy(np.float64)
+    """(times (T,), values (T, C) with NaN for empty cells: the filter skips those updates)."""
+    times, values, _ = read_timed_csv(path, columns)
     return times, values
 
 
