@@ -29,14 +29,19 @@ def read_observation_csv(path: Path, observed: tuple[str, ...]
     return times, values, dates
 
 
-def _load(checkpoint: Path):  # noqa: ANN202 - (estimator, ModelInfo)
+def _load(checkpoint: Path, direction: str | None):  # noqa: ANN202 - (estimator, ModelInfo, str)
+    """The checkpoint's estimator, its ModelInfo, and the direction (default: the model's own)."""
     from pipeline.checkpoints import load_checkpoint
     from pipeline.estimate import ModelInfo
 
     loaded = load_checkpoint(checkpoint)
     info = ModelInfo.from_checkpoint_extra(loaded.meta.extra, str(checkpoint))
+    direction = direction or info.direction
+    if direction != info.direction:
+        raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
+                          f"--direction {direction} needs a {direction} model")
     loaded.estimator.eval()
-    return loaded.estimator, info
+    return loaded.estimator, info, direction
 
 
 def _time_label(times: np.ndarray, dates: pd.Series | None) -> dict[str, object]:
@@ -69,11 +74,7 @@ def estimate_command(
     from pipeline.io import atomic_write_text
 
     try:
-        estimator, info = _load(checkpoint)
-        direction = direction or info.direction
-        if direction != info.direction:
-            raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
-                              f"--direction {direction} needs a {direction} model")
+        estimator, info, direction = _load(checkpoint, direction)
         times, values, dates = read_observation_csv(window, info.observed_names)
         step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
         if target_time is None:
@@ -120,11 +121,7 @@ def rollout_command(
     from pipeline.rollout import RolloutConfig, rolling_rollout, rollout
 
     try:
-        estimator, info = _load(checkpoint)
-        direction = direction or info.direction
-        if direction != info.direction:
-            raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
-                              f"--direction {direction} needs a {direction} model")
+        estimator, info, direction = _load(checkpoint, direction)
         times, values, dates = read_observation_csv(series, info.observed_names)
         if len(times) < info.window:
             raise ConfigError(f"{series}: {len(times)} rows, the model needs at least "
