@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.flowcast-installed
 # torch's OpenMP threads spin-wait by default, which stalls 2-thread ops on a busy 2-core box.
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: forecast test venv sysdeps bench clean-venv
+.PHONY: forecast test variants venv sysdeps bench clean-venv
 
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -38,6 +38,12 @@ forecast: venv sysdeps
 
 test: venv sysdeps
 	$(VENV)/bin/python -m pytest -q
+
+# The report's Table 5 columns beyond the run's own model: train the paper's variants once
+# (Dask workers, flows/scale_out.py); the weekly forecast scores every variant in the model cache.
+variants: venv
+	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
+	  $(VENV)/bin/python -m flows.scale_out --variants transformer-ke mamba $(VARIANT_ARGS)
 
 bench: venv
 	for b in simulate training smc paper_tables e2e backtest; do \

@@ -85,8 +85,8 @@ def convert_to_sir(series: Any) -> Any:
 @task(name="simulate-training-data", **_task)
 def simulate_training_data(config: fc.ForecastConfig) -> fc.TrainingData:
     data = fc.simulate_training_data(config)
-    get_run_logger().info("synthetic sir-multi ensemble: %d trajectories, data sha256 %s…",
-                          data.n_trajectories, data.data_sha256[:12])
+    get_run_logger().info("synthetic %s ensemble: %d trajectories, data sha256 %s…",
+                          config.prior.name, data.n_trajectories, data.data_sha256[:12])
     return data
 
 

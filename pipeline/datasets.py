@@ -49,7 +49,7 @@ FORMAT_VERSION = 1
 DIRECTIONS = ("forward", "backward")
 TARGET_KINDS = ("state", "state+params")
 SPLITS = ("all", "train", "validation")
-SIR_DATASETS = ("sir-single", "sir-multi")
+SIR_DATASETS = ("sir-single", "sir-multi", "sir-sf")
 VEHICLE_DATASETS = ("vehicle-full", "vehicle-dropout", "vehicle-sparse")
 DATASET_NAMES = SIR_DATASETS + VEHICLE_DATASETS
 TIME_FEATURE = "t_obs-t_target"
@@ -89,9 +89,9 @@ class DatasetConfig:
             raise ConfigError(f"val_fraction={self.val_fraction} must be in [0, 1)")
         if self.n_trajectories is not None and self.n_trajectories < 1:
             raise ConfigError(f"n_trajectories={self.n_trajectories} must be >= 1")
-        if self.target == "state+params" and self.name != "sir-multi":
-            raise ConfigError(f"target 'state+params' needs varying parameters (sir-multi); "
-                              f"{self.name!r} has none to estimate")
+        if self.target == "state+params" and self.name not in ("sir-multi", "sir-sf"):
+            raise ConfigError("target 'state+params' needs varying parameters (sir-multi, "
+                              f"sir-sf); {self.name!r} has none to estimate")
 
     @property
     def system(self) -> str:
@@ -271,7 +271,8 @@ def make_windows(times: Tensor, observations: Tensor, kept: Tensor, states: Tens
     """Cut windows from any ensemble on a shared time grid.
 
     ``times (T,)``, ``observations (N, T, C_obs)``, ``kept (N, T)`` bool, ``states (N, T, D)``
-    (the target variables), ``parameters (N, P)`` or None (appended to the target).
+    (the target variables), ``parameters (N, P)``, ``(N, T, P)`` (per time) or None (appended to
+    the target, at the target's time when per time).
     Returns ``context (W, R, C_obs + 1)`` float32, ``mask (W, R)``, ``target (W, D [+ P])``
     float32, ``trajectory (W,)`` int64, ``target_time (W,)`` float64.
     """
@@ -288,7 +289,8 @@ def make_windows(times: Tensor, observations: Tensor, kept: Tensor, states: Tens
     context = torch.cat([observed, time_channel.unsqueeze(-1)], dim=-1)
     target = states[traj, target_index].to(torch.float32)
     if parameters is not None:
-        target = torch.cat([target, parameters[traj].to(torch.float32)], dim=-1)
+        chosen = parameters[traj, target_index] if parameters.dim() == 3 else parameters[traj]
+        target = torch.cat([target, chosen.to(torch.float32)], dim=-1)
     mask = torch.ones(context.shape[:2], dtype=torch.bool)
     return context, mask, target, traj, target_time
 
@@ -359,7 +361,9 @@ def windows_from_sir(ensemble: sir_system.SIREnsemble, direction: str = "forward
     if target == "state+params" and ensemble.prior.parameters_fixed:
         raise ConfigError(f"target 'state+params' needs varying parameters; prior "
                           f"{ensemble.prior.name!r} fixes beta and gamma")
-    parameters = ensemble.parameters if target == "state+params" else None
+    # Time-varying beta: the target is the beta in effect at the target time.
+    parameters = ((ensemble.parameter_paths if ensemble.beta_path is not None
+                   else ensemble.parameters) if target == "state+params" else None)
     kept = torch.ones(ensemble.observations.shape[:2], dtype=torch.bool)
     windows = make_windows(ensemble.times, ensemble.observations, kept, ensemble.states,
                            parameters, direction, window)

@@ -5,9 +5,10 @@ Steps, each a function here so it can be called, tested and timed without Prefec
 1. :func:`load_series` — DataSF cases/deaths/tests (live with cache fallback, cache only, or
    imported CSV exports), trimmed of the last days still under revision;
    :func:`series_to_sir` — S, I, R proportions (``pipeline.data.sir_transform``).
-2. :func:`simulate_training_data` — the synthetic ``sir-multi`` ensemble (β ~ U[0.02, 0.04],
-   γ ~ U[0.005, 0.025], the paper's COVID-19 section) cut into forward and backward windows whose
-   target is the joint (S, I, R, β, γ) — the paper's "joint state and parameter estimation".
+2. :func:`simulate_training_data` — the synthetic ``sir-sf`` ensemble (the SIR prior fitted to
+   the SF series, :mod:`pipeline.systems.sir`; the paper's ``sir-multi`` prior sits far from SF,
+   docs/systems.md) cut into forward and backward windows whose target is the joint
+   (S, I, R, β, γ) — the paper's "joint state and parameter estimation".
 3. :func:`train_or_reuse_models` — train the forward and backward estimators, or reuse the cached
    pair (:mod:`pipeline.model_store`, key = training config + training-data hash).
 4. :func:`latest_estimates` — forward estimate of the day after the last observation and backward
@@ -23,7 +24,7 @@ Steps, each a function here so it can be called, tested and timed without Prefec
 9. :func:`backtest` — rolling-origin backtest of the forward flow over the latest weekly origins
    against persistence and the plain bootstrap SMC (relative WIS, 50 %/90 % coverage).
 
-Models come from :mod:`pipeline.presets` (``sir-joint`` × encoder × recipe, one preset per
+Models come from :mod:`pipeline.presets` (``sir-sf-joint`` × encoder × recipe, one preset per
 direction) and are trained and saved with :func:`pipeline.training.train_and_save`.
 
 Reading of the paper: the context window R = 5 ("five-observation context"); rollouts and the
@@ -100,11 +101,11 @@ class ForecastConfig:
     """
 
     preset: str = "default"
-    training_preset: str = "sir-joint"
+    training_preset: str = "sir-sf-joint"  # the paper's sir-joint prior does not cover SF
     recipe: str = "fast"
     encoder: str = "transformer"          # the paper's SF runs use the transformer
-    n_trajectories: int | None = None     # synthetic sir-multi ensemble size (None: the prior's)
-    horizon_days: int | None = None       # None: the prior's 1000 days
+    n_trajectories: int | None = None     # synthetic ensemble size (None: the prior's)
+    horizon_days: int | None = None       # None: the prior's
     train_iterations: int | None = None   # None: the recipe's
     train_batch_size: int | None = None   # None: the recipe's
     eval_every: int | None = None         # None: the recipe's
@@ -120,6 +121,10 @@ class ForecastConfig:
     nll_locations: int = 100
     smc_particles: int = 1000
     smc_days: int = 56                    # observations the seeded filter runs over
+    # SIR process noise of every particle filter (seeded, and the backtest's plain SMC), per
+    # sqrt(day): a fifth of the prior's observation noise, so the filters follow SF's I (median
+    # 8e-4) instead of diffusing it; the paper's 1e-3 was sized for sir-multi's I of ~0.1.
+    smc_process_sigma: float = 1e-4
     backtest_origins: int = 8             # latest weekly origins scored (0: no backtest)
     backtest_paths: int = 200
     backtest_smc_particles: int = 2000
@@ -140,6 +145,8 @@ class ForecastConfig:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ConfigError(f"ForecastConfig.{name}={value} must be >= 1 (or None)")
+        if self.smc_process_sigma < 0:
+            raise ConfigError(f"ForecastConfig.smc_process_sigma={self.smc_process_sigma} < 0")
         if self.backtest_origins < 0:
             raise ConfigError(f"ForecastConfig.backtest_origins={self.backtest_origins} < 0")
         self.training_preset_for("forward")  # unknown preset/encoder/recipe fail here, early
@@ -167,6 +174,15 @@ class ForecastConfig:
         """R, the context length of the preset (the paper's five observations)."""
         return int(self.training_preset_for("forward").dataset.window)
 
+    @property
+    def prior(self) -> Any:
+        """The :class:`~pipeline.systems.sir.SIRPrior` the models train on (``horizon_days``
+        applied); its noise and parameter ranges are also the particle filters'."""
+        prior = self.training_preset_for("forward").dataset.system_config()
+        if self.horizon_days is not None:
+            prior = dataclasses.replace(prior, horizon_days=self.horizon_days)
+        return prior
+
     def training_identity(self) -> dict[str, Any]:
         """What determines the trained models (the model-cache key is built from this)."""
         return {"presets": {d: self.training_preset_for(d).to_dict() for d in DIRECTIONS},
@@ -174,8 +190,8 @@ class ForecastConfig:
 
 
 FORECAST_PRESETS: dict[str, ForecastConfig] = {
-    # The product: sir-joint × transformer × fast recipe on the full sir-multi ensemble (500
-    # trajectories × 1000 days). The recipe's 6,000 iterations per direction (~75–90 ms per
+    # The product: sir-sf-joint × transformer × fast recipe on the full sir-sf ensemble (2,000
+    # trajectories × 150 days). The recipe's 6,000 iterations per direction (~75–90 ms per
     # batch-512 transformer step on one core) would take ~18 min for the pair; 2,500 with the
     # same cosine schedule fit the 15-minute from-scratch budget (docs/orchestration.md).
     "default": ForecastConfig(preset="default", train_iterations=2_500),
@@ -305,9 +321,7 @@ def simulate_training_data(config: ForecastConfig,
     from pipeline.systems.sir import simulate_ensemble
 
     dataset = config.training_preset_for("forward").dataset
-    prior = dataset.system_config()
-    if config.horizon_days is not None:
-        prior = dataclasses.replace(prior, horizon_days=config.horizon_days)
+    prior = config.prior
     ensemble = simulate_ensemble(prior, prior.n_trajectories, seed=dataset.seed,
                                  progress=progress)
     splits, hashes = {}, []
@@ -476,18 +490,12 @@ def rollouts(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastCon
     out = {}
     for direction in DIRECTIONS:
         for every in config.rollout_windows:
-            rc = RolloutConfig(n_paths=config.rollout_paths, feedback_noise_sigma=_obs_sigma(),
+            rc = RolloutConfig(n_paths=config.rollout_paths, feedback_noise_sigma=config.prior.obs_sigma,
                                seed=config.step_seed("rollout") + every)
             out[(direction, every)] = rolling_rollout(
                 models.by_direction(direction), times, values, every, direction, rc,
                 names=JOINT_NAMES, window_length=config.window, progress=progress)
     return out
-
-
-def _obs_sigma() -> float:
-    from pipeline.systems.sir import get_prior
-
-    return get_prior("sir-multi").obs_sigma
 
 
 @dataclass(frozen=True)
@@ -505,7 +513,7 @@ def future_paths(models: TrainedModels, sir_frame: pd.DataFrame,
     times, values, dates = sir_arrays(sir_frame)
     r = config.window
     window = _window(times, values, slice(len(times) - r, len(times)), times[-1] + 1.0)
-    rc = RolloutConfig(n_paths=config.hub_paths, feedback_noise_sigma=_obs_sigma(),
+    rc = RolloutConfig(n_paths=config.hub_paths, feedback_noise_sigma=config.prior.obs_sigma,
                        seed=config.step_seed("future"))
     result = rollout(models.forward, window, config.forecast_days, 1.0, "forward", rc,
                      names=JOINT_NAMES, window_length=r)
@@ -603,7 +611,11 @@ def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastC
     particles[..., :3] = particles[..., :3].clamp_min(0.0)
     particles[..., :3] /= particles[..., :3].sum(-1, keepdim=True)
     particles[..., 3:] = particles[..., 3:].clamp_min(0.0)
-    model = SIRParamsModel.create(prior_mean=values[start])
+    prior = config.prior
+    model = SIRParamsModel.create(prior_mean=values[start], prior_std=prior.obs_sigma,
+                                  beta_range=prior.beta, gamma_range=prior.gamma,
+                                  obs_sigma=prior.obs_sigma,
+                                  process_sigma=config.smc_process_sigma)
     observations = torch.as_tensor(values[start:])[None]
     result = seeded_filter(particles, observations, model,
                            SMCConfig(num_particles=config.smc_particles,
@@ -643,9 +655,14 @@ def backtest(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastCon
 
     if config.backtest_origins == 0:
         return None
+    # The plain SMC keeps its own defaults (the paper's noise 0.027, process noise 1e-3,
+    # sir-multi's beta/gamma ranges): over the 52 weekly SF origins they scored best of the
+    # settings we measured (relative WIS vs persistence 1.32; with sir-sf's ranges 1.40; with
+    # sir-sf's noise 5.46), and a baseline should be given its best shot.
     forecasters = [PersistenceForecaster(),
                    SMCForecaster(n_particles=config.backtest_smc_particles),
-                   NFRolloutForecaster(estimator=models.forward, name=NF_FORECASTER)]
+                   NFRolloutForecaster(estimator=models.forward, name=NF_FORECASTER,
+                                       feedback_noise_sigma=config.prior.obs_sigma)]
     bt_config = BacktestConfig(n_samples=config.backtest_paths,
                                max_origins=config.backtest_origins,
                                seed=config.step_seed("backtest"))

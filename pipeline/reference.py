@@ -44,8 +44,8 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
-from pipeline.systems.sir import DTYPE, SIRPrior, observation_log_likelihood, sample_parameters, \
-    simulate_sir
+from pipeline.systems.sir import DTYPE, SIRPrior, observation_log_likelihood, \
+    sample_initial_states, sample_parameters, simulate_sir
 from pipeline.systems.vehicle import VehicleConfig, simulate_vehicle
 
 DEFAULT_DRAWS = 1000
@@ -140,10 +140,10 @@ class SIRCandidates:
 def simulate_sir_candidates(prior: SIRPrior, config: SIRReferenceConfig, seed: int) -> SIRCandidates:
     """Candidate trajectories from the prior on a grid ``substeps`` times finer than ``prior.dt``."""
     generator = torch.Generator().manual_seed(seed)
-    k = 1 if prior.parameters_fixed else config.n_parameter_draws
+    k = 1 if prior.parameters_fixed and prior.initial_state_fixed else config.n_parameter_draws
     beta, gamma = sample_parameters(prior, k, generator)
     step = prior.dt / config.substeps
-    x0 = prior.initial_state().expand(k, 3).clone()
+    x0 = sample_initial_states(prior, k, generator)
     states = simulate_sir(x0, beta, gamma, prior.n_steps * config.substeps, step)
     return SIRCandidates(states=states, parameters=torch.stack([beta, gamma], -1), step=step,
                          prior=prior)

@@ -317,6 +317,24 @@ def test_unreachable_without_cache_is_offline_error_naming_import():
 
 
 @responses.activate
+def test_unreachable_host_is_tried_once_then_every_dataset_comes_from_the_cache(real_rows):
+    """One host serves all three datasets: after its retries fail, the others are not retried."""
+    for key, spec in (("cases", CASES), ("deaths", DEATHS), ("tests", TESTS)):
+        replay(real_rows[key], spec)
+        load_dataset(spec, SFDataConfig(client=FAST))
+    responses.reset()
+    responses.add(responses.GET, re.compile(r"https://data\.sfgov\.org/.*"),
+                  body=requests.ConnectionError("no route to host"))
+    series = load_sf_series(SFDataConfig(client=FAST))
+    assert len(responses.calls) == 1 + FAST.max_retries  # the first dataset only
+    first, *others = series.provenance.datasets
+    assert all(p.from_cache for p in series.provenance.datasets)
+    assert "DataSF unreachable" in first.notes[0] and "not retried" not in first.notes[0]
+    assert all(f"not retried for {p.dataset_key}" in p.notes[0] for p in others)
+    assert len(series.frame) > 700
+
+
+@responses.activate
 def test_offline_with_cache_uses_it_and_reports_age(real_rows, cache_root):
     _prime_cache(real_rows)
     manifest = DatasetCache(cache_root).read_manifest(CASES)

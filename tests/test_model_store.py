@@ -87,7 +87,8 @@ def test_failed_build_leaves_no_entry(tmp_path):
 
 def test_forecast_models_are_the_training_presets():
     """pipeline.presets is the single source of the weekly models' settings: the default forecast
-    is sir-joint × transformer × fast with only the iteration count shortened; tiny only shrinks."""
+    is sir-sf-joint × transformer × fast with only the iteration count shortened; tiny only
+    shrinks; the filters and rollouts take their noise from the same (sir-sf) prior."""
     import dataclasses
 
     from pipeline.forecast import resolve_config
@@ -96,16 +97,17 @@ def test_forecast_models_are_the_training_presets():
     default = resolve_config("default")
     for direction in ("forward", "backward"):
         ours = default.training_preset_for(direction)
-        theirs = get_preset("sir-joint", "transformer", recipe="fast", direction=direction,
+        theirs = get_preset("sir-sf-joint", "transformer", recipe="fast", direction=direction,
                             seed=ours.train.seed, dataset_seed=ours.dataset.seed)
         assert ours.estimator == theirs.estimator and ours.kinetic == theirs.kinetic
         assert ours.dataset == theirs.dataset and ours.dataset.direction == direction
         assert ours.train == dataclasses.replace(theirs.train,
                                                  iterations=default.train_iterations)
     assert default.window == 5  # the paper's R
+    assert default.prior.name == "sir-sf" and default.prior.obs_sigma == 5e-4
 
     tiny = resolve_config("tiny").training_preset_for("forward")
-    mlp = get_preset("sir-joint", "mlp", recipe="fast", seed=tiny.train.seed,
+    mlp = get_preset("sir-sf-joint", "mlp", recipe="fast", seed=tiny.train.seed,
                      dataset_seed=tiny.dataset.seed, n_trajectories=16)
     assert tiny.estimator == mlp.estimator and tiny.dataset == mlp.dataset
     assert (tiny.train.iterations, tiny.train.batch_size, tiny.train.eval_every) == (30, 256, 10)

@@ -50,6 +50,9 @@ def test_paper_numbers():
         assert sir.train.context_noise_sigma == 0.01
     joint = get_preset("sir-joint", "mamba")
     assert joint.estimator.features == 5 and joint.dataset.target == "state+params"
+    sf = get_preset("sir-sf-joint", "transformer", recipe="paper")
+    assert sf.estimator == get_preset("sir-joint", "transformer", recipe="paper").estimator
+    assert sf.dataset.name == "sir-sf" and sf.train.context_noise_sigma == 0.0
     ke = get_preset("sir-multi", "transformer-ke").kinetic
     assert ke.path_length > 0 and ke.intermediate_nll > 0 and ke.nll == 1.0
 
@@ -75,7 +78,7 @@ def test_bad_names_are_rejected(kwargs, match):
         get_preset(name, **kwargs)
 
 
-@pytest.mark.parametrize("name,dataset", [("sir-joint", "sir-multi"),
+@pytest.mark.parametrize("name,dataset", [("sir-joint", "sir-multi"), ("sir-sf-joint", "sir-sf"),
                                           ("vehicle-sparse", "vehicle-sparse")])
 def test_preset_shapes_match_the_datasets(name, dataset):
     preset = get_preset(name, "mlp")

@@ -12,8 +12,8 @@ from scipy.integrate import solve_ivp
 
 from pipeline.errors import ConfigError
 from pipeline.systems.sir import (SIR_PRIORS, SIRPrior, observation_log_likelihood, observe,
-                                  rk4_step, sample_parameters, simulate_ensemble, simulate_sir,
-                                  sir_rhs)
+                                  rk4_step, sample_beta_paths, sample_initial_states,
+                                  sample_parameters, simulate_ensemble, simulate_sir, sir_rhs)
 
 F64 = torch.float64
 
@@ -204,6 +204,9 @@ def test_progress_counts_every_step() -> None:
     ({"i0": 0.5}, "s0 + i0 + r0"),
     ({"dt": 0.3}, "horizon_days"),
     ({"obs_sigma": -1.0}, "obs_sigma"),
+    ({"i0_range": (0.0, 0.01)}, "i0_range"),
+    ({"r0_range": (0.2, 0.1)}, "r0_range"),
+    ({"i0_range": (0.1, 0.6), "r0_range": (0.0, 0.5)}, "no susceptibles"),
 ])
 def test_invalid_priors_are_rejected_with_the_field_named(kwargs: dict, field: str) -> None:
     base = {"name": "bad", "beta": (0.02, 0.04), "gamma": (0.005, 0.025)}
@@ -214,3 +217,84 @@ def test_invalid_priors_are_rejected_with_the_field_named(kwargs: dict, field: s
 def test_unknown_prior_name_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match="sir-triple"):
         simulate_ensemble("sir-triple", n_trajectories=1)
+
+
+# ------------------------------------------------------------------ the SF prior (ranged x0)
+
+
+def test_fixed_priors_draw_no_initial_state_so_their_ensembles_are_unchanged() -> None:
+    """Adding ranged initial states must not shift the paper priors' random streams."""
+    prior = SIR_PRIORS["sir-multi"]
+    ensemble = simulate_ensemble(prior, n_trajectories=6, seed=4)
+    generator = torch.Generator().manual_seed(4)
+    beta, gamma = sample_parameters(prior, 6, generator)
+    x0 = torch.tensor([X0] * 6, dtype=F64)
+    states = simulate_sir(x0, beta, gamma, prior.n_steps, prior.dt)
+    assert torch.equal(ensemble.states, states)
+    assert torch.equal(ensemble.observations, observe(states, prior.obs_sigma, generator))
+
+
+def test_sf_prior_initial_states_are_log_uniform_i0_uniform_r0_on_the_simplex() -> None:
+    prior = SIR_PRIORS["sir-sf"]
+    x0 = sample_initial_states(prior, 20_000, torch.Generator().manual_seed(6))
+    s0, i0, r0 = x0.unbind(-1)
+    assert (s0 + i0 + r0 - 1.0).abs().max().item() <= 2.0 ** -52
+    (i_low, i_high), (r_low, r_high) = prior.i0_range, prior.r0_range
+    assert i_low <= i0.min().item() and i0.max().item() <= i_high
+    assert r_low <= r0.min().item() and r0.max().item() <= r_high
+    log_i0 = torch.log(i0).numpy()
+    ks = stats.kstest(log_i0, stats.uniform(loc=math.log(i_low),
+                                            scale=math.log(i_high) - math.log(i_low)).cdf)
+    assert ks.pvalue > 1e-3
+    assert stats.kstest(r0.numpy(), stats.uniform(loc=r_low, scale=r_high - r_low).cdf).pvalue \
+        > 1e-3
+    with pytest.raises(ConfigError, match="sample_initial_states"):
+        prior.initial_state()
+
+
+def test_sf_prior_ensemble_covers_the_sf_scale_and_conserves_population() -> None:
+    """SF's I never exceeds 0.026 and its scatter is ~3e-4 (docs/systems.md); the prior the
+    forecast trains on must put most of its windows there, unlike the paper's sir-multi."""
+    sf = simulate_ensemble("sir-sf", n_trajectories=400, seed=0)
+    multi = simulate_ensemble("sir-multi", n_trajectories=400, seed=0)
+    assert (sf.states.sum(-1) - 1.0).abs().max().item() < 1e-12
+    assert sf.states.shape == (400, 151, 3)
+    share_sf_scale = (sf.states[..., 1] <= 0.03).double().mean().item()
+    share_multi = (multi.states[..., 1] <= 0.03).double().mean().item()
+    assert share_sf_scale > 0.6 > share_multi
+    residual = sf.observations - sf.states
+    assert abs(residual.std().item() - 5e-4) < 1e-5
+    assert sf.states[:, 0, 1].min().item() >= 1e-5 and sf.states[:, 0, 1].max().item() <= 5e-3
+
+
+def test_sf_beta_walk_has_the_configured_log_increments_and_drives_the_dynamics():
+    prior = SIR_PRIORS["sir-sf"]
+    beta0 = torch.full((4000,), 0.1, dtype=F64)  # mid-range: the bounds never bind here
+    paths = sample_beta_paths(dataclasses.replace(prior, horizon_days=20), beta0,
+                              torch.Generator().manual_seed(8))
+    assert paths.shape == (4000, 21) and torch.equal(paths[:, 0], beta0)
+    steps = torch.diff(torch.log(paths), dim=1).reshape(-1)
+    n = steps.numel()  # 80,000 increments ~ N(0, 0.08^2)
+    assert abs(steps.mean().item()) < 4 * 0.08 / math.sqrt(n)
+    assert abs(steps.std().item() - 0.08) < 4 * 0.08 / math.sqrt(2 * n)
+    # The ensemble's states follow its own beta path (RK4 step by step), and conserve S+I+R.
+    ensemble = simulate_ensemble("sir-sf", n_trajectories=3, seed=5)
+    x = ensemble.states[:, 0]
+    for k in range(10):
+        x = rk4_step(x, ensemble.beta_path[:, k], ensemble.gamma, 1.0)
+        assert torch.allclose(x, ensemble.states[:, k + 1], rtol=0, atol=1e-15)
+    assert (ensemble.states.sum(-1) - 1).abs().max().item() < 1e-12
+    assert ensemble.parameter_paths.shape == (3, 151, 2)
+    assert torch.equal(ensemble.parameter_paths[:, :, 0], ensemble.beta_path)
+
+
+def test_joint_windows_of_a_walk_prior_target_the_beta_at_the_target_time():
+    from pipeline.datasets import windows_from_sir
+
+    ensemble = simulate_ensemble("sir-sf", n_trajectories=4, seed=2)
+    for direction in ("forward", "backward"):
+        ds = windows_from_sir(ensemble, direction=direction, target="state+params")
+        index = ds.target_time.round().long()
+        expected = ensemble.beta_path[ds.trajectory, index].to(torch.float32)
+        assert torch.equal(ds.target[:, 3], expected)
+        assert torch.equal(ds.target[:, 4], ensemble.gamma[ds.trajectory].to(torch.float32))

@@ -198,6 +198,13 @@ def test_learning_rate_schedules():
     assert lr_factor(onecycle, 0) == pytest.approx(1 / 25)
     assert lr_factor(onecycle, 10) == pytest.approx(1.0)
     assert lr_factor(TrainConfig(), 1234) == 1.0
+    # A time budget compresses the decay: half the budget gone = half-way down, whatever the
+    # iteration; the budget never slows the iteration schedule down.
+    budget = dataclasses.replace(cosine, time_budget_s=60.0)
+    assert lr_factor(budget, 10, elapsed_s=30.0) == pytest.approx(0.01 + 0.99 * 0.5)
+    assert lr_factor(budget, 10, elapsed_s=90.0) == pytest.approx(0.01)
+    assert lr_factor(budget, 55, elapsed_s=0.0) == pytest.approx(lr_factor(cosine, 55))
+    assert lr_factor(cosine, 10, elapsed_s=1e9) == pytest.approx(1.0)  # no budget: clock unread
 
 
 def test_history_round_trip_and_plot(tmp_path):

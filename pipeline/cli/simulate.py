@@ -15,8 +15,8 @@ from pipeline.errors import FlowcastError
 from pipeline.progress import rich_progress
 
 DatasetName = Enum("DatasetName", {name.replace("-", "_"): name for name in
-                                   ("sir-single", "sir-multi", "vehicle-full", "vehicle-dropout",
-                                    "vehicle-sparse")}, type=str)
+                                   ("sir-single", "sir-multi", "sir-sf", "vehicle-full",
+                                    "vehicle-dropout", "vehicle-sparse")}, type=str)
 
 
 class Direction(str, Enum):
@@ -51,7 +51,7 @@ def simulate(
     direction: Direction = typer.Option(Direction.forward, help="forward: context before the "
                                         "target; backward: context after it."),
     target: TargetKind = typer.Option(TargetKind.state, help="state, or state+params "
-                                      "(S, I, R, beta, gamma; sir-multi only)."),
+                                      "(S, I, R, beta, gamma; sir-multi and sir-sf)."),
     window: int = typer.Option(DEFAULT_WINDOW, min=1, help="Context length R."),
     seed: int = typer.Option(0, help="Seed of the simulation and of the train/validation split."),
     vehicle_model: VehicleModel = typer.Option(VehicleModel.paper, help="Vehicle dynamics: the "

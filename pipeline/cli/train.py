@@ -10,8 +10,8 @@ import typer
 
 from pipeline.cli import app
 
-_PRESET_HELP = ("vehicle | vehicle-sparse | sir-single | sir-multi | sir-joint "
-                "(paper set-ups, see docs/training.md)")
+_PRESET_HELP = ("vehicle | vehicle-sparse | sir-single | sir-multi | sir-joint (paper set-ups) "
+                "| sir-sf-joint (the SF forecast's); see docs/training.md")
 
 
 @app.command("train")

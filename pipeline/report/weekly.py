@@ -135,13 +135,9 @@ def _parameter_section(r: Any) -> Section:
     dates, wide = _long_to_arrays(r.parameters, "forward")
     q = ["q0.025", "q0.5", "q0.975"]
     prior_beta = prior_gamma = None
-    try:
-        from pipeline.systems.sir import get_prior
-
-        prior = get_prior("sir-multi")
+    prior = getattr(r.config, "prior", None)  # the training prior's ranges, when known
+    if prior is not None:
         prior_beta, prior_gamma = tuple(prior.beta), tuple(prior.gamma)
-    except Exception:  # noqa: BLE001 - the prior lines are a nicety
-        log.info("no sir-multi prior available for the parameter figure")
     png = figures.parameter_figure(dates, wide["beta"][q].to_numpy(), wide["gamma"][q].to_numpy(),
                                    beta_prior=prior_beta, gamma_prior=prior_gamma)
     latest = {c: wide[c].iloc[-1] for c in ("beta", "gamma")}
