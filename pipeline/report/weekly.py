@@ -148,7 +148,9 @@ def _parameter_section(r: Any) -> Section:
     return Section.weekly(SectionKey.PARAMETERS, [
         _fig(png, "Joint estimates of the transmission rate β and recovery rate γ from the "
                   f"{r.config.window} observations before each day: median and 95% credible "
-                  "interval; dotted lines: range of the synthetic training prior.",
+                  "interval; dotted lines: range of the synthetic training prior (for β its "
+                  "starting range: in the SF prior β drifts over time, and the estimate is the "
+                  "β in effect on the day).",
              "Time series of beta and gamma with credible intervals"),
         TableItem(table, f"β and γ on {dates[-1].date()} (latest day).", decimals=4)])
 
