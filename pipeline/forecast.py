@@ -121,9 +121,9 @@ class ForecastConfig:
     nll_locations: int = 100
     smc_particles: int = 1000
     smc_days: int = 56                    # observations the seeded filter runs over
-    # SIR process noise of every particle filter (seeded, and the backtest's plain SMC), per
-    # sqrt(day): a fifth of the prior's observation noise, so the filters follow SF's I (median
-    # 8e-4) instead of diffusing it; the paper's 1e-3 was sized for sir-multi's I of ~0.1.
+    # SIR process noise of the NF-seeded filter, per sqrt(day): a fifth of the prior's
+    # observation noise, so the filter follows SF's I (median 8e-4) instead of diffusing it; the
+    # paper's 1e-3 was sized for sir-multi's I of ~0.1. (The backtest's plain SMC keeps its own.)
     smc_process_sigma: float = 1e-4
     backtest_origins: int = 8             # latest weekly origins scored (0: no backtest)
     backtest_paths: int = 200
@@ -490,7 +490,8 @@ def rollouts(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastCon
     out = {}
     for direction in DIRECTIONS:
         for every in config.rollout_windows:
-            rc = RolloutConfig(n_paths=config.rollout_paths, feedback_noise_sigma=config.prior.obs_sigma,
+            rc = RolloutConfig(n_paths=config.rollout_paths,
+                               feedback_noise_sigma=config.prior.obs_sigma,
                                seed=config.step_seed("rollout") + every)
             out[(direction, every)] = rolling_rollout(
                 models.by_direction(direction), times, values, every, direction, rc,

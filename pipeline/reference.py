@@ -139,6 +139,9 @@ class SIRCandidates:
 
 def simulate_sir_candidates(prior: SIRPrior, config: SIRReferenceConfig, seed: int) -> SIRCandidates:
     """Candidate trajectories from the prior on a grid ``substeps`` times finer than ``prior.dt``."""
+    if prior.beta_varies_in_time:
+        raise ConfigError(f"reference posteriors assume a constant beta; prior {prior.name!r} "
+                          "lets it drift (beta_walk_sigma > 0)")
     generator = torch.Generator().manual_seed(seed)
     k = 1 if prior.parameters_fixed and prior.initial_state_fixed else config.n_parameter_draws
     beta, gamma = sample_parameters(prior, k, generator)

@@ -145,3 +145,12 @@ def test_vehicle_reference_from_simulator_before_switch_is_unimodal() -> None:
     assert torch.allclose(ref.samples[0].mean(0), nominal, atol=0.1)
     assert float((ref.samples[0] - nominal).norm(dim=-1).max()) < 1.0
     assert float(ref.ess[0]) > 3000
+
+
+def test_reference_refuses_a_prior_whose_beta_drifts():
+    from pipeline.errors import ConfigError
+    from pipeline.reference import SIRReferenceConfig, simulate_sir_candidates
+    from pipeline.systems.sir import SIR_PRIORS
+
+    with pytest.raises(ConfigError, match="constant beta"):
+        simulate_sir_candidates(SIR_PRIORS["sir-sf"], SIRReferenceConfig(), seed=0)
