@@ -31,8 +31,9 @@ Protocol (see docs/estimation.md, "Reference posteriors"):
   1,000 vs 1,000 samples; 2-D (p_x, p_y) for the vehicle, 1-D per compartment for SIR; the
   mean over windows is reported.
 * SMC (Table 1): bootstrap filter (:mod:`pipeline.smc`, vehicle model) with 1,000 particles
-  started from the prior around the first context observation, four steps with observation
-  updates, one propagation without (the paper's protocol), particles resampled by weight.
+  started from the prior around the first context observation o_n (not weighted by it again),
+  four steps with observation updates (o_{n+1} … o_{n+4}), one propagation without (the
+  paper's protocol), particles resampled by weight.
 * KL floor: the same KL between two references built from independent candidate sets.
 """
 from __future__ import annotations
@@ -48,7 +49,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.estimate import assemble_context, confidence_regions, draw_noise
+from pipeline.estimate import (assemble_context, confidence_regions, draw_noise,
+                               uses_absolute_time)
 from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.metrics import knn_kl_divergence
 from pipeline.reference import (SIRReferenceConfig, simulate_sir_candidates,
@@ -149,6 +151,7 @@ def trained_estimator(preset_name: str, encoder: str, direction: str, cfg: Bench
     """Load the cached checkpoint or train it (fast recipe, time budget) and cache it."""
     from pipeline.checkpoints import load_checkpoint
     from pipeline.datasets import build_dataset_from_config, train_validation_split
+    from pipeline.errors import CheckpointError
     from pipeline.models.estimator import build_estimator
     from pipeline.presets import get_preset
     from pipeline.training import train_and_save
@@ -169,7 +172,10 @@ def trained_estimator(preset_name: str, encoder: str, direction: str, cfg: Bench
                / f"{dataset.name}-{preset.run_name}-{budget:g}s")
     checkpoint = run_dir / "model.pt"
     if checkpoint.is_file():
-        return load_checkpoint(checkpoint).estimator.eval()
+        try:
+            return load_checkpoint(checkpoint, expected_config=preset.estimator).estimator.eval()
+        except CheckpointError as exc:  # e.g. trained before the vehicle's t_obs channel
+            print(f"  stale checkpoint, retraining: {exc}", flush=True)
     print(f"  training {run_dir.name} ...", flush=True)
     data = build_dataset_from_config(dataset)
     train_ds, val_ds = train_validation_split(data)
@@ -184,7 +190,8 @@ def model_samples(estimator, values: torch.Tensor, times: torch.Tensor, target: 
                   n: int, seed: int) -> torch.Tensor:
     """(B, n, D) draws for B windows (values (B,R,C), absolute times (B,R), target (B,))."""
     mask = torch.ones(times.shape, dtype=torch.bool)
-    context = assemble_context(values.double(), times.double(), mask, target.double())
+    context = assemble_context(values.double(), times.double(), mask, target.double(),
+                               uses_absolute_time(estimator))
     eps = draw_noise((len(target), n, estimator.features), seed)
     return estimator.noise_to_data(eps, context, mask).double()
 
@@ -219,28 +226,36 @@ def vehicle_windows(config, direction: str, target_time: float, n: int, seed: in
 
 
 def smc_vehicle_samples(config, values, ctx_times, n_particles: int, seed: int) -> torch.Tensor:  # noqa: ANN001
-    """Table 1's SMC: prior around o_n, 4 update steps, one step without update (module doc)."""
+    """Table 1's SMC: prior around o_n, 4 update steps, one step without update (module doc).
+
+    The paper's prior p(o_n) says nothing of the unobserved heading, steering and speed; they
+    are drawn from the simulator's own vehicles at t_n (both ψ branches), the prior the
+    reference posterior uses too, so the baseline starts from the same knowledge of them."""
     from pipeline.smc import SMCConfig, run_filter
     from pipeline.smc_models import VehicleModel
-    from pipeline.systems.vehicle import simulate_nominal
+    from pipeline.systems.vehicle import simulate_vehicle
 
     b = values.shape[0]
-    t0 = ctx_times[:, 0]
-    index = torch.round(t0 / config.dt).long()
-    nominal = torch.stack([simulate_nominal(config, 1.0), simulate_nominal(config, -1.0)])
-    rest = nominal[:, index, 2:]                                        # (2, B, 3) θ, φ, v
-    mean = torch.cat([values[:, 0].double(), rest.mean(0)], dim=-1)     # (B, 5)
-    spread = (rest[0] - rest[1]).abs().max(0).values / 2                # ψ uncertainty after switch
-    std = torch.cat([torch.full((2,), config.obs_sigma, dtype=torch.float64),
-                     spread + torch.tensor([1e-3, 1e-3, config.sigma_v], dtype=torch.float64)])
-    model = VehicleModel.create(config, initial_mean=mean, initial_std=std)
+    index = torch.round(ctx_times[:, 0] / config.dt).long()
+    vehicles = simulate_vehicle(config, n=n_particles, seed=seed + 1, dtype=torch.float64)
+    hidden = vehicles.states[:, index, 2:].transpose(0, 1)                # (B, N, 3) θ, φ, v
+    # ψ as the model keeps it: 0 ("not drawn yet") before the switch, the vehicle's own after.
+    switched = ctx_times[:, :1] >= config.switch_time
+    psi = torch.where(switched, vehicles.psi.double()[None, :], 0.0)       # (B, N)
+    gen = torch.Generator().manual_seed(seed + 2)
+    positions = values[:, :1].double() + config.obs_sigma * torch.randn(
+        (b, n_particles, 2), generator=gen, dtype=torch.float64)
+    initial = torch.cat([positions, hidden, psi[..., None]], dim=-1)
+    model = VehicleModel.create(config)  # dynamics and likelihood; the prior is ``initial``
     step = float(ctx_times[0, 1] - ctx_times[0, 0])
     grid = torch.arange(6, dtype=torch.float64) * step                  # relative times
-    obs = torch.cat([values.double(), torch.full((b, 1, 2), float("nan"))], dim=1)
+    # o_n built the prior; weighting by it again would count it twice, so step 0 has no update
+    # and the four updates use o_{n+1} … o_{n+4}, as the paper's p(x_{n+4} | o_{n+1..n+4}).
+    no_update = torch.full((b, 1, 2), float("nan"), dtype=torch.float64)
+    obs = torch.cat([no_update, values[:, 1:].double(), no_update], dim=1)
     # Filters share one time axis: all windows of a location start at the same grid time here.
     result = run_filter(model, obs, SMCConfig(num_particles=n_particles, seed=seed, quantiles=()),
-                        times=grid + float(t0[0]))
-    gen = torch.Generator().manual_seed(seed + 1)
+                        times=grid + float(ctx_times[0, 0]), initial_particles=initial)
     idx = torch.multinomial(result.log_weights.exp(), n_particles, replacement=True, generator=gen)
     return torch.gather(result.particles[..., :2], 1, idx[..., None].expand(-1, -1, 2))
 
@@ -315,7 +330,8 @@ def region_figure(est, encoder: str, direction: str, windows: dict, refs: dict) 
     for ax, loc in zip(axes, LOCATIONS, strict=True):
         values, ctx_t, tgt = (w[:1] for w in windows[loc])
         mask = torch.ones(ctx_t.shape, dtype=torch.bool)
-        context = assemble_context(values.double(), ctx_t.double(), mask, tgt.double())
+        context = assemble_context(values.double(), ctx_t.double(), mask, tgt.double(),
+                                   uses_absolute_time(est))
         samples = model_samples(est, values, ctx_t, tgt, 500, seed=9)[0]
         ref = refs[loc].samples[0]
         ax.scatter(ref[:, 0], ref[:, 1], s=3, c="0.6", label="reference posterior")
@@ -450,22 +466,25 @@ def render_markdown(cells: list[dict], cfg: BenchConfig, seconds: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _train_one(job: tuple[tuple[str, str, str, str | None], BenchConfig]) -> str:
-    (preset_name, encoder, direction, dataset_name), cfg = job
-    torch.set_num_threads(1)  # one core per job
+def _train_one(job: tuple[tuple[str, str, str, str | None], BenchConfig, int]) -> str:
+    (preset_name, encoder, direction, dataset_name), cfg, threads = job
+    torch.set_num_threads(threads)
     trained_estimator(preset_name, encoder, direction, cfg, dataset_name)
     return f"{preset_name}/{dataset_name or ''}/{encoder}/{direction}"
 
 
-def pretrain(cfg: BenchConfig, jobs: int) -> None:
-    """Train every model the tables need, ``jobs`` at a time (separate processes, one thread
-    each); cached ones load instantly, so the table run that follows only evaluates."""
+def pretrain(cfg: BenchConfig, jobs: int, threads_per_job: int = 1,
+             systems: tuple[str, ...] = ("vehicle", "sir")) -> None:
+    """Train the models the tables need (those of ``systems``), ``jobs`` at a time in separate
+    processes of ``threads_per_job`` threads; cached ones load instantly, so the table run that
+    follows only evaluates."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
+    models = [m for m in required_models() if m[0].split("-")[0] in systems]
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-        futures = [pool.submit(_train_one, (m, cfg)) for m in required_models()]
+        futures = [pool.submit(_train_one, (m, cfg, threads_per_job)) for m in models]
         for future in as_completed(futures):
             print(f"  ready: {future.result()}", flush=True)
 
@@ -504,14 +523,22 @@ def main() -> None:
                         help="cap for the vehicle models (Tables 1-2; default: --train-budget-s)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="train missing models this many at a time first (1 thread each)")
+    parser.add_argument("--threads-per-job", type=int, default=1,
+                        help="torch threads of each --jobs process")
+    parser.add_argument("--pretrain-only", choices=("vehicle", "sir", "all"), default=None,
+                        help="only train the missing models of these tables, then stop")
     args = parser.parse_args()
     cfg = BenchConfig.quick_config() if args.quick else BenchConfig()
     if args.train_budget_s is not None:
         cfg = dataclasses.replace(cfg, train_budget_s=args.train_budget_s)
     if args.vehicle_train_budget_s is not None:
         cfg = dataclasses.replace(cfg, vehicle_train_budget_s=args.vehicle_train_budget_s)
+    if args.pretrain_only is not None:
+        systems = ("vehicle", "sir") if args.pretrain_only == "all" else (args.pretrain_only,)
+        pretrain(cfg, max(1, args.jobs), args.threads_per_job, systems)
+        return
     if args.jobs > 1:
-        pretrain(cfg, args.jobs)
+        pretrain(cfg, args.jobs, args.threads_per_job)
     result = run(cfg)
     print(f"{len(result['cells'])} cells, {result['cells_at_or_below_paper']} at or below the "
           f"paper; {result['seconds']:.0f} s", flush=True)

@@ -10,7 +10,13 @@ A sample is a run of R + 1 consecutive *kept* (observed) times of one trajectory
 Context rows are in chronological order in both directions; each row is the observed values
 followed by one time channel ``t_obs - t_target`` (negative forward, positive backward). Under
 dropout the kept times are irregular, and the time channel is what tells the model how far each
-observation is from the target. Trajectories with fewer than R + 1 kept times give no sample;
+observation is from the target. With ``absolute_time`` (vehicle datasets only) a second time
+channel ``t_obs`` follows: the vehicle's dynamics depend on the clock (the steering forcing
+cos(c2·t) and the switch at t = 5.5), and without it the model has to guess the clock from noisy
+positions: measured on the dropout set before the bifurcation, backward estimates were 14× wider
+along the track than the posterior given the observation times (docs/estimation.md). SIR windows
+keep the relative channel only: an epidemic's start is not observed, and the SIR reference
+treats the window's position along the epidemic as unknown. Trajectories with fewer than R + 1 kept times give no sample;
 there is no padding, so ``mask`` is all True in the built datasets (it exists for consumers that
 feed shorter contexts, e.g. real data at the start of a series).
 
@@ -53,6 +59,7 @@ SIR_DATASETS = ("sir-single", "sir-multi", "sir-sf")
 VEHICLE_DATASETS = ("vehicle-full", "vehicle-dropout", "vehicle-sparse")
 DATASET_NAMES = SIR_DATASETS + VEHICLE_DATASETS
 TIME_FEATURE = "t_obs-t_target"
+ABSOLUTE_TIME_FEATURE = "t_obs"
 DEFAULT_WINDOW = 5
 DEFAULT_VAL_FRACTION = 0.1
 # A feature whose training spread is below this is constant (e.g. the time channel of a
@@ -76,10 +83,13 @@ class DatasetConfig:
     vehicle_model: str = "paper"
     val_fraction: float = DEFAULT_VAL_FRACTION
     n_trajectories: int | None = None
+    absolute_time: bool | None = None  # None: the system's default (vehicle yes, SIR no)
 
     def __post_init__(self) -> None:
         if self.name not in DATASET_NAMES:
             raise ConfigError(f"unknown dataset config {self.name!r}; known: {list(DATASET_NAMES)}")
+        if self.absolute_time is None:
+            object.__setattr__(self, "absolute_time", default_absolute_time(self.name))
         _check_choice("direction", self.direction, DIRECTIONS)
         _check_choice("target", self.target, TARGET_KINDS)
         _check_choice("vehicle_model", self.vehicle_model, vehicle_system.MODELS)
@@ -92,6 +102,9 @@ class DatasetConfig:
         if self.target == "state+params" and self.name not in ("sir-multi", "sir-sf"):
             raise ConfigError("target 'state+params' needs varying parameters (sir-multi, "
                               f"sir-sf); {self.name!r} has none to estimate")
+        if self.absolute_time and self.name in SIR_DATASETS:
+            raise ConfigError(f"absolute_time=True for {self.name!r}: SIR windows carry the "
+                              "relative time only (an epidemic's start is not observed)")
 
     @property
     def system(self) -> str:
@@ -106,6 +119,11 @@ class DatasetConfig:
         if self.n_trajectories is not None:
             base = dataclasses.replace(base, n_trajectories=self.n_trajectories)
         return base
+
+
+def default_absolute_time(name: str) -> bool:
+    """Whether the named dataset's windows carry the ``t_obs`` channel by default (module doc)."""
+    return name in VEHICLE_DATASETS
 
 
 def _check_choice(field: str, value: str, allowed: tuple[str, ...]) -> None:
@@ -266,15 +284,15 @@ def window_indices(kept: Tensor, window: int) -> tuple[Tensor, Tensor]:
 
 
 def make_windows(times: Tensor, observations: Tensor, kept: Tensor, states: Tensor,
-                 parameters: Tensor | None, direction: str, window: int
-                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+                 parameters: Tensor | None, direction: str, window: int,
+                 absolute_time: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Cut windows from any ensemble on a shared time grid.
 
     ``times (T,)``, ``observations (N, T, C_obs)``, ``kept (N, T)`` bool, ``states (N, T, D)``
     (the target variables), ``parameters (N, P)``, ``(N, T, P)`` (per time) or None (appended to
     the target, at the target's time when per time).
-    Returns ``context (W, R, C_obs + 1)`` float32, ``mask (W, R)``, ``target (W, D [+ P])``
-    float32, ``trajectory (W,)`` int64, ``target_time (W,)`` float64.
+    Returns ``context (W, R, C_obs + 1 [+ 1 with absolute_time])`` float32, ``mask (W, R)``,
+    ``target (W, D [+ P])`` float32, ``trajectory (W,)`` int64, ``target_time (W,)`` float64.
     """
     _check_choice("direction", direction, DIRECTIONS)
     traj, time_index = window_indices(kept, window)
@@ -284,15 +302,24 @@ def make_windows(times: Tensor, observations: Tensor, kept: Tensor, states: Tens
         context_index, target_index = time_index[:, 1:], time_index[:, 0]
     times64 = times.to(torch.float64)
     target_time = times64[target_index]
-    time_channel = (times64[context_index] - target_time.unsqueeze(1)).to(torch.float32)
+    time_channels = time_features(times64[context_index], target_time, absolute_time)
     observed = observations[traj.unsqueeze(1), context_index].to(torch.float32)
-    context = torch.cat([observed, time_channel.unsqueeze(-1)], dim=-1)
+    context = torch.cat([observed, time_channels.to(torch.float32)], dim=-1)
     target = states[traj, target_index].to(torch.float32)
     if parameters is not None:
         chosen = parameters[traj, target_index] if parameters.dim() == 3 else parameters[traj]
         target = torch.cat([target, chosen.to(torch.float32)], dim=-1)
     mask = torch.ones(context.shape[:2], dtype=torch.bool)
     return context, mask, target, traj, target_time
+
+
+def time_features(obs_times: Tensor, target_time: Tensor, absolute_time: bool) -> Tensor:
+    """The time channels of context rows, ``(..., R, 1 or 2)``: ``t_obs - t_target`` and, with
+    ``absolute_time``, ``t_obs``. ``obs_times (..., R)``, ``target_time (...)``. The one place
+    the datasets and every estimate decide the time layout."""
+    relative = obs_times - target_time.unsqueeze(-1)
+    channels = [relative, obs_times] if absolute_time else [relative]
+    return torch.stack(channels, dim=-1)
 
 
 # --------------------------------------------------------------------------- splitting
@@ -380,21 +407,23 @@ def windows_from_sir(ensemble: sir_system.SIREnsemble, direction: str = "forward
 
 def windows_from_vehicle(ensemble: vehicle_system.VehicleEnsemble, direction: str = "forward",
                          target: str = "state", window: int = DEFAULT_WINDOW,
-                         val_fraction: float = DEFAULT_VAL_FRACTION) -> WindowedDataset:
+                         val_fraction: float = DEFAULT_VAL_FRACTION,
+                         absolute_time: bool = False) -> WindowedDataset:
     """Windowed dataset of kept vehicle positions; target = true position (p_x, p_y)."""
     _check_choice("target", target, TARGET_KINDS)
     if target != "state":
         raise ConfigError("vehicle datasets support target 'state' only (p_x, p_y); the switch "
                           "psi is not a parameter to estimate")
     windows = make_windows(ensemble.times, ensemble.observations, ensemble.kept,
-                           ensemble.states[..., :2], None, direction, window)
+                           ensemble.states[..., :2], None, direction, window, absolute_time)
     config = dataclasses.replace(ensemble.config, n_trajectories=ensemble.n_trajectories)
     n_points = ensemble.n_points
     return _assemble(
         system="vehicle", config_name=ensemble.config.name, system_config=config,
         seed=ensemble.seed, direction=direction, target_kind=target, window=window,
         val_fraction=val_fraction,
-        context_features=tuple(f"{c}_obs" for c in vehicle_system.OBSERVED_NAMES) + (TIME_FEATURE,),
+        context_features=(tuple(f"{c}_obs" for c in vehicle_system.OBSERVED_NAMES)
+                          + (TIME_FEATURE,) + ((ABSOLUTE_TIME_FEATURE,) if absolute_time else ())),
         target_features=vehicle_system.OBSERVED_NAMES, n_trajectories=ensemble.n_trajectories,
         n_observed_points=n_points, n_observed_values=2 * n_points, windows=windows)
 
@@ -417,7 +446,7 @@ def build_dataset_from_config(config: DatasetConfig,
         vehicle_ensemble = vehicle_system.simulate_vehicle(system_config, seed=config.seed,
                                                            progress=reporter)
         ds = windows_from_vehicle(vehicle_ensemble, config.direction, config.target,
-                                  config.window, config.val_fraction)
+                                  config.window, config.val_fraction, config.absolute_time)
     reporter.advance(1, windows=len(ds))
     return ds
 
@@ -454,7 +483,8 @@ def save_dataset(ds: WindowedDataset, path: str | os.PathLike[str]) -> str:
 def load_dataset(path: str | os.PathLike[str], *, system: str | None = None,
                  config_name: str | None = None, direction: str | None = None,
                  target: str | None = None, window: int | None = None,
-                 vehicle_model: str | None = None) -> WindowedDataset:
+                 vehicle_model: str | None = None,
+                 absolute_time: bool | None = None) -> WindowedDataset:
     """Read a dataset written by :func:`save_dataset` and verify it.
 
     Raises ``DatasetError`` naming the file when it is missing, unreadable (damaged, truncated,
@@ -493,6 +523,13 @@ def load_dataset(path: str | os.PathLike[str], *, system: str | None = None,
     if vehicle_model is not None and ds.meta.config.get("model") != vehicle_model:
         raise DatasetError(f"dataset file {file} has vehicle model "
                            f"{ds.meta.config.get('model')!r}, but {vehicle_model!r} was asked for")
+    has_clock = ABSOLUTE_TIME_FEATURE in ds.meta.context_features
+    if absolute_time is not None and has_clock != absolute_time:
+        raise DatasetError(f"dataset file {file} has context features "
+                           f"{list(ds.meta.context_features)}, but a model "
+                           f"{'with' if absolute_time else 'without'} the absolute time channel "
+                           f"{ABSOLUTE_TIME_FEATURE!r} was asked for: rebuild it with "
+                           "`flowcast simulate`")
     return ds
 
 

@@ -19,8 +19,9 @@ Sampling goes through ``estimator.noise_to_data`` with standard-normal noise dra
 scale·eps, then the flow) and makes every estimate reproducible from its seed without touching
 global RNG state.
 
-The context tensor is built with :func:`pipeline.datasets.window_context`, the same code the
-datasets use, so a window read from a CSV reaches the model exactly as training windows did.
+The context's time channels are built with :func:`pipeline.datasets.time_features`, the same
+code the datasets use, so a window read from a CSV reaches the model exactly as training windows
+did.
 """
 from __future__ import annotations
 
@@ -116,31 +117,42 @@ def target_dim(estimator: object) -> int:
     return int(torch.as_tensor(mean).reshape(-1).shape[0])
 
 
+def uses_absolute_time(estimator: object) -> bool:
+    """Whether the estimator's context rows carry the absolute time ``t_obs`` (vehicle models)."""
+    return bool(getattr(estimator, "absolute_time", False))
+
+
 def context_window_length(estimator: object, default: int) -> int:
     """R the model was trained with (``estimator.window`` if it has one), else ``default``."""
     window = getattr(estimator, "window", None)
     return int(window) if window is not None else int(default)
 
 
-def assemble_context(values: Tensor, times: Tensor, mask: Tensor, target_time: Tensor) -> Tensor:
-    """Context rows ``[observed values..., t_obs - t_target]`` (B, R, C+1), float32.
+def assemble_context(values: Tensor, times: Tensor, mask: Tensor, target_time: Tensor,
+                     absolute_time: bool = False) -> Tensor:
+    """Context rows ``[observed values..., t_obs - t_target (, t_obs)]`` (B, R, C+1 or C+2),
+    float32.
 
-    ``values (B, R, C)``, ``times (B, R)``, ``mask (B, R)`` (False = padding), ``target_time (B,)``.
-    Padding rows are all zeros (the dataset convention). This is the one place where the context
-    layout is decided; it follows :mod:`pipeline.datasets`.
+    ``values (B, R, C)``, ``times (B, R)``, ``mask (B, R)`` (False = padding), ``target_time (B,)``;
+    ``absolute_time``: the estimator's layout (:func:`uses_absolute_time`). Padding rows are all
+    zeros (the dataset convention). The time channels come from
+    :func:`pipeline.datasets.time_features`, the function the training windows are built with.
     """
-    relative = (times - target_time[:, None]).unsqueeze(-1)
-    rows = torch.cat([values, relative.to(values.dtype)], dim=-1)
+    from pipeline.datasets import time_features
+
+    rows = torch.cat([values, time_features(times, target_time, absolute_time).to(values.dtype)],
+                     dim=-1)
     return (rows * mask.unsqueeze(-1).to(rows.dtype)).float()
 
 
-def window_context(window: ObservationWindow, direction: str, length: int) -> tuple[Tensor, Tensor]:
-    """(context (1, length, C+1), mask (1, length)) for one window."""
-    return batch_window_context([window], direction, length)
+def window_context(window: ObservationWindow, direction: str, length: int,
+                   absolute_time: bool = False) -> tuple[Tensor, Tensor]:
+    """(context (1, length, C+1 or C+2), mask (1, length)) for one window."""
+    return batch_window_context([window], direction, length, absolute_time)
 
 
 def batch_window_context(windows: Sequence[ObservationWindow], direction: str,
-                         length: int) -> tuple[Tensor, Tensor]:
+                         length: int, absolute_time: bool = False) -> tuple[Tensor, Tensor]:
     """Context and mask of several windows (same observed columns), padded to ``length`` rows.
 
     Rows are in increasing time order; a window with fewer than ``length`` rows is padded with
@@ -165,7 +177,7 @@ def batch_window_context(windows: Sequence[ObservationWindow], direction: str,
         times[b, rows] = torch.as_tensor(row_times)
         mask[b, rows] = True
     target = torch.tensor([w.target_time for w in windows], dtype=torch.float64)
-    return assemble_context(values, times, mask, target), mask
+    return assemble_context(values, times, mask, target, absolute_time), mask
 
 
 def _nearest_rows(window: ObservationWindow, direction: str, length: int
@@ -307,7 +319,7 @@ def estimate(estimator: Estimator, window: ObservationWindow, direction: str = "
     """
     window.check_direction(direction)
     length = window_length or context_window_length(estimator, window.n_rows)
-    context, mask = window_context(window, direction, length)
+    context, mask = window_context(window, direction, length, uses_absolute_time(estimator))
     samples = sample_conditional(estimator, context, mask, n_samples, seed)[0]
     if not bool(torch.isfinite(samples).all()):
         raise ConfigError(f"the estimator produced non-finite samples for the window ending at "

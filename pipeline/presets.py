@@ -20,7 +20,8 @@ sir-sf-joint       sir-sf, S,I,R,β,γ           5    10     6      6    10,000 
 =================  ==========================  ===  =====  =====  ===  ======  =====  ======
 
 All: R = 5 observations per window, Adam at constant lr 1e-3 (paper recipe), forward direction
-unless overridden. (*) Vehicle context noise: the paper's one sentence "adding Gaussian noise
+unless overridden. Context rows: the observed values and ``t_obs - t_target``; the vehicle set-ups
+also get the absolute time ``t_obs`` (4 channels; ``pipeline.datasets`` explains why). (*) Vehicle context noise: the paper's one sentence "adding Gaussian noise
 with σ = 1.0" is what ``pipeline.systems.vehicle`` already uses as the *observation* noise of the
 positions (the paper gives no other observation noise for the vehicle), so the stored contexts
 already carry it; adding it again in training would feed the model σ = √2 contexts while it is
@@ -104,8 +105,8 @@ class SetUp:
 
 
 SETUPS: dict[str, SetUp] = {s.name: s for s in (
-    SetUp("vehicle", "vehicle-dropout", "state", 2, 3, 10, 4, 4, 10_000, 2048, 1e-3, 0.0),
-    SetUp("vehicle-sparse", "vehicle-sparse", "state", 2, 3, 4, 4, 4, 5_000, 128, 1e-3, 0.0),
+    SetUp("vehicle", "vehicle-dropout", "state", 2, 4, 10, 4, 4, 10_000, 2048, 1e-3, 0.0),
+    SetUp("vehicle-sparse", "vehicle-sparse", "state", 2, 4, 4, 4, 4, 5_000, 128, 1e-3, 0.0),
     SetUp("sir-single", "sir-single", "state", 3, 4, 10, 6, 6, 10_000, 2048, 1e-3, 0.01),
     SetUp("sir-multi", "sir-multi", "state", 3, 4, 10, 6, 6, 10_000, 2048, 1e-3, 0.01),
     SetUp("sir-joint", "sir-multi", "state+params", 5, 4, 10, 6, 6, 10_000, 2048, 1e-3, 0.01),
@@ -202,7 +203,7 @@ def get_preset(name: str, encoder: str = "transformer", *, recipe: str = DEFAULT
         flow_options["backend"] = backend
     estimator = make_estimator_config(setup.features, setup.context_channels, setup.window,
                                       _encoder_config(choice, setup.embedding_features),
-                                      **flow_options)
+                                      absolute_time=bool(dataset.absolute_time), **flow_options)
     return TrainingPreset(name=name, encoder_choice=choice, recipe=rec, dataset=dataset,
                           estimator=estimator, train=train_config(setup, rec, seed),
                           kinetic=_kinetic(choice))

@@ -39,7 +39,8 @@ from torch import Tensor
 
 from pipeline.errors import ConfigError
 from pipeline.estimate import (Estimator, ObservationWindow, assemble_context, check_direction,
-                               context_window_length, draw_noise, target_dim)
+                               context_window_length, draw_noise, target_dim,
+                               uses_absolute_time)
 from pipeline.progress import ProgressReporter, SilentProgress
 
 BAND_QUANTILES: tuple[float, ...] = (0.02275, 0.15866, 0.5, 0.84134, 0.97725)
@@ -132,11 +133,12 @@ def propagate_paths(estimator: Estimator, anchor_times: Tensor, anchor_values: T
     times = anchor_times.double().repeat_interleave(paths, dim=0)
     mask = torch.ones((batch, window), dtype=torch.bool)
     targets = target_times.double().repeat_interleave(paths, dim=0)                     # (S·P, H)
+    absolute_time = uses_absolute_time(estimator)
     out = torch.empty((batch, horizon, dim), dtype=torch.float32)
     with torch.no_grad():
         for step in range(horizon):
             t_target = targets[:, step]
-            context = assemble_context(values, times, mask, t_target)
+            context = assemble_context(values, times, mask, t_target, absolute_time)
             eps = draw_noise((batch, 1, dim), generator)
             draw = estimator.noise_to_data(eps, context, mask)[:, 0]                 # (S·P, D)
             out[:, step] = draw

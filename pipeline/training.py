@@ -327,6 +327,7 @@ def _run(estimator: nn.Module, train_t: _Tensors, val_t: _Tensors, stats: Standa
     since_improvement, loss_sum, loss_count = 0, 0.0, 0
     stop_reason: StopReason = "completed"
     estimator.train()
+    time_channels = 2 if getattr(estimator, "absolute_time", False) else 1
     start = time.perf_counter()
     iteration = 0
     for iteration in range(1, config.iterations + 1):
@@ -335,7 +336,8 @@ def _run(estimator: nn.Module, train_t: _Tensors, val_t: _Tensors, stats: Standa
         if config.context_noise_sigma > 0:
             # The paper's sigma is in data units; the context is standardized already.
             context = add_context_noise(context, mask, config.context_noise_sigma, batch_gen,
-                                        channel_std=stats.context_std)
+                                        channel_std=stats.context_std,
+                                        time_channels=time_channels)
         lr_now = config.lr * lr_factor(config, iteration - 1, time.perf_counter() - start)
         for group in optimizer.param_groups:
             group["lr"] = lr_now

@@ -13,7 +13,8 @@ import typer
 from typer.testing import CliRunner
 
 import pipeline
-from pipeline.datasets import (FORMAT, FORMAT_VERSION, DatasetConfig, build_dataset,
+from pipeline.datasets import (ABSOLUTE_TIME_FEATURE, FORMAT, FORMAT_VERSION, TIME_FEATURE,
+                               DatasetConfig, build_dataset,
                                build_dataset_from_config, dataset_sha256, load_dataset,
                                progress_total, save_dataset, split_by_trajectory,
                                train_validation_split, window_indices, windows_from_sir,
@@ -277,8 +278,42 @@ def test_named_fixed_step_configs(name: str, n: int, per_trajectory: int, target
     ds = build_dataset(name, "forward", "state", R, seed=1, n_trajectories=n)
     assert len(ds) == n * per_trajectory and ds.target.shape[1] == target_dim
     step = 1.0
-    assert torch.equal(ds.context[0, :, -1], torch.arange(-R, 0) * step)
+    relative = ds.meta.context_features.index(TIME_FEATURE)
+    assert torch.equal(ds.context[0, :, relative], torch.arange(-R, 0) * step)
     assert ds.meta.config_name == name and ds.meta.n_trajectories == n
+
+
+@pytest.mark.parametrize("direction", ["forward", "backward"])
+def test_vehicle_windows_carry_the_absolute_observation_times(vehicle_ensemble,
+                                                             direction: str) -> None:
+    ds = windows_from_vehicle(vehicle_ensemble, direction, window=R, absolute_time=True)
+    assert ds.meta.context_features == ("p_x_obs", "p_y_obs", TIME_FEATURE, ABSOLUTE_TIME_FEATURE)
+    relative, absolute = ds.context[..., 2].double(), ds.context[..., 3].double()
+    # t_obs - (t_obs - t_target) = t_target, for every row of every window.
+    recovered = absolute - relative
+    torch.testing.assert_close(recovered, ds.target_time[:, None].expand_as(recovered),
+                               atol=1e-5, rtol=0)
+    grid = vehicle_ensemble.times
+    assert bool(torch.isin(torch.round(absolute * 10).long(), torch.round(grid * 10).long()).all())
+    without = windows_from_vehicle(vehicle_ensemble, direction, window=R)
+    assert torch.equal(without.context, ds.context[..., :3])
+
+
+def test_absolute_time_defaults_on_for_vehicles_and_is_refused_for_sir() -> None:
+    assert DatasetConfig(name="vehicle-dropout").absolute_time is True
+    assert DatasetConfig(name="vehicle-full", absolute_time=False).absolute_time is False
+    assert DatasetConfig(name="sir-multi").absolute_time is False
+    with pytest.raises(ConfigError, match="epidemic's start is not observed"):
+        DatasetConfig(name="sir-multi", absolute_time=True)
+
+
+def test_loading_a_dataset_without_the_channel_a_model_needs_is_refused(tmp_path: Path) -> None:
+    config = DatasetConfig(name="vehicle-full", n_trajectories=20, absolute_time=False)
+    path = tmp_path / "old.pt"
+    save_dataset(build_dataset_from_config(config), path)
+    assert load_dataset(path, absolute_time=False).context.shape[-1] == 3
+    with pytest.raises(DatasetError, match="absolute time channel 't_obs'"):
+        load_dataset(path, absolute_time=True)
 
 
 def test_sparse_dataset_has_about_1500_points_and_the_bicycle_model_is_recorded() -> None:

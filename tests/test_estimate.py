@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from torch import Tensor
 from typer.testing import CliRunner
 
 from pipeline.datasets import make_windows
@@ -17,7 +18,9 @@ from pipeline.estimate import (ObservationWindow, batch_window_context, confiden
                                estimate, unit_sphere_points)
 from pipeline.models.encoders import EncoderConfig
 from pipeline.models.estimator import build_estimator, make_estimator_config
+from pipeline.rollout import RolloutConfig, propagate_paths
 from pipeline.systems.sir import simulate_ensemble
+from pipeline.systems.vehicle import simulate_vehicle
 
 
 def _tiny_estimator(features: int = 3, seed: int = 0):
@@ -49,6 +52,26 @@ def test_window_context_matches_the_dataset_windows_exactly(direction: str) -> N
     ours, our_mask = batch_window_context(windows, direction, 5)
     torch.testing.assert_close(ours, context[rows], rtol=0, atol=0)
     assert bool(our_mask.all()) and bool(mask[rows].all())
+
+
+@pytest.mark.parametrize("direction", ["forward", "backward"])
+def test_vehicle_window_context_with_absolute_time_matches_the_dataset(direction: str) -> None:
+    ensemble = simulate_vehicle("vehicle-dropout", n=40, seed=3)
+    context, _, _, traj, target_time = make_windows(
+        ensemble.times, ensemble.observations, ensemble.kept, ensemble.states[..., :2], None,
+        direction, 5, absolute_time=True)
+    rows = [0, len(traj) // 2, len(traj) - 1]
+    windows = []
+    for i in rows:
+        kept = torch.nonzero(ensemble.kept[int(traj[i])]).flatten()
+        t = float(target_time[i])
+        at = int(torch.nonzero(ensemble.times[kept] == t)[0])
+        idx = kept[at - 5:at] if direction == "forward" else kept[at + 1:at + 6]
+        windows.append(ObservationWindow(times=ensemble.times[idx].numpy(),
+                                         values=ensemble.observations[int(traj[i]), idx].numpy(),
+                                         target_time=t))
+    ours, _ = batch_window_context(windows, direction, 5, absolute_time=True)
+    torch.testing.assert_close(ours, context[rows], rtol=0, atol=0)
 
 
 def test_short_windows_are_padded_with_masked_zero_rows_and_long_ones_cut() -> None:
@@ -99,6 +122,38 @@ def test_estimate_of_a_known_gaussian() -> None:
     rows = result.summary_rows()
     assert [r["component"] for r in rows] == ["p_x", "p_y"]
     assert rows[1]["sigma3_upper"] == pytest.approx(4.0, abs=1e-3)
+
+
+class RecordingEstimator(GaussianEstimator):
+    """A GaussianEstimator that keeps the contexts it is given and reads the clock like a
+    vehicle model."""
+
+    absolute_time = True
+
+    def __init__(self) -> None:
+        super().__init__([0.0, 0.0], [1.0, 1.0])
+        self.contexts: list[Tensor] = []
+
+    def noise_to_data(self, eps, context, mask):  # noqa: ANN001
+        self.contexts.append(context)
+        return super().noise_to_data(eps, context, mask)
+
+
+def test_estimates_and_rollouts_give_clock_models_the_absolute_time() -> None:
+    est = RecordingEstimator()
+    window = ObservationWindow(times=np.array([3.0, 3.4, 4.1, 4.5, 5.2]), values=np.zeros((5, 2)),
+                               target_time=6.0)
+    estimate(est, window, "forward", n_samples=10, seed=0)
+    np.testing.assert_allclose(est.contexts[0][0, :, 2].numpy(), window.times - 6.0, atol=1e-6)
+    np.testing.assert_allclose(est.contexts[0][0, :, 3].numpy(), window.times, atol=1e-6)
+    est.contexts.clear()
+    times = torch.tensor([[3.0, 3.4, 4.1, 4.5, 5.2]], dtype=torch.float64)
+    propagate_paths(est, times, torch.zeros((1, 5, 2)), torch.tensor([[6.0, 7.0]]), "forward",
+                    RolloutConfig(n_paths=3, feedback_noise_sigma=0.0))
+    second = est.contexts[1][0]  # after the first prediction (t = 6) was shifted in
+    np.testing.assert_allclose(second[:, 3].numpy(), [3.4, 4.1, 4.5, 5.2, 6.0], atol=1e-6)
+    np.testing.assert_allclose(second[:, 2].numpy(), np.array([3.4, 4.1, 4.5, 5.2, 6.0]) - 7.0,
+                               atol=1e-6)
 
 
 def test_regions_of_a_real_flow_lie_on_base_spheres() -> None:

@@ -114,6 +114,17 @@ def test_context_noise_touches_only_observed_values_of_real_rows():
     assert torch.allclose((scaled - context)[..., 1], difference[..., 1] / 2.0)
 
 
+def test_context_noise_leaves_both_time_channels_of_vehicle_rows_exact():
+    context = torch.randn(6, R, 4)
+    mask = torch.ones(6, R, dtype=torch.bool)
+    difference = add_context_noise(context, mask, 0.5, torch.Generator().manual_seed(0),
+                                   time_channels=2) - context
+    assert torch.equal(difference[..., 2:], torch.zeros_like(difference[..., 2:]))
+    assert bool((difference[..., :2] != 0).all())
+    with pytest.raises(ConfigError, match="time_channels=4"):
+        add_context_noise(context, mask, 0.5, torch.Generator().manual_seed(0), time_channels=4)
+
+
 def test_inconsistent_configs_and_stats_are_rejected():
     with pytest.raises(ConfigError, match="context_features"):
         EstimatorConfig(D, C, R, EncoderConfig(embedding_features=4),

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pipeline.datasets import build_dataset, save_dataset
+from pipeline.datasets import ABSOLUTE_TIME_FEATURE, build_dataset, save_dataset
 from pipeline.errors import ConfigError
 from pipeline.models.estimator import build_estimator
 from pipeline.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
@@ -79,12 +79,16 @@ def test_bad_names_are_rejected(kwargs, match):
 
 
 @pytest.mark.parametrize("name,dataset", [("sir-joint", "sir-multi"), ("sir-sf-joint", "sir-sf"),
-                                          ("vehicle-sparse", "vehicle-sparse")])
+                                          ("vehicle-sparse", "vehicle-sparse"),
+                                          ("vehicle", "vehicle-dropout")])
 def test_preset_shapes_match_the_datasets(name, dataset):
     preset = get_preset(name, "mlp")
     ds = build_dataset(dataset, target=preset.dataset.target, n_trajectories=3)
     assert ds.context.shape[1:] == (preset.estimator.window, preset.estimator.context_channels)
     assert ds.target.shape[1] == preset.estimator.features
+    # The model's context layout is the dataset's: t_obs channel for vehicles only.
+    assert preset.estimator.absolute_time == (ABSOLUTE_TIME_FEATURE in ds.meta.context_features)
+    assert preset.estimator.absolute_time == name.startswith("vehicle")
 
 
 def test_cli_trains_and_writes_a_loadable_checkpoint(tmp_path):

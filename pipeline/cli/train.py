@@ -69,7 +69,8 @@ def run_train(preset_name: str, *, encoder: str = "transformer", backend: str | 
                                    num_threads=threads)
     if dataset is not None:
         data = load_dataset(dataset, config_name=preset.dataset.name, direction=direction,
-                            target=preset.dataset.target, window=preset.dataset.window)
+                            target=preset.dataset.target, window=preset.dataset.window,
+                            absolute_time=preset.dataset.absolute_time)
     else:
         typer.echo(f"simulating {preset.dataset.name} ({direction}) ...", err=True)
         data = build_dataset_from_config(preset.dataset)

@@ -34,7 +34,9 @@ STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
 class EstimatorConfig:
     """Everything needed to rebuild an estimator (stored in checkpoints as a plain dict).
 
-    features D (target size), context_channels C (observed values + the time channel, last),
+    features D (target size), context_channels C (observed values, then the time channel
+    ``t_obs - t_target`` and, with ``absolute_time``, ``t_obs``: the layout of
+    :func:`pipeline.datasets.time_features`, which every context builder reads from here),
     window R (maximum rows; the MLP encoder needs exactly R), encoder, flow. The flow's
     ``features`` must equal D and its ``context_features`` the encoder's
     ``embedding_features`` (``make_estimator_config`` fills them in).
@@ -45,11 +47,16 @@ class EstimatorConfig:
     window: int
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     flow: FlowConfig | None = None
+    absolute_time: bool = False
 
     def __post_init__(self) -> None:
         for name in ("features", "context_channels", "window"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"EstimatorConfig.{name}={getattr(self, name)}: must be >= 1")
+        if self.absolute_time and self.context_channels < 3:
+            raise ConfigError(f"EstimatorConfig: absolute_time needs two time channels after at "
+                              f"least one observed value, context_channels="
+                              f"{self.context_channels}")
         if self.flow is None:
             object.__setattr__(self, "flow", FlowConfig(
                 features=self.features, context_features=self.encoder.embedding_features))
@@ -66,13 +73,13 @@ class EstimatorConfig:
 
 
 def make_estimator_config(features: int, context_channels: int, window: int,
-                          encoder: EncoderConfig = EncoderConfig(), **flow_options: Any
-                          ) -> EstimatorConfig:
+                          encoder: EncoderConfig = EncoderConfig(), *,
+                          absolute_time: bool = False, **flow_options: Any) -> EstimatorConfig:
     """EstimatorConfig whose FlowConfig takes D and E from ``features`` and ``encoder``;
     ``flow_options`` are the other FlowConfig fields (layers, hidden_features, backend, ...)."""
     flow = FlowConfig(features=features, context_features=encoder.embedding_features,
                       **flow_options)
-    return EstimatorConfig(features, context_channels, window, encoder, flow)
+    return EstimatorConfig(features, context_channels, window, encoder, flow, absolute_time)
 
 
 def _stats_tensors(stats: Any) -> dict[str, Tensor]:
@@ -118,6 +125,11 @@ class ConditionalEstimator(nn.Module):
     @property
     def features(self) -> int:
         return self.flow.config.features
+
+    @property
+    def absolute_time(self) -> bool:
+        """Whether context rows carry the ``t_obs`` channel (see EstimatorConfig)."""
+        return bool(self.config.absolute_time) if self.config is not None else False
 
     @property
     def stats(self) -> Any:
@@ -204,11 +216,12 @@ def build_estimator(config: EstimatorConfig, stats: Any, seed: int = 0) -> Condi
 
 
 def add_context_noise(context: Tensor, mask: Tensor, sigma: float, generator: torch.Generator,
-                      *, channel_std: Tensor | None = None, time_channel: int = -1) -> Tensor:
+                      *, channel_std: Tensor | None = None, time_channels: int = 1) -> Tensor:
     """The paper's context-noise augmentation (sigma = 1.0 vehicle, 0.01 SIR).
 
-    Adds N(0, sigma^2) to the observed-value channels of the real rows; the time channel
-    (``time_channel``, last by the dataset convention) and padding rows stay exact. sigma is in
+    Adds N(0, sigma^2) to the observed-value channels of the real rows; the ``time_channels``
+    trailing channels (``t_obs - t_target`` and, for vehicle models, ``t_obs``) and padding rows
+    stay exact. sigma is in
     the data's original units; for an already standardized context pass its ``channel_std`` and
     the noise is divided by it. Returns a new tensor.
     """
@@ -218,7 +231,10 @@ def add_context_noise(context: Tensor, mask: Tensor, sigma: float, generator: to
                        device=context.device)
     if channel_std is not None:
         scale = scale / channel_std.to(context)
-    scale[time_channel] = 0.0
+    if not 1 <= time_channels < context.shape[-1]:
+        raise ConfigError(f"context noise: time_channels={time_channels} must leave at least one "
+                          f"of the {context.shape[-1]} channels observed")
+    scale[-time_channels:] = 0.0
     noise = torch.randn(context.shape, generator=generator, dtype=context.dtype,
                         device=context.device)
     return context + noise * scale * mask[..., None].to(context.dtype)
