@@ -277,7 +277,7 @@ def test_bad_payload_keeps_cache_bytes_and_falls_back(kind, real_rows, cache_roo
     assert prov.from_cache and validated.report.row_count == 744
     assert validated.report.final_cumulative == 122_918
     assert any(re.search(BAD_PAYLOADS[kind][2], note) for note in prov.notes), prov.notes
-    assert any(n.startswith("using cache, stale by 0 days (its last day, 2022-03-16")
+    assert any(n.startswith("using cache, fetched 0 days ago (its last day, 2022-03-16")
                for n in prov.notes), prov.notes
 
 
@@ -345,7 +345,7 @@ def test_offline_with_cache_uses_it_and_reports_age(real_rows, cache_root):
     assert prov.from_cache and prov.stale_days == pytest.approx(3.5)
     # The note gives the cache's age and the age of the data themselves (last day 2022-03-16).
     data_age = (later.date() - date(2022, 3, 16)).days
-    assert (f"using cache, stale by 4 days (its last day, 2022-03-16, is {data_age} days "
+    assert (f"using cache, fetched 4 days ago (its last day, 2022-03-16, is {data_age} days "
             "before today)") in prov.notes
     assert series.provenance.max_stale_days == pytest.approx(3.5)
 

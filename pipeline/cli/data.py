@@ -63,7 +63,7 @@ def fetch_command(trailing_days: int = TrailingDays) -> None:
     except FlowcastError as exc:
         _fail(exc)
     for p in series.provenance.datasets:
-        where = f"cache (stale by {p.stale_days:.0f} days)" if p.from_cache else "DataSF"
+        where = f"cache (fetched {p.stale_days:.0f} days ago)" if p.from_cache else "DataSF"
         typer.echo(f"{p.dataset_key} ({p.dataset_id}) from {where}: {p.row_count} rows, "
                    f"{p.first_date} … {p.last_date}, data as of {p.data_as_of}")
         for note in p.notes:

@@ -175,7 +175,7 @@ def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
     # The cache's age alone hides an archived export: also say how old the data themselves are.
     data_age = (now.date() - date.fromisoformat(str(cached.manifest.last_date)[:10])).days
     notes = ((why,) if why else ()) + (
-        f"using cache, stale by {stale:.0f} days (its last day, {cached.manifest.last_date}, "
+        f"using cache, fetched {stale:.0f} days ago (its last day, {cached.manifest.last_date}, "
         f"is {data_age} days before today)",)
     log.warning("DataSF %s: %s", spec.key, "; ".join(notes))
     return validated, _provenance(cached.manifest, from_cache=True, stale_days=stale,
