@@ -16,9 +16,9 @@ cos(c2·t) and the switch at t = 5.5), and without it the model has to guess the
 positions: measured on the dropout set before the bifurcation, backward estimates were 14× wider
 along the track than the posterior given the observation times (docs/estimation.md). SIR windows
 keep the relative channel only: an epidemic's start is not observed, and the SIR reference
-treats the window's position along the epidemic as unknown. Trajectories with fewer than R + 1 kept times give no sample;
-there is no padding, so ``mask`` is all True in the built datasets (it exists for consumers that
-feed shorter contexts, e.g. real data at the start of a series).
+treats the window's position along the epidemic as unknown. Trajectories with fewer than R + 1
+kept times give no sample; there is no padding, so ``mask`` is all True in the built datasets (it
+exists for consumers that feed shorter contexts, e.g. real data at the start of a series).
 
 Targets are the state (SIR: S, I, R; vehicle: p_x, p_y) or, for SIR with a parameter prior,
 state + parameters (S, I, R, beta, gamma) for joint estimation.
