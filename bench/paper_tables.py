@@ -15,9 +15,10 @@ training.
 Protocol (see docs/estimation.md, "Reference posteriors"):
 
 * Models: the presets of :mod:`pipeline.presets` with the ``fast`` recipe, capped by a per-model
-  wall-clock budget (the cosine schedule is compressed to end annealed at the budget). Table 1 uses the ``vehicle`` preset on the fixed-step ``vehicle-full``
-  data (Δt = 1); Table 2 the ``vehicle`` preset (``vehicle-dropout``); Tables 3/4 ``sir-single``
-  and ``sir-multi``. Encoders: transformer, transformer + KE, Mamba; forward and backward.
+  wall-clock budget (the cosine schedule is compressed to end annealed at the budget). Table 1 uses
+  the ``vehicle`` preset on the fixed-step ``vehicle-full`` data (Δt = 1); Table 2 the ``vehicle``
+  preset (``vehicle-dropout``); Tables 3/4 ``sir-single`` and ``sir-multi``. Encoders: transformer,
+  transformer + KE, Mamba; forward and backward.
 * Test windows come from freshly simulated trajectories (seeds unseen in training).
   Vehicle: ``n_windows`` trajectories per location; the target is the (kept) time nearest the
   location's time with R = 5 kept observations before (fw) / after (bw) it. Locations: before

@@ -10,10 +10,11 @@ Both use the same model (:class:`pipeline.smc_models.SIRStateModel`: RK4, proces
 Fairness: same model and particle count on both sides, same torch thread count (``--threads``,
 default 1, reported: with OpenMP's passive waiting, which this project sets, every small op of a
 2-thread run pays a thread wake-up; on this 2-core VM both sides ran faster on one thread, pyro
-0.45 s vs 0.68 s and ours 0.013 s vs 0.034 s, 2026-11-21), each side warmed up once and then timed ``--repeats`` times, median
-reported (best-of-repeats too: more robust when other processes share the CPU). Like with like:
-pyro's side records only the filtered means, so ours runs with ``quantiles=()`` (no weighted
-quantile sort; means, stds, ESS and log-evidence are still computed). Ours is timed in its default
+0.45 s vs 0.68 s and ours 0.013 s vs 0.034 s, 2026-11-21), each side warmed up once and then
+timed ``--repeats`` times, median reported (best-of-repeats too: more robust when other processes
+share the CPU). Like with like: pyro's side records only the filtered means, so ours runs with
+``quantiles=()`` (no weighted quantile sort; means, stds, ESS and log-evidence are still
+computed). Ours is timed in its default
 precision (float32 for the SIR models; ``speedup`` = pyro_seconds / ours_seconds uses it) and in
 float64; the same-seed float32-vs-float64 difference of the posterior means is reported beside
 the Monte-Carlo error, and ours-vs-pyro agreement of the final means in Monte-Carlo units.

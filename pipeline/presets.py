@@ -21,15 +21,16 @@ sir-sf-joint       sir-sf, S,I,R,β,γ           5    10     6      6    10,000 
 
 All: R = 5 observations per window, Adam at constant lr 1e-3 (paper recipe), forward direction
 unless overridden. Context rows: the observed values and ``t_obs - t_target``; the vehicle set-ups
-also get the absolute time ``t_obs`` (4 channels; ``pipeline.datasets`` explains why). (*) Vehicle context noise: the paper's one sentence "adding Gaussian noise
-with σ = 1.0" is what ``pipeline.systems.vehicle`` already uses as the *observation* noise of the
-positions (the paper gives no other observation noise for the vehicle), so the stored contexts
-already carry it; adding it again in training would feed the model σ = √2 contexts while it is
-evaluated on σ = 1 ones. For SIR the paper states the observation noise (0.027) and the
-context noise (0.01) separately, so there both apply. (**) ``sir-sf-joint`` is the product's
-preset, not the paper's: the ``sir-sf`` prior (``pipeline.systems.sir``) fitted to the San
-Francisco series, whose observation noise (5e-4) is the only noise; the paper's context noise of
-0.01 would be 20× the data's scatter and drown its I (median 8e-4).
+also get the absolute time ``t_obs`` (4 channels; ``pipeline.datasets`` explains why). (*) Vehicle
+context noise: the paper's one sentence "adding Gaussian noise with σ = 1.0" is what
+``pipeline.systems.vehicle`` already uses as the *observation* noise of the positions (the paper
+gives no other observation noise for the vehicle), so the stored contexts already carry it; adding
+it again in training would feed the model σ = √2 contexts while it is evaluated on σ = 1 ones. For
+SIR the paper states the observation noise (0.027) and the context noise (0.01) separately, so there
+both apply. (**) ``sir-sf-joint`` is the product's preset, not the paper's: the ``sir-sf`` prior
+(``pipeline.systems.sir``) fitted to the San Francisco series, whose observation noise (5e-4) is the
+only noise; the paper's context noise of 0.01 would be 20× the data's scatter and drown its I
+(median 8e-4).
 
 Encoders: ``mlp``, ``transformer``, ``transformer-ke`` (the transformer trained with the kinetic
 terms: λ1 = 1, λ2 = :data:`KE_PATH_LENGTH`, λ3 = :data:`KE_INTERMEDIATE_NLL`, see below) and

@@ -105,7 +105,8 @@ class SIRPrior:
             raise ConfigError(f"SIR prior {self.name!r}: horizon_days={self.horizon_days} is not "
                               f"a whole number of steps dt={self.dt}")
         if self.beta_walk_sigma < 0:
-            raise ConfigError(f"SIR prior {self.name!r}: beta_walk_sigma={self.beta_walk_sigma} < 0")
+            raise ConfigError(f"SIR prior {self.name!r}: beta_walk_sigma="
+                              f"{self.beta_walk_sigma} < 0")
         if self.obs_sigma < 0:
             raise ConfigError(f"SIR prior {self.name!r}: obs_sigma={self.obs_sigma} < 0")
         if self.n_trajectories < 1:
@@ -312,7 +313,8 @@ def simulate_ensemble(prior: SIRPrior | str, n_trajectories: int | None = None, 
     """Simulate an ensemble from a prior and observe it with Gaussian noise.
 
     Draw order from ``torch.Generator().manual_seed(seed)``: parameters (beta, gamma), the initial
-    states (ranged priors only), the beta walk (walk priors only), then the observation noise of all (N, T, 3) entries; the same seed reproduces the ensemble bit for bit.
+    states (ranged priors only), the beta walk (walk priors only), then the observation noise of all
+    (N, T, 3) entries; the same seed reproduces the ensemble bit for bit.
     ``progress`` advances once per RK4 step (``prior.n_steps`` in total).
     """
     if isinstance(prior, str):
