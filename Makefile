@@ -34,7 +34,7 @@ forecast: venv sysdeps
 	  $(VENV)/bin/flowcast data import --if-empty \
 	    $$(find "$(ARCHIVE)" \( $(ARCHIVE_FILES) \) | sort); fi
 	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
-	  $(VENV)/bin/python -m flows.weekly_forecast $(FORECAST_ARGS)
+	  $(VENV)/bin/flowcast forecast $(FORECAST_ARGS)
 
 test: venv sysdeps
 	$(VENV)/bin/python -m pytest -q

@@ -1,5 +1,13 @@
 """Serve the ``weekly_forecast/sf-weekly`` deployment: Mondays 06:00 America/Los_Angeles.
 
+Two ways to run the deployment, with the same schedule, parameters and tags:
+
+* ``serve`` (this module): one long-running process registers the deployment and runs its flow
+  runs itself; nothing else to set up.
+* a work pool (``prefect.yaml`` at the repository root): ``prefect deploy`` registers it for the
+  process work pool ``flowcast-process`` and a ``prefect worker`` (kept alive by
+  ``deploy/flowcast-worker.service``) runs the flow runs; see docs/orchestration.md.
+
     PREFECT_API_URL=http://127.0.0.1:4200/api python -m flows.deploy [--preset default] ...
     prefect deployment run 'weekly_forecast/sf-weekly' [--param preset=tiny] --watch
 
@@ -27,6 +35,8 @@ FLOW_NAME = "weekly_forecast"
 FULL_NAME = f"{FLOW_NAME}/{DEPLOYMENT_NAME}"
 CRON = "0 6 * * 1"  # Mondays 06:00
 TIMEZONE = "America/Los_Angeles"
+TAGS = ("flowcast", "san-francisco", "weekly")
+WORK_POOL = "flowcast-process"  # prefect.yaml's process work pool
 
 
 def weekly_schedule() -> Schedule:
@@ -51,7 +61,7 @@ def serve(parameters: dict[str, Any], *, limit: int = 1) -> None:
         parameters=parameters,
         pause_on_shutdown=False,
         limit=limit,
-        tags=["flowcast", "san-francisco", "weekly"],
+        tags=list(TAGS),
         description="Weekly San Francisco SIR forecast with conditional normalizing flows.",
     )
 

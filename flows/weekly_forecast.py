@@ -28,6 +28,7 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import (create_link_artifact, create_markdown_artifact,
                                create_table_artifact)
 from prefect.cache_policies import NO_CACHE
+from prefect.states import Completed
 from prefect.tasks import exponential_backoff
 
 from pipeline import forecast as fc
@@ -39,6 +40,11 @@ ARTIFACT_NLL = "sf-weekly-nll"
 ARTIFACT_PARAMS = "sf-weekly-beta-gamma"
 ARTIFACT_REPORT = "sf-weekly-report"
 ARTIFACT_SUMMARY = "sf-weekly-summary"
+# A run made from cached data because DataSF could not be reached finishes COMPLETED under this
+# state name, carries this tag and emits this event (automations can match any of the three).
+STALE_STATE_NAME = "Completed (stale data)"
+STALE_TAG = "stale-data"
+STALE_EVENT = "flowcast.forecast.stale-data"
 
 _task = dict(cache_policy=NO_CACHE, persist_result=False)
 
@@ -146,20 +152,24 @@ def seeded_smc(models: Any, sir: Any, config: fc.ForecastConfig) -> Any:
     return run
 
 
-@task(name="backtest", **_task)
-def backtest(models: Any, sir: Any, config: fc.ForecastConfig) -> Any:
+@task(name="weekly-forecast", **_task)
+def published_forecast(series: Any, sir: Any, config: fc.ForecastConfig) -> Any:
+    """The published forecast at the latest Saturday and its real-time backtest."""
     logger = get_run_logger()
-    result = fc.backtest(models, sir.frame, config)
-    if result is None:
-        logger.info("backtest disabled (backtest_origins=0)")
-        return None
-    summary = fc.backtest_summary(result)
-    logger.info("backtest over %d origins (%s … %s): relative WIS vs persistence %.3f, vs SMC "
-                "%.3f; NF 50%%/90%% coverage %.2f/%.2f", summary["n_origins"],
-                *summary["origins"], summary["relative_wis"]["persistence"],
-                summary["relative_wis"]["smc"], summary["coverage"][fc.NF_FORECASTER]["50"],
-                summary["coverage"][fc.NF_FORECASTER]["90"])
-    return result
+    weekly = fc.weekly_forecast(series, sir, config,
+                                progress=_LoggerProgress(logger, "weekly forecast", 500))
+    summary = weekly.summary()
+    for target in ("cases", "I"):
+        skill = summary["by_target"][target]["published"]
+        rel = skill["relative_wis_vs_baseline"]
+        logger.info("published %s: relative WIS vs hub baseline %s (all %.3f); coverage 50%% "
+                    "%.2f, 90%% %.2f over %d origins", target,
+                    " ".join(f"{k} {v:.3f}" for k, v in rel.items() if k != "all" and v),
+                    rel["all"] or float("nan"), skill["coverage50"], skill["coverage90"],
+                    summary["n_origins"])
+    logger.info("published forecast from %s; flow member %s… %s", weekly.origin.date(),
+                (weekly.model_key or "-")[:12], "reused" if weekly.model_reused else "trained")
+    return weekly
 
 
 @task(name="render-report", **_task)
@@ -180,7 +190,8 @@ def _publish_artifacts(results: fc.ForecastResults, final_dir: Path, files: list
     report = next((f for f in files if f.endswith(".html")), files[0])
     create_link_artifact((final_dir / report).resolve().as_uri(), link_text=f"report {final_dir.name}",
                          key=ARTIFACT_REPORT, description="Weekly SF forecast report")
-    stale = ("**Data are stale** (DataSF unreachable; cached data used).\n\n" +
+    stale = (f"**STALE DATA** (DataSF unreachable; cached data used; run tagged "
+             f"`{STALE_TAG}`, state `{STALE_STATE_NAME}`).\n\n" +
              "\n".join(f"- {n}" for n in results.stale_notes)) if results.stale else \
         "Data fresh."
     create_markdown_artifact(
@@ -195,18 +206,45 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
                     import_from: list[str] | None = None,
                     output_dir: str = "reports",
                     seed: int = 0,
-                    retrain: bool = False) -> dict[str, Any]:
+                    retrain: bool = False,
+                    datasf_base_url: str | None = None) -> dict[str, Any]:
     """Fetch DataSF → S/I/R → synthetic ensemble → (cached) joint estimators → estimates,
-    rollouts, β/γ, NLL, NF-seeded SMC, backtest → report in ``<output_dir>/<reference-date>/``."""
+    rollouts, β/γ, NLL, NF-seeded SMC, backtest → report in ``<output_dir>/<reference-date>/``.
+
+    A run that had to fall back to cached data finishes in the state "Completed (stale data)",
+    is tagged ``stale-data`` and emits the event ``flowcast.forecast.stale-data``.
+
+    Args:
+        preset: Forecast size. "default" is the product (about 15 min from scratch, about a minute
+            with a cached model); "tiny" is a seconds-long smoke run with toy-sized models.
+        encoder: Context encoder of the flow models (mlp, transformer, transformer-ke, mamba).
+            Empty: the preset's own (transformer for "default").
+        data_source: Where the SF series comes from. "live" fetches DataSF and falls back to the
+            local cache (the run is then marked stale); "cache" reads only the cache (offline);
+            "import" imports the DataSF CSV exports given in import_from first.
+        import_from: DataSF CSV exports (files or folders) on the worker's machine, for
+            data_source "import".
+        output_dir: Folder on the worker's machine for the reports; each run writes
+            <output_dir>/<reference-date>/ and updates <output_dir>/index.html.
+        seed: Seed of every random step; the same seed, data and model give the same numbers.
+        retrain: Train new models even when the model cache holds a matching pair.
+        datasf_base_url: A DataSF mirror or proxy (https://host). Empty: $FLOWCAST_DATASF_BASE_URL
+            or https://data.sfgov.org. The app token comes from $FLOWCAST_DATASF_APP_TOKEN only
+            (flow parameters are stored in plain text).
+    """
     logger = get_run_logger()
     started = time.monotonic()
     base = fc.resolve_config(preset)
     config = fc.resolve_config(preset, encoder=encoder, seed=seed, data=dataclasses.replace(
-        base.data, kind=data_source, import_paths=tuple(import_from or ())))
+        base.data, kind=data_source, import_paths=tuple(import_from or ()),
+        base_url=datasf_base_url or None))
     logger.info("weekly forecast: preset=%s encoder=%s data=%s seed=%d retrain=%s", preset,
                 config.encoder or "(preset)", data_source, seed, retrain)
     retries = config.data.task_retries if data_source == "live" else 0  # cache: nothing to wait for
+    # The client's own deadlines bound each dataset; this time limit is the backstop (Prefect
+    # interrupts a sync task run in the flow's main thread with SIGALRM).
     fetch = fetch_datasf.with_options(
+        timeout_seconds=config.data.task_timeout_s,
         retries=retries, retry_delay_seconds=[config.data.task_retry_delay_s * 2 ** k
                                               for k in range(retries)] or 0)
     series = fetch(config)
@@ -219,13 +257,13 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     params = parameter_track(models, sir, config)
     nll = nll_table(models, sir, config, data)
     smc = seeded_smc(models, sir, config)
-    scored = backtest(models, sir, config)
+    weekly = published_forecast(series, sir, config)
     results = fc.ForecastResults(
         config=config, sir_frame=sir.frame, vintage=series.vintage.describe(),
         stale=fc.data_is_stale(series, data_source),
         stale_notes=tuple(fc.staleness_notes(series)) if fc.data_is_stale(series, data_source)
         else (), models=models, latest=latest, rollouts=rolled, future=future,
-        parameters=params, nll=nll, smc=smc, backtest=scored)
+        parameters=params, nll=nll, smc=smc, weekly=weekly)
 
     outputs = RunOutputs(output_dir)
     reference_date = str(future.reference_date)
@@ -239,17 +277,39 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
             model_key=models.key, seed=seed, preset=preset, files=tuple(files),
             summary={"model_reused": models.reused,
                      "nll": results.nll.to_dict(orient="records"),
-                     "backtest": (fc.backtest_summary(scored)["relative_wis"]
-                                  if scored is not None else None)})
+                     "backtest": fc.published_skill(weekly)})
         final_dir = outputs.promote(staging, record)
     _publish_artifacts(results, final_dir, files)
-    if results.stale:
-        logger.warning("forecast made from STALE cached data: %s", "; ".join(results.stale_notes))
     elapsed = time.monotonic() - started
     logger.info("weekly forecast %s done in %.1f s → %s", reference_date, elapsed, final_dir)
-    return {"reference_date": reference_date, "output_dir": str(final_dir), "files": files,
-            "data_stale": results.stale, "model_key": models.key, "model_reused": models.reused,
-            "seconds": elapsed}
+    outcome = {"reference_date": reference_date, "output_dir": str(final_dir), "files": files,
+               "data_stale": results.stale, "model_key": models.key,
+               "model_reused": models.reused, "seconds": elapsed}
+    if not results.stale:
+        return outcome
+    logger.warning("forecast made from STALE cached data: %s", "; ".join(results.stale_notes))
+    _mark_stale(reference_date, results.stale_notes)
+    return Completed(name=STALE_STATE_NAME, data=outcome,
+                     message=f"forecast {reference_date} made from cached data (DataSF "
+                             "unreachable)")
+
+
+def _mark_stale(reference_date: str, notes: tuple[str, ...]) -> None:
+    """Tag the running flow run ``stale-data`` and emit ``flowcast.forecast.stale-data``."""
+    from prefect.client.orchestration import get_client
+    from prefect.context import get_run_context
+    from prefect.events import emit_event
+
+    run = get_run_context().flow_run  # type: ignore[union-attr]
+    if run is None:
+        return
+    with get_client(sync_client=True) as client:
+        tags = client.read_flow_run(run.id).tags
+        if STALE_TAG not in tags:
+            client.update_flow_run(run.id, tags=[*tags, STALE_TAG])
+    emit_event(event=STALE_EVENT, resource={"prefect.resource.id": f"prefect.flow-run.{run.id}",
+                                            "prefect.resource.name": run.name},
+               payload={"reference_date": reference_date, "notes": list(notes)})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -264,15 +324,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--output-dir", default="reports")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--retrain", action="store_true", help="ignore the cached model")
+    parser.add_argument("--datasf-base-url", default=None,
+                        help="DataSF mirror or proxy (default: $FLOWCAST_DATASF_BASE_URL or "
+                             "https://data.sfgov.org)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO)
+    from flows.server_guard import guard_ephemeral_server
+    guard_ephemeral_server()  # a killed run no longer orphans Prefect's temporary server
     result = weekly_forecast(preset=args.preset, encoder=args.encoder,
                              data_source=args.data_source, import_from=args.import_from,
-                             output_dir=args.output_dir, seed=args.seed, retrain=args.retrain)
+                             output_dir=args.output_dir, seed=args.seed, retrain=args.retrain,
+                             datasf_base_url=args.datasf_base_url)
     print(f"report: {result['output_dir']}")
     return 0
 

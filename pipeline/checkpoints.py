@@ -7,7 +7,8 @@ loading a file can never execute code):
 * ``config``: the :class:`~pipeline.models.estimator.EstimatorConfig` as a plain dict,
 * ``state_dict``: the estimator's tensors, and ``state_sha256``: a SHA-256 over their names,
   dtypes, shapes and bytes (detects silent corruption that still unpickles),
-* ``stats``: the training-split standardization as tensors (``context_mean`` ...),
+* ``stats``: the training-split standardization as tensors (``context_mean`` ...) and the name
+  of its ``target_transform`` (absent in older files: identity),
 * ``versions``: flowcast, torch, nflows, zuko, python; ``data_sha256``: the training data hash,
 * ``history``: the training history (list of plain dicts), ``extra``: free plain data (train
   config, kinetic weights, best validation NLL ...), ``created_at`` (UTC ISO time).
@@ -95,7 +96,8 @@ def save_checkpoint(path: str | Path, estimator: nn.Module, *, config: Any, stat
         "config_type": f"{type(config).__module__}.{type(config).__qualname__}",
         "state_dict": state,
         "state_sha256": state_sha256(state),
-        "stats": {name: getattr(stats, name).detach().cpu().clone() for name in _STATS_FIELDS},
+        "stats": {**{name: getattr(stats, name).detach().cpu().clone() for name in _STATS_FIELDS},
+                  "target_transform": str(getattr(stats, "target_transform", "identity"))},
         "versions": package_versions(),
         "data_sha256": data_sha256,
         "history": _plain(list(history or [])),
@@ -171,7 +173,9 @@ def _stats_from_payload(path: Path, payload: dict[str, Any]) -> Any:
     missing = [name for name in _STATS_FIELDS if name not in stats]
     if missing:
         raise CheckpointError(f"checkpoint {path}: standardization lacks {missing}")
-    return Standardization(**{name: stats[name] for name in _STATS_FIELDS})
+    # Checkpoints from before target transforms hold identity statistics.
+    return Standardization(**{name: stats[name] for name in _STATS_FIELDS},
+                           target_transform=str(stats.get("target_transform", "identity")))
 
 
 def _rebuild(path: Path, config: Any, stats: Any, state: dict[str, Tensor]) -> nn.Module:

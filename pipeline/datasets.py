@@ -21,7 +21,10 @@ kept times give no sample; there is no padding, so ``mask`` is all True in the b
 exists for consumers that feed shorter contexts, e.g. real data at the start of a series).
 
 Targets are the state (SIR: S, I, R; vehicle: p_x, p_y) or, for SIR with a parameter prior,
-state + parameters (S, I, R, beta, gamma) for joint estimation.
+state + parameters (S, I, R, beta, gamma) for joint estimation. They are always stored in
+original units; a model whose flow works in other coordinates (``EstimatorConfig.target_transform``,
+e.g. the SIR log-ratio) gets statistics of the transformed training targets from
+``train_validation_split(ds, target_transform)``, and ``Standardization`` applies the transform.
 
 The train/validation split is by trajectory (windows of one trajectory overlap, so a split by
 window would leak), and the standardization stored with a dataset is computed on its training
@@ -46,6 +49,7 @@ from torch import Tensor
 import pipeline
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.io import atomic_open, sha256_file
+from pipeline.models.target_transforms import TargetTransform, get_target_transform
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.systems import sir as sir_system
 from pipeline.systems import vehicle as vehicle_system
@@ -135,12 +139,24 @@ def _check_choice(field: str, value: str, allowed: tuple[str, ...]) -> None:
 
 @dataclass(frozen=True)
 class Standardization:
-    """Per-feature affine standardization, z = (x - mean) / std, fitted on training data."""
+    """Per-feature affine standardization, z = (T(x) - mean) / std, fitted on training data.
+
+    ``target_transform`` names T (:mod:`pipeline.models.target_transforms`; ``"identity"`` for
+    the paper's set-ups): the target statistics are those of the *transformed* training targets,
+    so with ``"sir-log-ratio"`` ``target_mean``/``target_std`` have D - 1 entries (the flow's
+    coordinates) while ``standardize_target`` takes and ``unstandardize_target`` returns targets
+    in original units.
+    """
 
     context_mean: Tensor
     context_std: Tensor
     target_mean: Tensor
     target_std: Tensor
+    target_transform: str = "identity"
+
+    @property
+    def transform(self) -> TargetTransform:
+        return get_target_transform(self.target_transform)
 
     def standardize_context(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
         """``x (..., C)``; with ``mask (...)`` given, padding rows stay exactly zero."""
@@ -148,20 +164,30 @@ class Standardization:
         return z if mask is None else z * mask.unsqueeze(-1).to(z.dtype)
 
     def standardize_target(self, y: Tensor) -> Tensor:
-        return (y - self.target_mean.to(y)) / self.target_std.to(y)
+        u = self.transform.forward(y)
+        return (u - self.target_mean.to(u)) / self.target_std.to(u)
 
     def unstandardize_target(self, z: Tensor) -> Tensor:
-        return z * self.target_std.to(z) + self.target_mean.to(z)
+        return self.transform.inverse(z * self.target_std.to(z) + self.target_mean.to(z))
 
     @property
     def log_abs_det(self) -> Tensor:
-        """log |det dz/dy| of the target transform (= -sum log std): log p(y) = log p(z) + this."""
+        """log |det dz/du| of the affine part (= -sum log std): log p(u) = log p(z) + this. With
+        the identity transform u = y; otherwise add :meth:`target_log_abs_det`'s y-dependent
+        term (or call it, which includes this one)."""
         return -torch.log(self.target_std.double()).sum().to(self.target_std.dtype)
 
+    def target_log_abs_det(self, y: Tensor) -> Tensor:
+        """``(...)``: log |det dz/dy| of the whole target map at ``y (..., D)`` (original units):
+        log p(y) = log p(z) + this."""
+        return self.log_abs_det.to(y.dtype) + self.transform.log_abs_det(y)
+
     def to(self, device: torch.device | str) -> Standardization:
-        return Standardization(*(getattr(self, f).to(device) for f in _STATS_FIELDS))
+        return Standardization(*(getattr(self, f).to(device) for f in _STATS_FIELDS),
+                               target_transform=self.target_transform)
 
     def as_dict(self) -> dict[str, Tensor]:
+        """The four tensors (the transform's name is ``target_transform``)."""
         return {f: getattr(self, f) for f in _STATS_FIELDS}
 
 
@@ -174,11 +200,21 @@ def _mean_std(rows: Tensor) -> tuple[Tensor, Tensor]:
     return mean.float(), std.float()
 
 
-def compute_standardization(context: Tensor, mask: Tensor, target: Tensor) -> Standardization:
-    """Statistics over the real (mask True) context rows and over the targets given."""
+def compute_standardization(context: Tensor, mask: Tensor, target: Tensor,
+                            target_transform: str = "identity") -> Standardization:
+    """Statistics over the real (mask True) context rows and over the targets given, the latter
+    in the coordinates of ``target_transform`` (every target must lie in its support)."""
     context_mean, context_std = _mean_std(context[mask])
-    target_mean, target_std = _mean_std(target)
-    return Standardization(context_mean, context_std, target_mean, target_std)
+    transform = get_target_transform(target_transform)
+    outside = ~transform.in_support(target)
+    if bool(outside.any()):
+        first = target[outside][0].tolist()
+        raise DatasetError(f"{int(outside.sum())} of {target.shape[0]} targets lie outside the "
+                           f"support of target transform {target_transform!r} (e.g. {first}); "
+                           "the SIR log-ratio needs S, I, R > 0 summing to 1 and positive rates")
+    target_mean, target_std = _mean_std(transform.forward(target))
+    return Standardization(context_mean, context_std, target_mean, target_std,
+                           target_transform=target_transform)
 
 
 # --------------------------------------------------------------------------- dataset types
@@ -254,6 +290,8 @@ def dataset_sha256(ds: WindowedDataset) -> str:
         array = tensor.detach().cpu().contiguous().numpy()
         digest.update(f"{name}|{array.dtype.str}|{tuple(array.shape)};".encode())
         digest.update(array.reshape(-1).view(np.uint8))
+    if ds.stats.target_transform != "identity":  # identity datasets keep their earlier hashes
+        digest.update(f"target_transform|{ds.stats.target_transform};".encode())
     return digest.hexdigest()
 
 
@@ -340,21 +378,27 @@ def validation_trajectories(trajectory_ids: Tensor, val_fraction: float, seed: i
     return ids[permutation[:n_val]]
 
 
-def split_by_trajectory(ds: WindowedDataset, val_fraction: float, seed: int
+def split_by_trajectory(ds: WindowedDataset, val_fraction: float, seed: int,
+                        target_transform: str | None = None
                         ) -> tuple[WindowedDataset, WindowedDataset]:
-    """(train, validation) with no trajectory in both; both carry stats fitted on train."""
+    """(train, validation) with no trajectory in both; both carry stats fitted on train, in the
+    coordinates of ``target_transform`` (None: the one ``ds.stats`` uses; pass the model's
+    ``EstimatorConfig.target_transform``). The targets themselves stay in original units."""
     is_validation = torch.isin(ds.trajectory, validation_trajectories(ds.trajectory, val_fraction,
                                                                        seed))
     train_index = ~is_validation
     stats = compute_standardization(ds.context[train_index], ds.mask[train_index],
-                                    ds.target[train_index])
+                                    ds.target[train_index],
+                                    target_transform or ds.stats.target_transform)
     with_stats = dataclasses.replace(ds, stats=stats)
     return with_stats.subset(train_index, "train"), with_stats.subset(is_validation, "validation")
 
 
-def train_validation_split(ds: WindowedDataset) -> tuple[WindowedDataset, WindowedDataset]:
-    """The split the dataset's stored standardization was fitted on."""
-    return split_by_trajectory(ds, ds.meta.val_fraction, ds.meta.seed)
+def train_validation_split(ds: WindowedDataset, target_transform: str | None = None
+                           ) -> tuple[WindowedDataset, WindowedDataset]:
+    """The split the dataset's stored standardization was fitted on; ``target_transform`` as in
+    :func:`split_by_trajectory`."""
+    return split_by_trajectory(ds, ds.meta.val_fraction, ds.meta.seed, target_transform)
 
 
 # --------------------------------------------------------------------------- assembling
@@ -472,7 +516,8 @@ def save_dataset(ds: WindowedDataset, path: str | os.PathLike[str]) -> str:
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "tensors": {f: getattr(ds, f).detach().cpu().contiguous() for f in _TENSOR_FIELDS},
-        "stats": {k: v.detach().cpu().contiguous() for k, v in ds.stats.as_dict().items()},
+        "stats": {**{k: v.detach().cpu().contiguous() for k, v in ds.stats.as_dict().items()},
+                  "target_transform": ds.stats.target_transform},
         "meta": ds.meta.as_dict(),
     }
     with atomic_open(path, "wb") as handle:
@@ -549,7 +594,9 @@ def _dataset_from_payload(file: Path, payload: dict[str, Any]) -> WindowedDatase
     except (KeyError, TypeError) as exc:
         raise DatasetError(f"dataset file {file}: metadata field(s) missing or invalid: "
                            f"{exc}") from exc
-    stats = Standardization(*(stats_raw[name] for name in _STATS_FIELDS))
+    # Files written before target transforms existed hold identity statistics.
+    stats = Standardization(*(stats_raw[name] for name in _STATS_FIELDS),
+                            target_transform=str(stats_raw.get("target_transform", "identity")))
     ds = WindowedDataset(*(tensors[name] for name in _TENSOR_FIELDS), stats=stats, meta=meta)
     _check_shapes(file, ds)
     return ds
@@ -574,8 +621,12 @@ def _check_shapes(file: Path, ds: WindowedDataset) -> None:
             problems.append(f"{name} has shape {tuple(getattr(ds, name).shape)}, expected {shape}")
     if ds.mask.dtype != torch.bool:
         problems.append(f"mask has dtype {ds.mask.dtype}, expected torch.bool")
+    try:
+        flow_targets = ds.stats.transform.flow_features(n_targets)
+    except ConfigError as exc:
+        raise DatasetError(f"dataset file {file} is inconsistent: {exc}") from exc
     for name, tensor in ds.stats.as_dict().items():
-        size = channels if name.startswith("context") else n_targets
+        size = channels if name.startswith("context") else flow_targets
         if tuple(tensor.shape) != (size,):
             problems.append(f"stats.{name} has shape {tuple(tensor.shape)}, expected ({size},)")
         elif name.endswith("std") and not bool(torch.all(tensor > 0)):

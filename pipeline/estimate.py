@@ -108,7 +108,16 @@ def check_direction(direction: str) -> None:
 
 
 def target_dim(estimator: object) -> int:
-    """D of the estimator's target, read from its standardization (``stats.target_mean``)."""
+    """D of the estimator's target in original units: ``estimator.target_features`` where it
+    has one (a flow over transformed targets, e.g. the SIR log-ratio, has D - 1 noise
+    dimensions), else :func:`noise_dim`."""
+    features = getattr(estimator, "target_features", None)
+    return int(features) if features is not None else noise_dim(estimator)
+
+
+def noise_dim(estimator: object) -> int:
+    """Size of the standard-normal noise ``noise_to_data`` takes: the flow's dimension, read from
+    its standardization (``stats.target_mean``, fitted in the flow's coordinates)."""
     stats = getattr(estimator, "stats", None)
     mean = getattr(stats, "target_mean", None)
     if mean is None:
@@ -291,7 +300,7 @@ def sample_conditional(estimator: Estimator, context: Tensor, mask: Tensor, n_sa
     """(B, n, D) draws of the estimator for a batch of contexts, reproducible from ``seed``."""
     if n_samples < 1:
         raise ConfigError(f"n_samples must be >= 1, got {n_samples}")
-    eps = draw_noise((context.shape[0], n_samples, target_dim(estimator)), seed)
+    eps = draw_noise((context.shape[0], n_samples, noise_dim(estimator)), seed)
     return estimator.noise_to_data(eps, context, mask)
 
 
@@ -299,7 +308,7 @@ def sample_conditional(estimator: Estimator, context: Tensor, mask: Tensor, n_sa
 def confidence_regions(estimator: Estimator, context: Tensor, mask: Tensor,
                        radii: Sequence[float] = SIGMA_RADII, n_points: int = 256) -> list[Tensor]:
     """Per radius r, ``(B, K, D)``: the base r-σ sphere pushed through the flow (see module doc)."""
-    dim = target_dim(estimator)
+    dim = noise_dim(estimator)  # the sphere lives in the base's noise space
     unit = unit_sphere_points(dim, n_points).float()
     batch = context.shape[0]
     eps = torch.cat([r * unit for r in radii])                               # (len(radii)·K, D)

@@ -47,8 +47,12 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from pipeline.errors import ConfigError, OfflineError
+from pipeline.errors import CheckpointError, ConfigError, OfflineError
+from pipeline.forecasting.nf_member import GrowthModelConfig
+from pipeline.forecast_hub import Submission
+from pipeline.forecasting.weekly import WeeklyConfig, WeeklyForecast
 from pipeline.progress import ProgressReporter
+from pipeline.systems.waves import WavePrior
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +65,13 @@ NF_FORECASTER = "nf-rollout"
 VARIANT_LABELS = {"transformer": "Transformer", "transformer-ke": "Transformer + KE",
                   "mamba": "Mamba-SSM", "mlp": "MLP"}
 BACKTEST_BASELINES = ("persistence", "smc")
+# The report's one interval convention: 50 % and 90 % central intervals (plus the median).
+REPORT_LEVELS = (0.05, 0.25, 0.5, 0.75, 0.95)
+PARAMETER_LEVELS = (0.025, *REPORT_LEVELS, 0.975)
 # Per-step seed offsets: changing one step's draws never shifts another's.
 _SEED_OFFSETS = {"simulate": 0, "train_forward": 11, "train_backward": 12, "latest": 21,
-                 "rollout": 31, "future": 41, "params": 51, "nll": 61, "smc": 71, "backtest": 81}
+                 "rollout": 31, "future": 41, "params": 51, "nll": 61, "smc": 71, "backtest": 81,
+                 "weekly": 91, "train_growth": 92}
 
 
 @dataclass(frozen=True)
@@ -81,6 +89,13 @@ class DataSourceConfig:
     http_backoff_s: float = 2.0
     task_retries: int = 2          # whole-fetch retries by the orchestrator (live only)
     task_retry_delay_s: float = 10.0
+    base_url: str | None = None    # a DataSF mirror/proxy; None: $FLOWCAST_DATASF_BASE_URL or DataSF
+    fetch_deadline_s: float = 300.0  # per dataset, every page and retry (wall clock)
+
+    @property
+    def task_timeout_s(self) -> float:
+        """The fetch task's time limit: three datasets' deadlines plus a minute of slack."""
+        return 3 * self.fetch_deadline_s + 60.0
 
     def __post_init__(self) -> None:
         if self.kind not in ("live", "cache", "import"):
@@ -131,6 +146,9 @@ class ForecastConfig:
     trailing_days: int = 14
     seed: int = 0
     data: DataSourceConfig = field(default_factory=DataSourceConfig)
+    # The published forecast: an ensemble of the flow member (its own model) and AutoETS, with
+    # its real-time backtest over every Saturday origin (pipeline.forecasting.weekly).
+    weekly: WeeklyConfig = field(default_factory=WeeklyConfig)
 
     def __post_init__(self) -> None:
         if any(w < 1 for w in self.rollout_windows):
@@ -153,6 +171,11 @@ class ForecastConfig:
 
     def step_seed(self, step: str) -> int:
         return self.seed * 1000 + _SEED_OFFSETS[step]
+
+    def weekly_config(self) -> WeeklyConfig:
+        """``weekly`` with the run's seeds (the flow member's training seed included)."""
+        growth = dataclasses.replace(self.weekly.growth, seed=self.step_seed("train_growth"))
+        return dataclasses.replace(self.weekly, growth=growth, seed=self.step_seed("weekly"))
 
     def training_preset_for(self, direction: str) -> Any:
         """The :class:`~pipeline.presets.TrainingPreset` of the ``direction`` model."""
@@ -203,6 +226,11 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
                            parameter_stride_days=7, nll_locations=20, smc_particles=200,
                            smc_days=28, backtest_origins=2, backtest_paths=40,
                            backtest_smc_particles=200,
+                           weekly=WeeklyConfig(
+                               growth=GrowthModelConfig(n_trajectories=120, iterations=30,
+                                                        batch_size=256,
+                                                        prior=WavePrior(days=140)),
+                               n_paths=100),
                            data=DataSourceConfig(http_retries=2, http_backoff_s=0.0,
                                                  task_retries=1, task_retry_delay_s=0.0)),
 }
@@ -262,7 +290,9 @@ def load_series(config: ForecastConfig, *, session: Any = None) -> Any:
     from pipeline.data.series import SFDataConfig, load_sf_series
 
     source = config.data
-    client = ClientConfig(max_retries=source.http_retries, backoff_base_s=source.http_backoff_s)
+    client = ClientConfig(max_retries=source.http_retries, backoff_base_s=source.http_backoff_s,
+                          fetch_deadline_s=source.fetch_deadline_s,
+                          **({"base_url": source.base_url} if source.base_url else {}))
     data_config = SFDataConfig(trailing_days=config.trailing_days, client=client)
     if source.kind == "import":
         summaries = import_exports(source.import_paths)
@@ -330,7 +360,9 @@ def simulate_training_data(config: ForecastConfig,
         ds = windows_from_sir(ensemble, direction=direction, target=ds_config.target,
                               window=ds_config.window, val_fraction=ds_config.val_fraction)
         hashes.append(dataset_sha256(ds))
-        splits[direction] = train_validation_split(ds)
+        # Standardization in the coordinates the model's flow works in (its target transform).
+        splits[direction] = train_validation_split(
+            ds, config.training_preset_for(direction).estimator.target_transform)
     return TrainingData(splits=splits, data_sha256=sha256_bytes("|".join(hashes).encode()),
                         n_trajectories=ensemble.n_trajectories)
 
@@ -386,7 +418,14 @@ def _load_models(config: ForecastConfig, entry: Any) -> TrainedModels:
     loaded = {d: load_checkpoint(entry.path / d / "model.pt",
                                  expected_config=config.training_preset_for(d).estimator)
               for d in DIRECTIONS}
-    for model in loaded.values():
+    for direction, model in loaded.items():
+        # Both directions share one architecture, so the config check cannot tell a swapped pair
+        # apart; the direction recorded at training time can (issue 15).
+        recorded = model.meta.extra.get("direction")
+        if recorded is not None and recorded != direction:
+            raise CheckpointError(f"{entry.path / direction / 'model.pt'} is a {recorded} model "
+                                  f"(checkpoint metadata direction) in the {direction} slot: "
+                                  f"forward and backward checkpoints swapped; retrain (--retrain)")
         model.estimator.eval()
     return TrainedModels(
         forward=loaded["forward"].estimator, backward=loaded["backward"].estimator,
@@ -427,6 +466,7 @@ def _train_direction(config: ForecastConfig, data: TrainingData, direction: str,
     estimator = build_estimator(preset.estimator, train_ds.stats, seed=preset.train.seed)
     result = train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic, out_dir,
                             estimator_config=preset.estimator, progress=progress,
+                            preset=preset,
                             extra={"direction": direction, "forecast_preset": config.preset,
                                    "training_preset": preset.run_name})
     log.info("trained %s model: best validation NLL %.3f at iteration %d (%s)", direction,
@@ -448,8 +488,9 @@ class LatestEstimates:
     """Summaries of the latest forward (next day) and backward (day before the window) estimates."""
 
     table: pd.DataFrame  # direction, date, component, mean, std, q0.025, q0.5, q0.975
-    samples: dict[str, Tensor]
+    samples: dict[str, Tensor]  # direction -> (n, len(names)) joint draws (the report's R_t)
     dates: dict[str, str]
+    names: tuple[str, ...] = JOINT_NAMES
 
 
 def latest_estimates(models: TrainedModels, sir_frame: pd.DataFrame,
@@ -527,8 +568,10 @@ def parameter_track(models: TrainedModels, sir_frame: pd.DataFrame,
                     config: ForecastConfig) -> pd.DataFrame:
     """β, γ (and the state) per day from the R observations before (fw) / after (bw) the day.
 
-    Long table: direction, date, component, mean, std, q0.025, q0.5, q0.975; one flow call per
-    direction for all days at once.
+    Long table: direction, date, component, mean, std, q0.025, q0.05, q0.25, q0.5, q0.75,
+    q0.95, q0.975; one flow call per direction for all days at once. Component ``Rt`` is the
+    effective reproduction number β·S/γ computed per joint sample (its posterior, not a ratio of
+    medians); the report's intervals are the 50 % and 90 % ones.
     """
     from pipeline.estimate import batch_window_context, sample_conditional
 
@@ -544,14 +587,16 @@ def parameter_track(models: TrainedModels, sir_frame: pd.DataFrame,
         context, mask = batch_window_context(windows, direction, r)
         samples = sample_conditional(models.by_direction(direction), context, mask,
                                      config.n_samples, config.step_seed("params")).double()
-        levels = torch.tensor([0.025, 0.5, 0.975], dtype=torch.float64)
-        q = torch.quantile(samples, levels, dim=1)                                  # (3, B, D)
-        for d, name in enumerate(JOINT_NAMES):
+        rt = samples[:, :, 3] * samples[:, :, 0] / samples[:, :, 4]                 # β S / γ
+        samples = torch.cat([samples, rt[..., None]], dim=-1)
+        q = torch.quantile(samples, torch.tensor(PARAMETER_LEVELS, dtype=torch.float64), dim=1)
+        for d, name in enumerate((*JOINT_NAMES, "Rt")):
             frames.append(pd.DataFrame({
                 "direction": direction, "date": dates[targets].strftime("%Y-%m-%d"),
                 "component": name, "mean": samples[:, :, d].mean(1).numpy(),
-                "std": samples[:, :, d].std(1).numpy(), "q0.025": q[0, :, d].numpy(),
-                "q0.5": q[1, :, d].numpy(), "q0.975": q[2, :, d].numpy()}))
+                "std": samples[:, :, d].std(1).numpy(),
+                **{f"q{level:g}": q[k, :, d].numpy()
+                   for k, level in enumerate(PARAMETER_LEVELS)}}))
     return pd.concat(frames, ignore_index=True)
 
 
@@ -599,7 +644,7 @@ def nll_table_variants(models: TrainedModels, variants: dict[str, TrainedModels]
 def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig) -> Any:
     """NF-seeded SMC over the last ``smc_days`` days: flow draws at the first day seed it."""
     from pipeline.estimate import sample_conditional, window_context
-    from pipeline.smc import SMCConfig, seeded_filter
+    from pipeline.smc import DEFAULT_QUANTILES, SMCConfig, seeded_filter
     from pipeline.smc_models import SIRParamsModel
 
     times, values, dates = sir_arrays(sir_frame)
@@ -625,7 +670,10 @@ def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastC
     observations = torch.as_tensor(values[start:])[None]
     result = seeded_filter(particles, observations, model,
                            SMCConfig(num_particles=config.smc_particles,
-                                     seed=config.step_seed("smc")),
+                                     seed=config.step_seed("smc"),
+                                     # the report's 50 %/90 % bands need these levels recorded
+                                     quantiles=tuple(sorted({*DEFAULT_QUANTILES,
+                                                             *REPORT_LEVELS}))),
                            times=torch.as_tensor(times[start:]))
     return SMCRun(result=result, dates=dates[start:])
 
@@ -645,6 +693,25 @@ class SMCRun:
                 f"lower_{n_sigma:g}sigma": lower[0, :, d].numpy(),
                 f"upper_{n_sigma:g}sigma": upper[0, :, d].numpy()}))
         return pd.concat(frames, ignore_index=True)
+
+
+def weekly_forecast(series: Any, sir: Any, config: ForecastConfig,
+                    progress: ProgressReporter | None = None) -> WeeklyForecast:
+    """The published forecast (ensemble of the flow member and AutoETS, recalibrated) at the
+    latest Saturday, and the same method's real-time forecasts at every earlier Saturday
+    (:mod:`pipeline.forecasting.weekly`). The flow member comes from the model store."""
+    from pipeline.forecasting.backtest import sf_history
+    from pipeline.forecasting.weekly import forecast_weekly
+
+    return forecast_weekly(sf_history(series, sir), config.weekly_config(), model_store_root(),
+                           progress)
+
+
+def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:
+    """Relative WIS vs the hub baseline (h1–h4, all) of the published forecast, per target."""
+    summary = weekly.summary()["by_target"]
+    return {target: dict(summary[target]["published"]["relative_wis_vs_baseline"])
+            for target in summary}
 
 
 def backtest(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig,
@@ -713,11 +780,11 @@ class ForecastResults:
     nll: pd.DataFrame
     smc: SMCRun
     backtest: Any = None          # pipeline.backtest.BacktestResult, or None (no backtest)
+    weekly: WeeklyForecast | None = None   # the published forecast and its real-time backtest
 
 
 def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
     """CSV tables + hub CSV + results.json into ``out_dir``; returns the file names written."""
-    from pipeline.forecast_hub import HubConfig, hub_forecast_frame, write_hub_csv
     from pipeline.io import atomic_write_json, atomic_write_text
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -729,20 +796,63 @@ def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
               "smc_bands.csv": results.smc.band_frame(3.0)}
     for (direction, every), roll in results.rollouts.items():
         tables[f"rollout_{direction}_{every}d.csv"] = roll.summary_frame()
-    if results.backtest is not None:
-        tables["backtest_scores.csv"] = results.backtest.scores.assign(
-            origin=lambda f: f["origin"].dt.strftime("%Y-%m-%d"),
-            target_end_date=lambda f: f["target_end_date"].dt.strftime("%Y-%m-%d"))
+    if results.weekly is not None:
+        tables.update(weekly_tables(results.weekly))
     for name, frame in tables.items():
         atomic_write_text(out_dir / name, frame.to_csv(index=False))
-    hub = hub_forecast_frame(results.future.samples[..., :3].double().numpy(),
-                             results.future.dates, results.future.reference_date,
-                             HubConfig(n_sample_paths=min(200, results.config.hub_paths)))
-    write_hub_csv(hub, out_dir / "hub_forecast.csv")
+    written = list(tables) + ["results.json"]
+    if results.weekly is not None:
+        atomic_write_json(out_dir / "backtest_summary.json", results.weekly.summary())
+        submission = write_submission(results.weekly, out_dir, submission_run_date(results))
+        written += ["backtest_summary.json", submission.path.relative_to(out_dir).as_posix()]
     summary = results_summary(results)
     atomic_write_json(out_dir / "results.json", summary)
-    return sorted(list(tables) + ["hub_forecast.csv", "results.json"])
+    return sorted(written)
 
+
+def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
+    """The published forecast in hub format (quantiles and sample paths of I and weekly cases),
+    every forecaster's quantiles beside it, and the real-time backtest's scores."""
+    from pipeline.forecasting.backtest import PUBLISHED, hub_frame
+
+    frames = [hub_frame(f).assign(forecaster=name)
+              for name, f in weekly.member_forecasts().items() if name != PUBLISHED]
+    members = pd.concat(frames, ignore_index=True)
+    scores = weekly.backtest.scores.assign(
+        origin_date=lambda f: pd.to_datetime(f["origin_date"]).dt.strftime("%Y-%m-%d"),
+        target_end_date=lambda f: pd.to_datetime(f["target_end_date"]).dt.strftime("%Y-%m-%d"))
+    return {"hub_forecast.csv": hub_frame(weekly.latest), "member_forecasts.csv": members,
+            "backtest_scores.csv": scores}
+
+
+def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date) -> Submission:
+    """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``,
+    validated against the repository's ``hub-config/tasks.json`` when it is there."""
+    from pipeline.forecast_hub import SubmissionConfig, write_model_output
+
+    return write_model_output(weekly.latest, population=weekly.history.population,
+                              run_date=run_date, hub_dir=hub_dir, tasks=_hub_tasks(),
+                              config=SubmissionConfig(n_samples=min(200, _n_paths(weekly))))
+
+
+def submission_run_date(results: ForecastResults) -> dt.date:
+    """The run's date for the hub round: the data's cut-off, the last kept day plus the
+    ``trailing_days`` dropped as still under revision (today, for a live run on fresh data), so a
+    re-run on the same data lands in the same round."""
+    last = pd.Timestamp(results.sir_frame["date"].iloc[-1]).date()
+    return last + dt.timedelta(days=results.config.trailing_days)
+
+
+def _n_paths(weekly: WeeklyForecast) -> int:
+    paths = weekly.latest.paths
+    return 0 if paths is None else int(paths.shape[0])
+
+
+def _hub_tasks() -> dict[str, Any] | None:
+    from pipeline.forecast_hub import load_tasks_config
+
+    tasks = Path(__file__).resolve().parents[1] / "hub-config" / "tasks.json"
+    return load_tasks_config(tasks) if tasks.is_file() else None
 
 def results_summary(results: ForecastResults) -> dict[str, Any]:
     latest = results.latest.table

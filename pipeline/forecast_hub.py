@@ -1,20 +1,26 @@
-"""Hub-format forecast files (COVID-19 Forecast Hub / hubverse model-output CSV).
+"""The hubverse submission of the published weekly forecast (no Prefect, no torch).
 
-One row per (target, horizon, output type, output type id)::
+For an SF hub whose config is ``hub-config/`` (the 2024+ COVID-19 Forecast Hub conventions):
+``model-output/<team>-<model>/<reference_date>-<team>-<model>.csv`` with the columns
+``reference_date, target, horizon, location, target_end_date, output_type, output_type_id,
+value``, validated by :func:`validate_model_output` against ``hub-config/tasks.json``.
 
-    reference_date, target, horizon, target_end_date, location, output_type, output_type_id, value
-
-* ``reference_date``: the forecast's reference date (ISO date) — the last day of data used.
-* ``target``: ``"S prop"``, ``"I prop"``, ``"R prop"`` — the SIR compartment as a proportion of
-  the population (our model's unit; not an incidence count).
-* ``horizon``: weeks ahead, 1–4; ``target_end_date = reference_date + 7·horizon`` days.
-* ``location``: ``"06075"`` (San Francisco County FIPS code), as hubverse uses FIPS strings.
-* ``output_type = "quantile"``: ``output_type_id`` is the quantile level, one of the 23 standard
-  levels (0.01, 0.025, 0.05, 0.10, …, 0.95, 0.975, 0.99); quantiles are computed from all sample
-  paths by linear interpolation (Hyndman–Fan type 7).
-* ``output_type = "sample"``: ``output_type_id`` is the sample index ``0..199``; the same index
-  across targets and horizons is the same joint trajectory (hubverse "compound task id set"
-  = {target, horizon}). The first 200 paths are kept: paths are i.i.d., so any 200 are as good.
+* ``reference_date``: the Saturday ending the CDC epiweek (Sunday–Saturday, ``epiweeks``) of the
+  run's date; ``target_end_date = reference_date + 7·horizon`` days, a Saturday; ``horizon`` in
+  -1..3 (-1 is the week just past, a nowcast).
+* ``wk inc case``: reported cases in the epiweek ending on ``target_end_date``; ``I prop``: the
+  infectious share of the population on that day. The published forecast
+  (:mod:`pipeline.forecasting.weekly`) forecasts weeks ending on Saturdays 1–4 weeks after its
+  origin (the last Saturday of data); a hub horizon is filled when its target week is one of them.
+* quantiles: the published forecast's own 23 quantiles, unchanged (the report's headline shows
+  the same numbers); samples: its weekly sample paths, ``output_type_id`` ``"1"``..``"n"``, one id
+  = one joint path across targets and horizons (compound task id set =
+  {reference_date, location}); a path's week of cases is N·I at the week's end (the conversion's
+  infectious window is one week).
+* values are non-negative by construction; a forecast holding a negative or non-finite value is
+  refused, never clipped.
+* hub horizons whose target week is observed already, or is not one of the forecast's weeks, are
+  left out with a logged reason (:attr:`Submission.omitted`).
 
 ``output_type_id`` is written as text (quantile levels as ``0.025``, sample ids as ``17``) as
 hubverse does for mixed output types.
@@ -23,149 +29,38 @@ from __future__ import annotations
 
 import datetime as dt
 import io
+import json
+import logging
 import os
-from collections.abc import Sequence
-from dataclasses import dataclass
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
-from numpy.typing import ArrayLike
 
 from pipeline.errors import FlowcastError
+from pipeline.forecasting.targets import QuantileForecast
 from pipeline.io import atomic_write_text, sha256_bytes
-from pipeline.scoring import quantiles_from_samples
 
 HUB_QUANTILE_LEVELS: tuple[float, ...] = (
     0.01, 0.025, 0.05, 0.10, 0.15, 0.20, 0.25, 0.30, 0.35, 0.40, 0.45, 0.50,
     0.55, 0.60, 0.65, 0.70, 0.75, 0.80, 0.85, 0.90, 0.95, 0.975, 0.99,
 )
-HUB_COLUMNS: tuple[str, ...] = ("reference_date", "target", "horizon", "target_end_date",
-                                "location", "output_type", "output_type_id", "value")
 SF_COUNTY_FIPS = "06075"
-COMPARTMENTS: tuple[str, ...] = ("S", "I", "R")
 _QUANTILE_TOL = 1e-12
+
+log = logging.getLogger(__name__)
 
 
 class HubFormatError(FlowcastError):
-    """Forecast samples or a hub CSV that do not meet the hub format (levels, NaN, dates...)."""
-
-
-@dataclass(frozen=True)
-class HubConfig:
-    """What to write: horizons in weeks, number of sample paths, levels, location."""
-
-    horizons_weeks: tuple[int, ...] = (1, 2, 3, 4)
-    n_sample_paths: int = 200
-    quantile_levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
-    location: str = SF_COUNTY_FIPS
-
-
-def target_name(compartment: str) -> str:
-    return f"{compartment} prop"
+    """A forecast or a hub file that does not meet the hub format (levels, NaN, dates...)."""
 
 
 def _format_level(level: float) -> str:
     return f"{level:.3f}".rstrip("0").rstrip(".")
-
-
-def _horizon_indices(dates: pd.DatetimeIndex, reference_date: pd.Timestamp,
-                     horizons_weeks: Sequence[int]) -> tuple[np.ndarray, list[pd.Timestamp]]:
-    ends = [reference_date + pd.Timedelta(days=7 * h) for h in horizons_weeks]
-    position = {d: i for i, d in enumerate(dates)}
-    missing = [e.date().isoformat() for e in ends if e not in position]
-    if missing:
-        raise HubFormatError(f"sample paths cover {dates[0].date()}..{dates[-1].date()} but the "
-                             f"target end dates {missing} (reference {reference_date.date()} + "
-                             f"7·horizon days) are not among them")
-    return np.array([position[e] for e in ends]), ends
-
-
-def hub_forecast_frame(samples: ArrayLike, dates: Sequence[dt.date] | pd.DatetimeIndex,
-                       reference_date: dt.date, config: HubConfig = HubConfig()) -> pd.DataFrame:
-    """Quantile and sample rows for S, I, R from paths ``samples (n, horizon_days, 3)``.
-
-    ``dates (horizon_days,)`` are the daily dates of the path's steps (after the reference
-    date); the value at ``reference_date + 7h`` is the h-week-ahead forecast.
-    """
-    paths = np.asarray(samples, dtype=np.float64)
-    if paths.ndim != 3 or paths.shape[2] != len(COMPARTMENTS):
-        raise HubFormatError(f"samples must have shape (n_samples, horizon_days, 3) for S, I, R; "
-                             f"got {paths.shape}")
-    if not np.all(np.isfinite(paths)):
-        bad = int(np.sum(~np.isfinite(paths)))
-        raise HubFormatError(f"samples contain {bad} NaN/inf values; refusing to write a forecast")
-    if paths.shape[0] < config.n_sample_paths:
-        raise HubFormatError(f"{config.n_sample_paths} sample paths required, got {paths.shape[0]}")
-    index = pd.DatetimeIndex(pd.to_datetime(list(dates))).normalize()
-    if len(index) != paths.shape[1]:
-        raise HubFormatError(f"{len(index)} dates for {paths.shape[1]} path steps")
-    ref = pd.Timestamp(reference_date).normalize()
-    steps, ends = _horizon_indices(index, ref, config.horizons_weeks)
-
-    at_horizons = paths[:, steps, :]                                   # (n, H, 3)
-    levels = np.asarray(config.quantile_levels)
-    quantiles = quantiles_from_samples(np.moveaxis(at_horizons, 0, -1), levels)  # (H, 3, Q)
-    kept = at_horizons[: config.n_sample_paths]                        # (n_keep, H, 3)
-
-    n_h, n_c, n_q, n_s = len(steps), len(COMPARTMENTS), levels.size, kept.shape[0]
-    h_grid = np.asarray(config.horizons_weeks)
-    end_strings = np.array([e.date().isoformat() for e in ends])
-    targets = np.array([target_name(c) for c in COMPARTMENTS])
-    quantile_rows = pd.DataFrame({
-        "horizon": np.repeat(h_grid, n_c * n_q),
-        "target_end_date": np.repeat(end_strings, n_c * n_q),
-        "target": np.tile(np.repeat(targets, n_q), n_h),
-        "output_type": "quantile",
-        "output_type_id": np.tile([_format_level(lv) for lv in levels], n_h * n_c),
-        "value": quantiles.reshape(-1),
-    })
-    sample_values = np.transpose(kept, (1, 2, 0))                      # (H, 3, n_keep)
-    sample_rows = pd.DataFrame({
-        "horizon": np.repeat(h_grid, n_c * n_s),
-        "target_end_date": np.repeat(end_strings, n_c * n_s),
-        "target": np.tile(np.repeat(targets, n_s), n_h),
-        "output_type": "sample",
-        "output_type_id": np.tile(np.arange(n_s).astype(str), n_h * n_c),
-        "value": sample_values.reshape(-1),
-    })
-    frame = pd.concat([quantile_rows, sample_rows], ignore_index=True)
-    frame["reference_date"] = ref.date().isoformat()
-    frame["location"] = config.location
-    frame = frame[list(HUB_COLUMNS)]
-    validate_hub_frame(frame, config)
-    return frame
-
-
-def validate_hub_frame(frame: pd.DataFrame, config: HubConfig = HubConfig()) -> None:
-    """Raise ``HubFormatError`` naming the first problem: columns, NaN, levels, monotonicity."""
-    missing = [c for c in HUB_COLUMNS if c not in frame.columns]
-    if missing:
-        raise HubFormatError(f"hub frame lacks columns {missing}")
-    if frame[list(HUB_COLUMNS)].isna().any().any():
-        cols = [c for c in HUB_COLUMNS if frame[c].isna().any()]
-        raise HubFormatError(f"hub frame has missing values in columns {cols}")
-    bad_types = sorted(set(frame["output_type"]) - {"quantile", "sample"})
-    if bad_types:
-        raise HubFormatError(f"unknown output_type values {bad_types}")
-    ref = pd.to_datetime(frame["reference_date"])
-    end = pd.to_datetime(frame["target_end_date"])
-    wrong_end = (end - ref).dt.days.to_numpy() != 7 * frame["horizon"].astype(int).to_numpy()
-    if wrong_end.any():
-        row = frame.loc[wrong_end].iloc[0]
-        raise HubFormatError(f"target_end_date {row['target_end_date']} is not reference_date "
-                             f"{row['reference_date']} + 7·horizon ({row['horizon']})")
-    q = frame[frame["output_type"] == "quantile"].copy()
-    q["level"] = q["output_type_id"].astype(float)
-    expected = np.asarray(config.quantile_levels)
-    for (target, horizon), group in q.groupby(["target", "horizon"], sort=False):
-        group = group.sort_values("level")
-        levels = group["level"].to_numpy()
-        if levels.size != expected.size or np.any(np.abs(levels - expected) > 1e-9):
-            raise HubFormatError(f"{target} horizon {horizon}: quantile levels "
-                                 f"{levels.tolist()} differ from the {expected.size} standard ones")
-        if np.any(np.diff(group["value"].to_numpy()) < -_QUANTILE_TOL):
-            raise HubFormatError(f"{target} horizon {horizon}: quantile values decrease with the "
-                                 f"level (crossing quantiles)")
 
 
 def hub_csv_text(frame: pd.DataFrame) -> str:
@@ -174,21 +69,475 @@ def hub_csv_text(frame: pd.DataFrame) -> str:
     return buffer.getvalue()
 
 
-def write_hub_csv(frame: pd.DataFrame, path: str | os.PathLike[str],
-                  config: HubConfig = HubConfig()) -> str:
-    """Validate and write the CSV atomically; return its sha256."""
-    validate_hub_frame(frame, config)
+# ---------------------------------------------------------------------- hubverse submission
+
+TEAM_ABBR = "flowcast"
+MODEL_ABBR = "nfens"
+TARGET_WEEKLY_CASES = "wk inc case"
+TARGET_I_PROP = "I prop"
+HUBVERSE_TARGETS: tuple[str, ...] = (TARGET_WEEKLY_CASES, TARGET_I_PROP)
+HUBVERSE_HORIZONS: tuple[int, ...] = (-1, 0, 1, 2, 3)
+HUBVERSE_TASK_IDS: tuple[str, ...] = ("reference_date", "target", "horizon", "location",
+                                      "target_end_date")
+MODEL_OUTPUT_COLUMNS: tuple[str, ...] = (*HUBVERSE_TASK_IDS, "output_type", "output_type_id",
+                                         "value")
+TASKS_SCHEMA_URL = ("https://raw.githubusercontent.com/hubverse-org/schemas/main/v5.0.0/"
+                    "tasks-schema.json")
+_MODEL_ID_PART = re.compile(r"^[A-Za-z0-9_+]+$")
+
+
+class HubValidationError(HubFormatError):
+    """A model-output file that breaks the hub's ``tasks.json`` rules (names file, row, rule)."""
+
+
+@dataclass(frozen=True)
+class SubmissionConfig:
+    """Who submits (team, model: hubverse ``team_abbr``/``model_abbr``) and what."""
+
+    team_abbr: str = TEAM_ABBR
+    model_abbr: str = MODEL_ABBR
+    horizons: tuple[int, ...] = HUBVERSE_HORIZONS
+    quantile_levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
+    n_samples: int = 200
+    location: str = SF_COUNTY_FIPS
+
+    def __post_init__(self) -> None:
+        for name in ("team_abbr", "model_abbr"):
+            if not _MODEL_ID_PART.match(getattr(self, name)):
+                raise HubFormatError(f"SubmissionConfig.{name}={getattr(self, name)!r}: hubverse "
+                                     "allows letters, digits, '_' and '+' only")
+        if self.n_samples < 1:
+            raise HubFormatError(f"SubmissionConfig.n_samples={self.n_samples} must be >= 1")
+
+    @property
+    def model_id(self) -> str:
+        return f"{self.team_abbr}-{self.model_abbr}"
+
+
+@dataclass(frozen=True)
+class Submission:
+    """What :func:`write_model_output` wrote, and which horizons it left out and why."""
+
+    path: Path
+    frame: pd.DataFrame
+    reference_date: dt.date
+    horizons: tuple[int, ...]
+    omitted: dict[int, str] = field(default_factory=dict)
+    sha256: str = ""
+
+
+def reference_date_for(run_date: dt.date) -> dt.date:
+    """The Saturday ending the CDC epiweek (Sunday–Saturday) that contains ``run_date``."""
+    from epiweeks import Week
+
+    return Week.fromdate(run_date, system="cdc").enddate()
+
+
+def model_output_path(hub_dir: str | os.PathLike[str], reference_date: dt.date,
+                      model_id: str) -> Path:
+    """``<hub_dir>/model-output/<model_id>/<reference_date>-<model_id>.csv``."""
+    return (Path(hub_dir) / "model-output" / model_id /
+            f"{reference_date.isoformat()}-{model_id}.csv")
+
+
+def _horizon_index(forecast: QuantileForecast, end: dt.date) -> tuple[int | None, str]:
+    """The forecast's horizon index whose target week ends on ``end``, or (None, why not)."""
+    origin = forecast.origin.date()
+    if end <= origin:
+        return None, (f"target week ending {end} is observed (the forecast's origin is {origin}); "
+                      "nothing to forecast")
+    weeks, rest = divmod((end - origin).days, 7)
+    if rest or weeks not in forecast.horizons:
+        return None, (f"target week ending {end} is not one of the forecast's weeks (origin "
+                      f"{origin}, horizons {forecast.horizons} weeks)")
+    return forecast.horizons.index(weeks), ""
+
+
+def _check_forecast(forecast: QuantileForecast, population: float,
+                    config: SubmissionConfig) -> None:
+    if not np.allclose(forecast.levels, config.quantile_levels, rtol=0, atol=1e-12):
+        raise HubFormatError(f"the forecast's quantile levels {forecast.levels.tolist()} are not "
+                             "the hub's 23")
+    if population <= 0 or not np.isfinite(population):
+        raise HubFormatError(f"population must be a positive number, got {population}")
+    if forecast.paths is None or forecast.paths.shape[0] < config.n_samples:
+        have = 0 if forecast.paths is None else forecast.paths.shape[0]
+        raise HubFormatError(f"{config.n_samples} sample paths required, got {have}")
+    for name, values in (("quantiles", np.concatenate([forecast.values["cases"].ravel(),
+                                                       forecast.values["I"].ravel()])),
+                         ("sample paths", forecast.paths)):
+        if not np.all(np.isfinite(values)) or (values < 0).any():
+            raise HubFormatError(f"the forecast's {name} hold NaN, inf or negative values; "
+                                 "refusing to write a submission")
+
+
+def submission_frame(forecast: QuantileForecast, *, population: float, reference_date: dt.date,
+                     config: SubmissionConfig = SubmissionConfig()
+                     ) -> tuple[pd.DataFrame, dict[int, str]]:
+    """The model-output rows of the published weekly forecast (its quantiles exactly, and its
+    sample paths: I at the week's end and the week's cases N·I, the conversion's 7-day window),
+    and the hub horizons left out with reasons. Raises ``HubFormatError`` if none is left."""
+    _check_forecast(forecast, population, config)
+    assert forecast.paths is not None
+    level_ids = [_format_level(lv) for lv in config.quantile_levels]
+    sample_ids = [str(k + 1) for k in range(config.n_samples)]
+    rows: list[pd.DataFrame] = []
+    omitted: dict[int, str] = {}
+    for horizon in config.horizons:
+        end = reference_date + dt.timedelta(weeks=horizon)
+        index, reason = _horizon_index(forecast, end)
+        if index is None:
+            omitted[horizon] = reason
+            continue
+        infectious = forecast.paths[: config.n_samples, index, 1]
+        draws = {TARGET_WEEKLY_CASES: infectious * population, TARGET_I_PROP: infectious}
+        quantiles = {TARGET_WEEKLY_CASES: forecast.values["cases"][index],
+                     TARGET_I_PROP: forecast.values["I"][index]}
+        for target in HUBVERSE_TARGETS:
+            task = {"reference_date": reference_date.isoformat(), "target": target,
+                    "horizon": horizon, "location": config.location,
+                    "target_end_date": end.isoformat()}
+            rows.append(pd.DataFrame({**task, "output_type": "quantile",
+                                      "output_type_id": level_ids, "value": quantiles[target]}))
+            rows.append(pd.DataFrame({**task, "output_type": "sample",
+                                      "output_type_id": sample_ids, "value": draws[target]}))
+    if not rows:
+        raise HubFormatError("no horizon of the submission is covered by the forecast: "
+                             + "; ".join(f"horizon {h}: {r}" for h, r in omitted.items()))
+    frame = pd.concat(rows, ignore_index=True)[list(MODEL_OUTPUT_COLUMNS)]
+    order = {"quantile": 0, "sample": 1}
+    frame = frame.sort_values(["output_type", "target", "horizon"], kind="stable",
+                              key=lambda c: c.map(order) if c.name == "output_type" else c)
+    return frame.reset_index(drop=True), omitted
+
+
+def write_model_output(forecast: QuantileForecast, *, population: float, run_date: dt.date,
+                       hub_dir: str | os.PathLike[str],
+                       config: SubmissionConfig = SubmissionConfig(),
+                       tasks: Mapping[str, Any] | None = None) -> Submission:
+    """Write the hubverse model-output CSV of the published weekly ``forecast`` for the round of
+    ``run_date`` (the Saturday ending its epiweek). With ``tasks`` (a parsed ``tasks.json``) the
+    file is validated against it before it replaces anything."""
+    reference_date = reference_date_for(run_date)
+    frame, omitted = submission_frame(forecast, population=population,
+                                      reference_date=reference_date, config=config)
+    for horizon, reason in omitted.items():
+        log.info("hub submission %s: horizon %d left out: %s", reference_date, horizon, reason)
+    path = model_output_path(hub_dir, reference_date, config.model_id)
     text = hub_csv_text(frame)
+    if tasks is not None:
+        validate_model_output_frame(_frame_from_text(text, path), tasks, source=path)
     atomic_write_text(path, text)
-    return sha256_bytes(text.encode("utf-8"))
+    return Submission(path=path, frame=frame, reference_date=reference_date,
+                      horizons=tuple(sorted(set(frame["horizon"].astype(int)))),
+                      omitted=omitted, sha256=sha256_bytes(text.encode("utf-8")))
 
 
-def read_hub_csv(path: str | os.PathLike[str], config: HubConfig = HubConfig()) -> pd.DataFrame:
-    """Read and validate a hub CSV (``output_type_id`` and ``location`` stay text)."""
+# -------------------------------------------------------------------- tasks.json and checks
+
+
+def sf_hub_tasks_config(first_reference: dt.date, last_reference: dt.date) -> dict[str, Any]:
+    """The SF hub's ``tasks.json`` (hubverse schema v5) for the rounds between the two dates."""
+    saturdays = [reference_date_for(first_reference)]
+    while saturdays[-1] + dt.timedelta(weeks=1) <= last_reference:
+        saturdays.append(saturdays[-1] + dt.timedelta(weeks=1))
+    ends = [saturdays[0] + dt.timedelta(weeks=k)
+            for k in range(min(HUBVERSE_HORIZONS), len(saturdays) + max(HUBVERSE_HORIZONS))]
+    value = {"type": "double", "minimum": 0}
+    week = ("in the epiweek (Sunday-Saturday) ending on target_end_date, [horizon] weeks after "
+            "the reference_date")
+    return {
+        "schema_version": TASKS_SCHEMA_URL,
+        "rounds": [{
+            "round_id_from_variable": True,
+            "round_id": "reference_date",
+            "model_tasks": [{
+                "task_ids": {
+                    "reference_date": {"required": None,
+                                       "optional": [d.isoformat() for d in saturdays]},
+                    "target": {"required": None, "optional": list(HUBVERSE_TARGETS)},
+                    "horizon": {"required": None, "optional": list(HUBVERSE_HORIZONS)},
+                    "location": {"required": None, "optional": [SF_COUNTY_FIPS]},
+                    "target_end_date": {"required": None,
+                                        "optional": [d.isoformat() for d in ends]},
+                },
+                "output_type": {
+                    "quantile": {"output_type_id": {"required": list(HUB_QUANTILE_LEVELS)},
+                                 "is_required": False, "value": value},
+                    "sample": {"output_type_id_params": {
+                        "type": "character", "max_length": 15, "min_samples_per_task": 100,
+                        "max_samples_per_task": 200,
+                        "compound_taskid_set": ["reference_date", "location"]},
+                        "is_required": False, "value": value},
+                },
+                "target_metadata": [
+                    {"target_id": TARGET_WEEKLY_CASES, "target_name": "weekly reported cases",
+                     "target_units": "count", "target_keys": {"target": TARGET_WEEKLY_CASES},
+                     "target_type": "continuous", "is_step_ahead": True, "time_unit": "week",
+                     "description": f"Reported COVID-19 cases in San Francisco {week}."},
+                    {"target_id": TARGET_I_PROP, "target_name": "infectious share",
+                     "target_units": "proportion", "target_keys": {"target": TARGET_I_PROP},
+                     "target_type": "continuous", "is_step_ahead": True, "time_unit": "week",
+                     "description": ("Share of the San Francisco population infectious (reported "
+                                     "in the last 10 days) on target_end_date, [horizon] weeks "
+                                     "after the reference_date.")},
+                ],
+            }],
+            "submissions_due": {"relative_to": "reference_date", "start": -6, "end": 0},
+        }],
+    }
+
+
+def load_tasks_config(path: str | os.PathLike[str]) -> dict[str, Any]:
     try:
-        frame = pd.read_csv(path, dtype={"output_type_id": str, "location": str,
-                                         "reference_date": str, "target_end_date": str})
-    except (OSError, pd.errors.ParserError) as exc:
-        raise HubFormatError(f"cannot read hub CSV {path}: {exc}") from exc
-    validate_hub_frame(frame, config)
-    return frame
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise HubValidationError(f"cannot read the hub tasks config {path}: {exc}") from exc
+
+
+def _frame_from_text(text: str, source: object) -> pd.DataFrame:
+    try:
+        return pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise HubValidationError(f"{source}: not a readable CSV ({exc})") from exc
+
+
+def _round_for(tasks: Mapping[str, Any], source: object) -> Mapping[str, Any]:
+    rounds = tasks.get("rounds") or []
+    if len(rounds) != 1 or len(rounds[0].get("model_tasks", [])) != 1:
+        raise HubValidationError(f"{source}: this validator handles hubs with one round "
+                                 "definition holding one model task")
+    return rounds[0]["model_tasks"][0]
+
+
+def _task_values(spec: Mapping[str, Any]) -> list[Any]:
+    return list(spec.get("required") or []) + list(spec.get("optional") or [])
+
+
+def _row_schema(model_task: Mapping[str, Any], output_type: str) -> dict[str, Any]:
+    """A JSON Schema (draft 2020-12) for one model-output row of ``output_type``."""
+    spec = model_task["output_type"][output_type]
+    properties: dict[str, Any] = {
+        name: {"enum": _task_values(values)} for name, values in model_task["task_ids"].items()}
+    properties["output_type"] = {"const": output_type}
+    if "output_type_id" in spec:
+        properties["output_type_id"] = {"enum": _task_values(spec["output_type_id"])}
+    else:
+        params = spec["output_type_id_params"]
+        properties["output_type_id"] = {"type": "string", "minLength": 1,
+                                        "maxLength": int(params.get("max_length", 15))}
+    value: dict[str, Any] = {"type": "integer" if spec["value"]["type"] == "integer"
+                             else "number"}
+    for bound in ("minimum", "maximum"):
+        if bound in spec["value"]:
+            value[bound] = spec["value"][bound]
+    properties["value"] = value
+    return {"type": "object", "properties": properties, "required": sorted(properties),
+            "additionalProperties": False}
+
+
+def _typed_rows(frame: pd.DataFrame, model_task: Mapping[str, Any],
+                source: object) -> list[dict[str, Any]]:
+    """The CSV's text cells in the types the tasks config declares (ints, floats, strings)."""
+    int_ids = {name for name, spec in model_task["task_ids"].items()
+               if _task_values(spec) and all(isinstance(v, int) and not isinstance(v, bool)
+                                             for v in _task_values(spec))}
+    typed = {}
+    for column in frame.columns:
+        cells = frame[column].tolist()
+        if column in int_ids or column == "value" or column == "output_type_id":
+            converted = []
+            for row, cell in enumerate(cells):
+                try:
+                    number = float(cell)
+                    if column in int_ids:
+                        if number != int(number):
+                            raise ValueError
+                        number = int(number)
+                except ValueError:
+                    if column == "output_type_id":  # sample ids stay text
+                        number = cell
+                    else:
+                        raise HubValidationError(
+                            f"{source} row {row + 2}: column {column!r} must be "
+                            f"{'an integer' if column in int_ids else 'a number'}, got {cell!r}"
+                        ) from None
+                converted.append(number)
+            typed[column] = converted
+        else:
+            typed[column] = cells
+    records = [dict(zip(typed, values, strict=True)) for values in zip(*typed.values(),
+                                                                      strict=True)]
+    for record in records:  # sample ids are character even when they look like numbers
+        if record.get("output_type") == "sample":
+            record["output_type_id"] = str(frame_id_text(record["output_type_id"]))
+    return records
+
+
+def frame_id_text(value: Any) -> str:
+    """A sample id as hubverse text: ``3.0`` read as a number goes back to ``"3"``."""
+    if isinstance(value, float) and value.is_integer():
+        return str(int(value))
+    return str(value)
+
+
+def validate_model_output(path: str | os.PathLike[str], tasks: Mapping[str, Any]) -> pd.DataFrame:
+    """Validate a model-output CSV against a hub's ``tasks.json``; return it typed.
+
+    Row rules (JSON Schema, ``jsonschema``): the exact columns, allowed task id values (targets,
+    horizons, locations, dates), output types, quantile levels, sample id text, value types and
+    bounds (non-negative). File rules: the file name is ``<reference_date>-<model_id>.csv`` in
+    ``model-output/<model_id>/``; ``target_end_date = reference_date + 7·horizon``; every
+    quantile task has the complete level set and non-decreasing values; sample counts per compound
+    task within the config's bounds, no duplicated rows. Raises ``HubValidationError`` naming the
+    file, the row or task, and the rule.
+    """
+    target = Path(path)
+    try:
+        text = target.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise HubValidationError(f"cannot read model-output file {target}: {exc}") from exc
+    frame = _frame_from_text(text, target)
+    _check_file_name(target, frame)
+    return validate_model_output_frame(frame, tasks, source=target)
+
+
+def _check_file_name(path: Path, frame: pd.DataFrame) -> None:
+    match = re.fullmatch(r"(\d{4}-\d{2}-\d{2})-(.+)\.(csv|parquet)", path.name)
+    if match is None:
+        raise HubValidationError(f"{path}: file name must be <reference_date>-<team>-<model>.csv")
+    if path.parent.name != match.group(2):
+        raise HubValidationError(f"{path}: model id {match.group(2)!r} in the file name differs "
+                                 f"from its folder {path.parent.name!r}")
+    if "reference_date" in frame.columns and set(frame["reference_date"]) - {match.group(1)}:
+        raise HubValidationError(f"{path}: reference_date values "
+                                 f"{sorted(set(frame['reference_date']))} differ from the file "
+                                 f"name's {match.group(1)}")
+
+
+def validate_model_output_frame(frame: pd.DataFrame, tasks: Mapping[str, Any], *,
+                                source: object = "model output") -> pd.DataFrame:
+    """:func:`validate_model_output` on a frame of text cells (as read with ``dtype=str``)."""
+    from jsonschema import Draft202012Validator
+
+    model_task = _round_for(tasks, source)
+    expected = [*model_task["task_ids"], "output_type", "output_type_id", "value"]
+    if sorted(frame.columns) != sorted(expected):
+        missing = sorted(set(expected) - set(frame.columns))
+        extra = sorted(set(frame.columns) - set(expected))
+        raise HubValidationError(f"{source}: columns must be {expected}; missing {missing}, "
+                                 f"unexpected {extra}")
+    if frame.empty:
+        raise HubValidationError(f"{source}: no rows")
+    records = _typed_rows(frame, model_task, source)
+    validators = {name: Draft202012Validator(_row_schema(model_task, name))
+                  for name in model_task["output_type"]}
+    for row, record in enumerate(records):
+        kind = record.get("output_type")
+        if kind not in validators:
+            raise HubValidationError(f"{source} row {row + 2}: output_type {kind!r} is not one of "
+                                     f"{sorted(validators)}")
+        error = next(iter(sorted(validators[kind].iter_errors(record), key=str)), None)
+        if error is not None:
+            column = error.path[0] if error.path else "row"
+            raise HubValidationError(f"{source} row {row + 2}: column {column!r}: "
+                                     f"{error.message}")
+    typed = pd.DataFrame.from_records(records, columns=frame.columns)
+    _check_dates(typed, source)
+    _check_duplicates(typed, source)
+    if "quantile" in model_task["output_type"]:
+        _check_quantile_sets(typed, model_task, source)
+    if "sample" in model_task["output_type"]:
+        _check_sample_counts(typed, model_task, source)
+    return typed
+
+
+def _check_dates(frame: pd.DataFrame, source: object) -> None:
+    if not {"reference_date", "target_end_date", "horizon"} <= set(frame.columns):
+        return
+    ref = pd.to_datetime(frame["reference_date"])
+    end = pd.to_datetime(frame["target_end_date"])
+    bad = ((end - ref).dt.days != 7 * frame["horizon"].astype(int)).to_numpy()
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise HubValidationError(f"{source} row {row + 2}: target_end_date "
+                                 f"{frame['target_end_date'].iloc[row]} is not reference_date "
+                                 f"{frame['reference_date'].iloc[row]} + 7·horizon "
+                                 f"({frame['horizon'].iloc[row]})")
+
+
+def _task_id_columns(frame: pd.DataFrame) -> list[str]:
+    return [c for c in frame.columns if c not in ("output_type", "output_type_id", "value")]
+
+
+def _check_duplicates(frame: pd.DataFrame, source: object) -> None:
+    keys = [*_task_id_columns(frame), "output_type", "output_type_id"]
+    dup = frame.duplicated(subset=keys, keep=False).to_numpy()
+    if dup.any():
+        row = int(np.flatnonzero(dup)[0])
+        raise HubValidationError(f"{source} row {row + 2}: duplicated row "
+                                 f"{frame.iloc[row][keys].to_dict()}")
+
+
+def _check_quantile_sets(frame: pd.DataFrame, model_task: Mapping[str, Any],
+                         source: object) -> None:
+    levels = sorted(float(v) for v in
+                    _task_values(model_task["output_type"]["quantile"]["output_type_id"]))
+    required = sorted(float(v) for v in
+                      model_task["output_type"]["quantile"]["output_type_id"].get("required")
+                      or [])
+    q = frame[frame["output_type"] == "quantile"]
+    if q.empty:
+        return
+    for task, group in q.groupby(_task_id_columns(frame), sort=False):
+        group = group.sort_values("output_type_id")
+        found = group["output_type_id"].astype(float).tolist()
+        absent = [lv for lv in required if lv not in found]
+        if absent:
+            raise HubValidationError(f"{source}: quantile task {_task_label(frame, task)} lacks "
+                                     f"the levels {absent} (incomplete quantile set: "
+                                     f"{len(found)} of {len(levels)})")
+        if np.any(np.diff(group["value"].to_numpy(dtype=np.float64)) < -_QUANTILE_TOL):
+            raise HubValidationError(f"{source}: quantile task {_task_label(frame, task)} has "
+                                     "values that decrease as the level rises (crossing "
+                                     "quantiles)")
+
+
+def _check_sample_counts(frame: pd.DataFrame, model_task: Mapping[str, Any],
+                         source: object) -> None:
+    params = model_task["output_type"]["sample"]["output_type_id_params"]
+    samples = frame[frame["output_type"] == "sample"]
+    if samples.empty:
+        return
+    compound = list(params.get("compound_taskid_set") or _task_id_columns(frame))
+    low = int(params.get("min_samples_per_task", 1))
+    high = int(params.get("max_samples_per_task", 10**9))
+    ids_by_compound = samples.groupby(compound)["output_type_id"].agg(lambda s: set(s))
+    for key, ids in ids_by_compound.items():
+        if not low <= len(ids) <= high:
+            raise HubValidationError(f"{source}: {len(ids)} samples for compound task "
+                                     f"{dict(zip(compound, np.atleast_1d(key), strict=True))}; "
+                                     f"the hub asks for {low}..{high}")
+    seen: dict[str, Any] = {}
+    for key, ids in ids_by_compound.items():
+        for sample_id in ids:
+            if sample_id in seen and seen[sample_id] != key:
+                raise HubValidationError(f"{source}: sample id {sample_id!r} is used in two "
+                                         f"compound tasks ({seen[sample_id]} and {key})")
+            seen[sample_id] = key
+    per_task = samples.groupby(_task_id_columns(frame))["output_type_id"].nunique()
+    expected = ids_by_compound.map(len)
+    for task, count in per_task.items():
+        task_map = dict(zip(_task_id_columns(frame), task, strict=True))
+        key = tuple(task_map[c] for c in compound)
+        want = expected[key if len(key) > 1 else key[0]]
+        if count != want:
+            raise HubValidationError(f"{source}: sample task {_task_label(frame, task)} has "
+                                     f"{count} samples, its compound task has {want}: each "
+                                     "sample must cover every target and horizon")
+
+
+def _task_label(frame: pd.DataFrame, task: Any) -> str:
+    names = _task_id_columns(frame)
+    values = task if isinstance(task, tuple) else (task,)
+    return ", ".join(f"{n}={v}" for n, v in zip(names, values, strict=True))

@@ -14,6 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+from pipeline.errors import FlowcastError
+
 
 @contextlib.contextmanager
 def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[Any]]:
@@ -64,3 +66,81 @@ def sha256_file(path: str | os.PathLike[str], chunk_size: int = 1 << 20) -> str:
         for chunk in iter(lambda: handle.read(chunk_size), b""):
             digest.update(chunk)
     return digest.hexdigest()
+
+
+# -- locks and leftovers ----------------------------------------------------------------------
+# Caches, the model store and the run outputs are shared by concurrent runs (a served deployment,
+# a manual `make forecast`, `flows.scale_out` workers). Each guards its read-modify-write steps
+# with an OS file lock (``filelock``: flock on POSIX, released by the kernel if the holder dies,
+# so a killed run never leaves a lock behind).
+
+LOCK_TIMEOUT_S = 120.0
+STALE_AFTER_S = 86_400.0  # leftovers older than a day are from dead runs, never live ones
+
+
+class LockTimeoutError(FlowcastError):
+    """A file lock was not acquired in time (its holder is named in the message)."""
+
+
+@contextlib.contextmanager
+def file_lock(path: str | os.PathLike[str], *, timeout_s: float = LOCK_TIMEOUT_S,
+              what: str = "") -> Iterator[None]:
+    """Hold the exclusive lock file ``path`` for the block; error naming it after ``timeout_s``.
+
+    The holder's pid is written beside the lock (``<path>.owner``) only to name it in the
+    error; the lock itself is the kernel's.
+    """
+    import filelock  # local: only writers need it
+
+    lock_path = Path(path)
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    lock = filelock.FileLock(str(lock_path), timeout=timeout_s)
+    try:
+        lock.acquire()
+    except filelock.Timeout as exc:
+        owner = _read_owner(lock_path)
+        raise LockTimeoutError(f"{what or lock_path}: still locked after {timeout_s:.0f} s by "
+                               f"{owner or 'another process'} ({lock_path})") from exc
+    try:
+        with contextlib.suppress(OSError):
+            Path(f"{lock_path}.owner").write_text(f"pid {os.getpid()}\n", encoding="utf-8")
+        yield
+    finally:
+        lock.release()
+
+
+def _read_owner(lock_path: Path) -> str:
+    try:
+        return Path(f"{lock_path}.owner").read_text(encoding="utf-8").strip()
+    except OSError:
+        return ""
+
+
+def sweep_stale(directory: str | os.PathLike[str], patterns: tuple[str, ...], *,
+                older_than_s: float = STALE_AFTER_S, now: float | None = None) -> list[Path]:
+    """Delete entries of ``directory`` matching ``patterns`` last modified ``older_than_s`` ago.
+
+    For leftovers of killed runs (staging folders, ``.building`` folders, temp files): a live
+    run touches its own within minutes, so a day-old one belongs to nobody.
+    """
+    import shutil
+    import time
+
+    root = Path(directory)
+    if not root.is_dir():
+        return []
+    cutoff = (time.time() if now is None else now) - older_than_s
+    removed = []
+    for pattern in patterns:
+        for path in root.glob(pattern):
+            try:
+                if path.lstat().st_mtime >= cutoff:
+                    continue
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+            except FileNotFoundError:
+                continue  # another sweeper got there first
+            removed.append(path)
+    return removed

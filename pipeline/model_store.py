@@ -1,14 +1,28 @@
 """Trained-model cache for the weekly forecast: reuse a model unless its config or data changed.
 
-An entry is a directory ``<root>/<key>/`` whose ``key`` is the SHA-256 of the canonical JSON of
-(training config, training-data hash, store schema version). Whatever the builder writes into
-the entry (checkpoints, loss curves; sub-folders allowed) is listed with its SHA-256 in ``entry.json``; an entry whose
-files no longer match is treated as absent (logged, then rebuilt), so a damaged cache costs a
-retrain, never a wrong forecast.
+Entries are keyed by the SHA-256 of the canonical JSON of (training config, training-data hash,
+store schema version). Layout of one key (a tiny transactional store, like the DataSF cache)::
 
-Entries are built in a temporary sibling directory and renamed into place, so a crash while
-training never leaves a half-written entry that a later run would trust. Two runs building the
-same key at once both train; the second rename loses harmlessly (same content by construction).
+    <root>/<key>/current.json          which version is live (swapped atomically)
+    <root>/<key>/v-<content>-<nonce>/  one immutable version: the builder's files + entry.json
+    <root>/.locks/<key>.lock           held while committing (``filelock``)
+
+Whatever the builder writes (checkpoints, loss curves; sub-folders allowed) is listed with its
+SHA-256 in ``entry.json``; a version whose files no longer match is treated as absent (logged,
+then rebuilt), so a damaged cache costs a retrain, never a wrong forecast.
+
+A version is built in a temporary ``.building`` directory, then committed under the key's lock:
+if the live version already holds the same content (a concurrent build of a seeded, deterministic
+model) the new one is discarded; otherwise it is renamed to a fresh, never-existing version
+directory, ``current.json`` is swapped to it, and versions that neither the new nor the previous
+``current.json`` names and that are older than an hour are deleted. So a writer never deletes the
+version the live pointer names, and concurrent writers never rename over each other (the old
+delete-then-rename lost 18 of 80 concurrent writes, issue 15). Readers take no lock: a reader
+that finds its version collected reads the (newer) pointer again. ``.building`` directories of
+killed runs are swept after a day.
+
+Entries of the first layout (files and ``entry.json`` directly in ``<root>/<key>/``) are still
+read, so upgrading does not retrain.
 
 Assumption: the training config fully determines the model given the training data and seed
 (training is seeded); so "same key" means "same model" and reuse is safe.
@@ -22,16 +36,26 @@ import logging
 import os
 import shutil
 import tempfile
+import time
+import uuid
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 from pipeline.errors import CheckpointError
-from pipeline.io import atomic_write_json, sha256_bytes, sha256_file
+from pipeline.io import atomic_write_json, file_lock, sha256_bytes, sha256_file, sweep_stale
 
 log = logging.getLogger(__name__)
 
 ENTRY_FILE = "entry.json"
+CURRENT_FILE = "current.json"
+LOCKS_DIR = ".locks"
+_VERSION_PREFIX = "v-"
+_BUILDING_SUFFIX = ".building"
+# A version no pointer names may still be in use by a reader that resolved it just before the
+# swap (loading a checkpoint takes seconds); an hour is ample.
+UNREFERENCED_GRACE_S = 3600.0
+_READ_ATTEMPTS = 5
 # Bump when the layout or meaning of entries changes: old entries then simply stop matching.
 STORE_SCHEMA = 1
 
@@ -67,37 +91,57 @@ class StoreEntry:
 
 
 class ModelStore:
-    """A directory of trained-model entries keyed by :func:`model_key`."""
+    """A directory of trained-model entries keyed by :func:`model_key` (see module doc)."""
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root)
 
     def entry_dir(self, key: str) -> Path:
+        """The key's directory (holds ``current.json`` and the versions)."""
         return self.root / key
+
+    def lock_path(self, key: str) -> Path:
+        return self.root / LOCKS_DIR / f"{key}.lock"
+
+    def _live_version(self, key: str) -> Path | None:
+        """The directory the key's pointer names; a first-layout entry is its own version."""
+        directory = self.entry_dir(key)
+        pointer = directory / CURRENT_FILE
+        try:
+            version = json.loads(pointer.read_text(encoding="utf-8"))["version"]
+        except FileNotFoundError:
+            return directory if (directory / ENTRY_FILE).is_file() else None
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+            log.warning("ignoring damaged model cache pointer %s (%s)", pointer, exc)
+            return None
+        if not (isinstance(version, str) and version.startswith(_VERSION_PREFIX)
+                and "/" not in version):
+            log.warning("ignoring model cache pointer %s naming %r", pointer, version)
+            return None
+        return directory / version
 
     def get(self, key: str) -> StoreEntry | None:
         """The valid entry for ``key``, or None (missing or damaged)."""
-        path = self.entry_dir(key)
-        record_path = path / ENTRY_FILE
-        if not record_path.is_file():
-            return None
-        try:
-            record = json.loads(record_path.read_text(encoding="utf-8"))
-            files: dict[str, str] = record["files"]
-            for name, digest in files.items():
-                if sha256_file(path / name) != digest:
-                    raise CheckpointError(f"{path / name} does not match its recorded sha256")
-        except (OSError, json.JSONDecodeError, KeyError, TypeError, CheckpointError) as exc:
-            log.warning("ignoring damaged model cache entry %s (%s); it will be rebuilt", path, exc)
-            return None
-        return StoreEntry(key=key, path=path, reused=True, created_at=record["created_at"],
-                          meta=record.get("meta", {}))
+        for _ in range(_READ_ATTEMPTS):
+            path = self._live_version(key)
+            if path is None:
+                return None
+            entry, problem = _verified(key, path)
+            if entry is not None:
+                return entry
+            if self._live_version(key) == path:  # not a concurrent swap: really damaged
+                log.warning("ignoring damaged model cache entry %s (%s); it will be rebuilt",
+                            path, problem)
+                return None
+        return None
 
     def put(self, key: str, build: Callable[[Path], Mapping[str, Any] | None],
             meta: Mapping[str, Any] | None = None) -> StoreEntry:
         """Run ``build(tmp_dir)`` (writes the model files, may return extra meta), then commit."""
         self.root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", suffix=".building", dir=self.root))
+        sweep_stale(self.root, (f".*{_BUILDING_SUFFIX}",))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", suffix=_BUILDING_SUFFIX,
+                                    dir=self.root))
         try:
             extra = build(tmp) or {}
             files = {p.relative_to(tmp).as_posix(): sha256_file(p) for p in sorted(tmp.rglob("*"))
@@ -108,14 +152,46 @@ class ModelStore:
             full_meta = {**dict(meta or {}), **dict(extra)}
             atomic_write_json(tmp / ENTRY_FILE, {"key": key, "created_at": created_at,
                                                  "files": files, "meta": full_meta})
-            final = self.entry_dir(key)
-            if final.exists():  # damaged, forced retrain, or a concurrent build won the race
-                shutil.rmtree(final)
-            os.replace(tmp, final)
+            final = self._commit(key, tmp, files)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        return StoreEntry(key=key, path=final, reused=False, created_at=created_at, meta=full_meta)
+        entry, problem = _verified(key, final)
+        if entry is None:
+            raise CheckpointError(f"model cache entry {final} failed its check right after "
+                                  f"commit: {problem}")
+        return dataclasses.replace(entry, reused=False)
+
+    def _commit(self, key: str, tmp: Path, files: dict[str, str]) -> Path:
+        """Under the key's lock: reuse the live version if it holds the same files, else move
+        ``tmp`` to a fresh version directory and swap the pointer to it."""
+        content = sha256_bytes(canonical_json(files).encode("utf-8"))[:16]
+        directory = self.entry_dir(key)
+        with file_lock(self.lock_path(key), what=f"model cache entry {key[:12]}"):
+            live = self._live_version(key)
+            if live is not None and live.name.startswith(f"{_VERSION_PREFIX}{content}-"):
+                same, _ = _verified(key, live)
+                if same is not None:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    return live
+            directory.mkdir(parents=True, exist_ok=True)
+            version = directory / f"{_VERSION_PREFIX}{content}-{uuid.uuid4().hex[:8]}"
+            os.rename(tmp, version)  # a fresh name: never over anyone's directory
+            atomic_write_json(directory / CURRENT_FILE, {"version": version.name,
+                                                         "previous": live.name if live else None})
+            keep = {version.name, live.name if live is not None else ""}
+            self._collect(directory, keep)
+        return version
+
+    @staticmethod
+    def _collect(directory: Path, keep: set[str]) -> None:
+        cutoff = time.time() - UNREFERENCED_GRACE_S
+        for old in directory.glob(f"{_VERSION_PREFIX}*"):
+            try:
+                if old.name not in keep and old.stat().st_mtime < cutoff:
+                    shutil.rmtree(old)
+            except FileNotFoundError:
+                continue
 
     def get_or_build(self, config: Mapping[str, Any], data_sha256: str,
                      build: Callable[[Path], Mapping[str, Any] | None], *,
@@ -131,3 +207,17 @@ class ModelStore:
         else:
             log.info("retrain requested: rebuilding model %s", key[:12])
         return self.put(key, build, meta={"config": dict(config), "data_sha256": data_sha256})
+
+
+def _verified(key: str, path: Path) -> tuple[StoreEntry | None, str]:
+    """The entry at ``path`` if ``entry.json`` is readable and every file matches its sha256."""
+    try:
+        record = json.loads((path / ENTRY_FILE).read_text(encoding="utf-8"))
+        files: dict[str, str] = record["files"]
+        for name, digest in files.items():
+            if sha256_file(path / name) != digest:
+                raise CheckpointError(f"{path / name} does not match its recorded sha256")
+        return StoreEntry(key=key, path=path, reused=True, created_at=record["created_at"],
+                          meta=record.get("meta", {})), ""
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, CheckpointError) as exc:
+        return None, str(exc)

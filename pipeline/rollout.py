@@ -18,6 +18,16 @@ Design:
   the fed-back state, so each path is a simulated sequence of future observations (ancestral
   sampling of the chain). The CLI sets σ to the observation noise of the model's training data;
   0 feeds back the state itself. The reported samples are always the predicted states (no noise).
+* **Validity.** The reported states are the flow's draws, so they are exactly as valid as the
+  model makes them: a model with ``target_transform="sir-log-ratio"`` (the SF forecast's) draws
+  S, I, R on the open simplex with β, γ > 0 by construction, at every step of every path. The
+  fed-back rows are deliberately *not* put through that transform: they stand for observations,
+  and the training contexts were observations = state + N(0, σ²) on each compartment,
+  unclipped (``pipeline.systems.sir.observe``), so e.g. an observed I slightly below 0 near
+  I ≈ 0 is a context the model has seen. Adding the noise in log-ratio coordinates instead
+  would give multiplicative, level-dependent noise, a context distribution the model never saw
+  (at SF's I ≈ 1e-3 with σ = 5e-4 no single log-space σ matches it). Only the states must
+  be valid; they are.
 * **Joint models** (target = state + β, γ): only the first C components (the observed columns)
   are fed back; the parameter draws stay in the per-step samples.
 * **Backward** rollouts mirror forward ones: the context is the R rows after the target, and the
@@ -39,7 +49,7 @@ from torch import Tensor
 
 from pipeline.errors import ConfigError
 from pipeline.estimate import (Estimator, ObservationWindow, assemble_context, check_direction,
-                               context_window_length, draw_noise, target_dim,
+                               context_window_length, draw_noise, noise_dim, target_dim,
                                uses_absolute_time)
 from pipeline.progress import ProgressReporter, SilentProgress
 
@@ -121,7 +131,8 @@ def propagate_paths(estimator: Estimator, anchor_times: Tensor, anchor_values: T
     n_seg, window, n_obs = anchor_values.shape
     horizon = target_times.shape[1]
     paths = config.n_paths
-    dim = target_dim(estimator)
+    dim = target_dim(estimator)          # components per draw, original units
+    eps_dim = noise_dim(estimator)       # the flow's noise (D - 1 under the SIR log-ratio)
     if dim < n_obs:
         raise ConfigError(f"the model predicts {dim} components but the context has {n_obs} "
                           "observed columns: cannot feed predictions back")
@@ -139,7 +150,7 @@ def propagate_paths(estimator: Estimator, anchor_times: Tensor, anchor_values: T
         for step in range(horizon):
             t_target = targets[:, step]
             context = assemble_context(values, times, mask, t_target, absolute_time)
-            eps = draw_noise((batch, 1, dim), generator)
+            eps = draw_noise((batch, 1, eps_dim), generator)
             draw = estimator.noise_to_data(eps, context, mask)[:, 0]                 # (S·P, D)
             out[:, step] = draw
             fed_back = draw[:, :n_obs].double()

@@ -12,6 +12,18 @@ touches the index: the last good report stays what readers see.
 
 The index (``index.json`` + ``index.html``) lists the promoted runs, newest reference date
 first, one entry per reference date (a re-run for the same date replaces its entry).
+
+Concurrent runs. Two weekly runs on one output directory (a served deployment and a manual
+``make forecast``) must not interleave their writes: promotion replaces ``<root>/<date>`` and
+rewrites the index (a read-modify-write), so an interleaving could lose a run from the index or
+promote one run's folder under another's record. :meth:`RunOutputs.staged` and
+:meth:`RunOutputs.promote` therefore hold a per-directory file lock (``<root>/.run.lock``,
+``filelock``; the kernel drops it if the holder dies): the second run's output phase waits for
+the first one's, up to ``lock_timeout_s``, then fails naming the holder. The runs' computations
+(minutes) still proceed side by side; their caches are safe under concurrency themselves.
+
+Leftovers. Staging folders of killed runs are swept when they are more than a day old (a live
+run's staging folder is minutes old).
 """
 from __future__ import annotations
 
@@ -30,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import ConfigError
-from pipeline.io import atomic_write_json, atomic_write_text
+from pipeline.io import STALE_AFTER_S, atomic_write_json, atomic_write_text, file_lock, sweep_stale
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +51,8 @@ INDEX_HTML = "index.html"
 RUN_RECORD = "run.json"
 _STAGING_PREFIX = ".staging-"
 _TRASH_PREFIX = ".previous-"
+RUN_LOCK = ".run.lock"
+RUN_LOCK_TIMEOUT_S = 600.0  # another run's output phase (render + promote) takes about a minute
 _DATE_RE = re.compile(r"^\d{4}-\d{2}-\d{2}$")
 
 
@@ -86,8 +100,31 @@ def new_run_id() -> str:
 class RunOutputs:
     """The output root (e.g. ``reports/``): staging, promotion and the index of past runs."""
 
-    def __init__(self, root: str | os.PathLike[str]) -> None:
+    def __init__(self, root: str | os.PathLike[str], *,
+                 lock_timeout_s: float = RUN_LOCK_TIMEOUT_S) -> None:
         self.root = Path(root)
+        self.lock_timeout_s = lock_timeout_s
+        self._lock_depth = 0  # re-entrant: promote() runs inside staged()
+
+    @contextlib.contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold the output directory's run lock (re-entrant within this object)."""
+        if self._lock_depth:
+            self._lock_depth += 1
+            try:
+                yield
+            finally:
+                self._lock_depth -= 1
+            return
+        self.root.mkdir(parents=True, exist_ok=True)
+        with file_lock(self.root / RUN_LOCK, timeout_s=self.lock_timeout_s,
+                       what=f"output directory {self.root} (another weekly run is writing its "
+                            f"report there)"):
+            self._lock_depth = 1
+            try:
+                yield
+            finally:
+                self._lock_depth = 0
 
     # -- paths ---------------------------------------------------------------------------
     def final_dir(self, reference_date: str) -> Path:
@@ -100,7 +137,11 @@ class RunOutputs:
     def begin(self, reference_date: str, run_id: str | None = None) -> Path:
         """Create and return a fresh staging directory for a run on ``reference_date``."""
         self.root.mkdir(parents=True, exist_ok=True)
-        recover_interrupted_promotions(self.root)
+        with self.exclusive():
+            recover_interrupted_promotions(self.root)
+            for swept in sweep_stale(self.root, (f"{_STAGING_PREFIX}*",),
+                                     older_than_s=STALE_AFTER_S):
+                log.info("removed %s, a staging folder left by a run that died", swept)
         staging = self.staging_dir(reference_date, run_id or new_run_id())
         staging.mkdir(parents=False, exist_ok=False)
         return staging
@@ -111,7 +152,10 @@ class RunOutputs:
         Writes ``run.json`` into the staging folder first, so a promoted folder always says
         what made it.
         """
-        staging = Path(staging)
+        with self.exclusive():
+            return self._promote(Path(staging), record)
+
+    def _promote(self, staging: Path, record: RunRecord) -> Path:
         if not staging.is_dir() or staging.parent != self.root:
             raise ConfigError(f"not a staging directory of {self.root}: {staging}")
         atomic_write_json(staging / RUN_RECORD, record.to_json())
@@ -135,17 +179,20 @@ class RunOutputs:
     def staged(self, reference_date: str, run_id: str | None = None) -> Iterator[Path]:
         """``with outputs.staged(date) as d: ...`` — discards ``d`` if the block raises.
 
-        Promotion is explicit (:meth:`promote`) because the record is only known at the end.
+        Holds the output directory's run lock for the block, so two runs' output phases
+        (render, promote, index) never interleave. Promotion is explicit (:meth:`promote`)
+        because the record is only known at the end.
         """
-        staging = self.begin(reference_date, run_id)
-        try:
-            yield staging
-        except BaseException:
-            self.discard(staging)
-            raise
-        else:
-            if staging.exists():  # the block did not promote it: nothing good came out
+        with self.exclusive():
+            staging = self.begin(reference_date, run_id)
+            try:
+                yield staging
+            except BaseException:
                 self.discard(staging)
+                raise
+            else:
+                if staging.exists():  # the block did not promote it: nothing good came out
+                    self.discard(staging)
 
     # -- index -----------------------------------------------------------------------------
     def runs(self) -> list[RunRecord]:

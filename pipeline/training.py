@@ -11,7 +11,8 @@ frequency, clipping or stopping; those are ours:
 * Every ``eval_every`` iterations (and after the last) the negative log-likelihood is computed on
   a fixed validation subset (drawn once from the seed), both in standardized units (what the loss
   optimizes) and in original units (``NLL_orig = NLL_std + sum(log target_std)``, the change of
-  variables of the per-dimension affine standardization).
+  variables of the per-dimension affine standardization, minus the mean log|det du/dy| of the
+  validation targets when the model has a target transform).
 * The state with the lowest validation NLL is kept in memory, returned, and loaded into the
   estimator at the end; nothing is written here (see :func:`train_and_save`).
 * A non-finite loss or gradient norm, a non-finite validation NLL, or a validation NLL that stays
@@ -302,14 +303,25 @@ def train(estimator: nn.Module, train_ds: WindowedDataset, val_ds: WindowedDatas
     if train_t.target.shape[0] == 0 or val_t.target.shape[0] == 0:
         raise ConfigError(f"empty split: {train_t.target.shape[0]} training and "
                           f"{val_t.target.shape[0]} validation windows")
-    log_target_scale = float(torch.log(stats.target_std.double()).sum())
     batch_gen = torch.Generator().manual_seed(config.seed)
     val_t = _subset(val_t, config.val_subset_size, torch.Generator().manual_seed(config.seed + 1))
+    log_target_scale = _original_nll_offset(stats, val_t.target)
 
     with _torch_threads(config.num_threads), torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         return _run(estimator, train_t, val_t, stats, log_target_scale, batch_gen, config,
                     kinetic, progress)
+
+
+def _original_nll_offset(stats: Standardization, standardized_target: Tensor) -> float:
+    """NLL in original units minus NLL in standardized units on the validation targets:
+    sum(log target_std) for the affine standardization; under a target transform (e.g. the SIR
+    log-ratio) also minus the mean log|det du/dy| of the targets, which varies with y."""
+    offset = float(torch.log(stats.target_std.double()).sum())
+    if stats.target_transform == "identity":
+        return offset
+    targets = stats.unstandardize_target(standardized_target.double())
+    return offset - float(stats.transform.log_abs_det(targets).mean())
 
 
 def _with_stats(ds: WindowedDataset, stats: Standardization) -> WindowedDataset:
@@ -463,8 +475,13 @@ def train_and_save(estimator: nn.Module, train_ds: WindowedDataset, val_ds: Wind
                    estimator_config: EstimatorConfig,
                    extra: dict[str, Any] | None = None,
                    progress: ProgressReporter | None = None,
-                   on_trained: Callable[[TrainResult], None] | None = None) -> TrainResult:
+                   on_trained: Callable[[TrainResult], None] | None = None,
+                   preset: Any = None) -> TrainResult:
     """Train, then (only on success) write ``model.pt``, ``history.csv/json``, ``loss.png``.
+
+    ``preset`` (a :class:`pipeline.presets.TrainingPreset`) is recorded as ``extra["preset"]``,
+    which ``flowcast estimate``/``rollout`` read (dataset, direction, window): every flowcast
+    trainer passes it, so every flowcast checkpoint carries the same metadata.
 
     A :class:`TrainingDivergedError` propagates before anything is written, so a diverged run
     never leaves a checkpoint behind (nor replaces a previous good one).
@@ -482,7 +499,8 @@ def train_and_save(estimator: nn.Module, train_ds: WindowedDataset, val_ds: Wind
                            "best_val_nll": result.best_val_nll,
                            "best_val_nll_original": result.best_val_nll_original,
                            "best_iteration": result.best_iteration,
-                           "stop_reason": result.stop_reason, **(extra or {})})
+                           "stop_reason": result.stop_reason, **(extra or {}),
+                           **({"preset": preset.to_dict()} if preset is not None else {})})
     save_history(result.history, out / "history.csv", out / "history.json")
     plot_loss_curves(result.history, out / "loss.png")
     return result

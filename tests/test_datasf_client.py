@@ -81,9 +81,10 @@ def page_queries() -> list[dict[str, str]]:
 
 
 def cache_snapshot(root: Path) -> dict[str, bytes]:
-    """Every file under the cache (names and bytes), to prove a failure changed nothing."""
+    """Every file under the cache (names and bytes), to prove a failure changed nothing.
+    Lock files (``datasf/.locks/``) are coordination, not content, and are left out."""
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()} if root.exists() else {}
+            if p.is_file() and ".locks" not in p.parts} if root.exists() else {}
 
 
 @pytest.fixture
@@ -172,7 +173,8 @@ def test_timeout_then_success_and_timeout_passed_to_requests(real_rows):
     result = DataSFClient(ClientConfig(page_size=1000, backoff_base_s=0.0, timeout_s=7.5)).fetch(
         CASES)
     assert len(result.rows) == 744
-    assert responses.calls[-1].request.req_kwargs["timeout"] == 7.5
+    # (connect, read): each capped by what is left of the request deadline
+    assert responses.calls[-1].request.req_kwargs["timeout"] == (7.5, 7.5)
 
 
 @responses.activate

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,8 @@ def test_import_real_exports_matches_source_md(imported, exports, cache_root):
 
 
 def test_cache_layout_is_one_directory_per_dataset_id(imported, cache_root):
-    files = sorted(str(p.relative_to(cache_root)) for p in cache_root.rglob("*") if p.is_file())
+    files = sorted(str(p.relative_to(cache_root)) for p in cache_root.rglob("*")
+                   if p.is_file() and ".locks" not in p.parts)  # the commit locks: datasf/.locks/
     assert len(files) == 6 and all(f.startswith("datasf/") for f in files)
     for spec in (CASES, DEATHS, TESTS):
         names = sorted(p.name for p in (cache_root / "datasf" / spec.dataset_id).iterdir())
@@ -172,11 +174,20 @@ def test_if_empty_skips_cached_dataset_but_fills_missing_ones(exports, tmp_path,
     assert "--if-empty" in summaries[0].note
     after = cache_snapshot(cache_root)
     assert {k: v for k, v in after.items() if "gyr2-k29z" in k} == before
-    # Without --if-empty the new vintage replaces the old one; the old payload file is removed.
-    import_csv_exports([older])
+    # Without --if-empty an export ending earlier is refused by name (issue 15: a shorter
+    # series used to replace the cache); accepted deliberately, it replaces the cached copy and
+    # the previous payload is kept for readers of the previous manifest (only that one).
+    with pytest.raises(ValidationError, match="cases: last date moves backwards: new payload "
+                                              "ends 2022-03-06, the cached copy 2022-03-16"):
+        import_csv_exports([older])
+    assert {k: v for k, v in cache_snapshot(cache_root).items() if "gyr2-k29z" in k} == before
+    import_csv_exports([older], accept_revisions=True)
     manifest = DatasetCache(cache_root).read_manifest(CASES)
     assert (manifest.row_count, manifest.last_date) == (734, "2022-03-06")
-    assert len(list((cache_root / "datasf" / "gyr2-k29z").glob("payload-*"))) == 1
+    payloads = sorted(p.name for p in (cache_root / "datasf" / "gyr2-k29z").glob("payload-*"))
+    assert payloads == sorted([manifest.payload_file, manifest.previous_payload_file])
+    import_csv_exports([exports["cases"]])  # later again: the oldest payload is collected
+    assert len(list((cache_root / "datasf" / "gyr2-k29z").glob("payload-*"))) == 2
 
 
 @pytest.mark.parametrize("rel", [VACCINATIONS, TRANSMISSION])
@@ -213,4 +224,75 @@ def test_broken_csv_files_give_named_errors(content, message, tmp_path, cache_ro
     path.write_bytes(content)
     with pytest.raises(ValidationError, match=message):
         import_csv_exports([path])
+    assert cache_snapshot(cache_root) == {}
+
+
+# ----------------------------------------------- every DataSF vintage (issue 13, item 5)
+
+LATER_TESTING = Path(__file__).parent / "fixtures" / "datasf" / "testing_over_time_later_schema.csv"
+
+
+def test_later_testing_export_schema_is_imported(cache_root):
+    """DataSF's later "COVID-19 Testing Over Time" export: DATE, tests, pos, neg, indet."""
+    [summary] = import_csv_exports([LATER_TESTING])
+    assert (summary.dataset_key, summary.row_count, summary.first_date, summary.last_date) == (
+        "tests", 5, "2022-04-23", "2022-04-27")
+    assert summary.data_as_of is None and summary.warnings == ()
+    from pipeline.data.payloads import decode_cached
+    from pipeline.data.validation import validate_frame
+
+    cached = DatasetCache(cache_root).load(TESTS)
+    assert cached.manifest.source == str(LATER_TESTING.resolve())
+    frame = validate_frame(decode_cached(cached), TESTS, source="cache").frame
+    assert frame["date"].dt.strftime("%Y-%m-%d").tolist() == [
+        "2022-04-23", "2022-04-24", "2022-04-25", "2022-04-26", "2022-04-27"]
+    assert frame["indeterminate"].tolist() == [3, 6, 8, 8, 5]
+    assert (frame["tests"] == frame["positives"] + frame["negatives"]
+            + frame["indeterminate"]).all()
+
+
+def test_later_testing_schema_from_the_api(cache_root):
+    """The client reads the same schema from the API (fields date, tests, pos, neg, indet);
+    when DataSF refuses ``$order=specimen_collection_date`` (HTTP 400) it orders by ``date``."""
+    from bench.faults import FakeDataSF, client_config
+    from pipeline.data.series import load_dataset
+
+    later = pd.read_csv(LATER_TESTING, dtype=str)
+    rows = [{"date": d.replace("/", "-") + "T00:00:00.000", "tests": t, "pos": p, "neg": n,
+             "indet": i} for d, t, p, n, i in later.itertuples(index=False)]
+
+    def respond(h):
+        if "specimen_collection_date" in h.path:
+            h.send_body(400, b'{"message": "No such column: specimen_collection_date"}')
+        else:
+            h.send_rows(sorted(rows, key=lambda r: r["date"]))
+
+    with FakeDataSF() as server:
+        server.respond(respond)
+        validated, provenance = load_dataset(TESTS, SFDataConfig(
+            datasets=("cases", "tests"), client=client_config(server)))
+    assert (provenance.row_count, provenance.first_date, provenance.last_date) == (
+        5, "2022-04-23", "2022-04-27")
+    assert validated.frame["indeterminate"].tolist() == [3, 6, 8, 8, 5]
+
+
+def test_unknown_schema_is_refused_by_name(tmp_path, cache_root):
+    unknown = tmp_path / "testing_2023.csv"
+    unknown.write_text("DAY,total_tests,positive_tests\n2023/01/01,10,1\n")
+    with pytest.raises(ValidationError) as info:
+        import_csv_exports([unknown])
+    message = str(info.value)
+    assert message.startswith(f"{unknown}: cannot tell which DataSF dataset this is from its "
+                              f"columns ['DAY', 'total_tests', 'positive_tests']; expected one of")
+    assert ("tests (nfpa-mg4g): 'Specimen Collection Date', 'Tests', 'Pos', 'Neg', "
+            "'Indeterminate' (also read as specimen_collection_date|DATE, tests, pos, neg, "
+            "indeterminate|indet)") in message
+    # A known dataset with one field renamed again: the missing field is named with every name
+    # it is accepted under, beside the columns the file has.
+    renamed = tmp_path / "testing_renamed.csv"
+    renamed.write_text(LATER_TESTING.read_text().replace("indet", "indeterm", 1))
+    with pytest.raises(ValidationError, match=re.escape(
+            f"{renamed}: missing column 'Indeterminate' (API field 'indeterminate' or 'indet') "
+            f"for tests (nfpa-mg4g); columns present: 'DATE', 'tests', 'pos', 'neg', 'indeterm'")):
+        import_csv_exports([renamed])
     assert cache_snapshot(cache_root) == {}

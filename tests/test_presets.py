@@ -1,6 +1,8 @@
 """Presets: the paper's numbers, every preset × encoder × recipe builds, CLI end to end."""
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -11,11 +13,11 @@ from pipeline.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
 
 
 
-def _unit_stats(channels: int, features: int):
+def _unit_stats(channels: int, features: int, target_transform: str = "identity"):
     from pipeline.datasets import Standardization
 
     return Standardization(torch.zeros(channels), torch.ones(channels), torch.zeros(features),
-                           torch.ones(features))
+                           torch.ones(features), target_transform=target_transform)
 
 
 @pytest.mark.parametrize("recipe", RECIPES)
@@ -24,10 +26,14 @@ def _unit_stats(channels: int, features: int):
 def test_every_preset_builds_a_working_estimator(name, encoder, recipe):
     preset = get_preset(name, encoder, recipe=recipe)
     config = preset.estimator
-    estimator = build_estimator(config, _unit_stats(config.context_channels, config.features))
+    estimator = build_estimator(config, _unit_stats(config.context_channels,
+                                                    config.flow.features, config.target_transform))
     context = torch.randn(4, config.window, config.context_channels)
     mask = torch.ones(4, config.window, dtype=torch.bool)
-    log_prob = estimator.log_prob(torch.randn(4, config.features), context, mask)
+    # Targets inside the support of the preset's target transform (all of R^D for the identity).
+    target = estimator.transform.inverse(torch.randn(4, config.flow.features))
+    assert target.shape == (4, config.features)
+    log_prob = estimator.log_prob(target, context, mask)
     assert log_prob.shape == (4,) and bool(torch.isfinite(log_prob).all())
     assert preset.train.batch_size <= get_preset(name, encoder, recipe="paper").train.batch_size
     assert preset.kinetic.is_plain_likelihood == (encoder != "transformer-ke")
@@ -51,7 +57,15 @@ def test_paper_numbers():
     joint = get_preset("sir-joint", "mamba")
     assert joint.estimator.features == 5 and joint.dataset.target == "state+params"
     sf = get_preset("sir-sf-joint", "transformer", recipe="paper")
-    assert sf.estimator == get_preset("sir-joint", "transformer", recipe="paper").estimator
+    # The product's model: the paper's joint architecture over the SIR log-ratio coordinates.
+    paper_joint = get_preset("sir-joint", "transformer", recipe="paper").estimator
+    assert paper_joint.target_transform == "identity"
+    assert sf.estimator.target_transform == "sir-log-ratio" and sf.estimator.flow.features == 4
+    assert sf.estimator == dataclasses.replace(
+        paper_joint, target_transform="sir-log-ratio",
+        flow=dataclasses.replace(paper_joint.flow, features=4))
+    assert all(get_preset(name, "mlp").estimator.target_transform == "identity"
+               for name in PRESET_NAMES if name != "sir-sf-joint")
     assert sf.dataset.name == "sir-sf" and sf.train.context_noise_sigma == 0.0
     ke = get_preset("sir-multi", "transformer-ke").kinetic
     assert ke.path_length > 0 and ke.intermediate_nll > 0 and ke.nll == 1.0

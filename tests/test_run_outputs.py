@@ -48,9 +48,10 @@ def test_index_lists_runs_newest_first_and_rerun_replaces_its_date(tmp_path):
     assert [(r.reference_date, r.run_id) for r in runs] == [("2022-03-14", "b"), ("2022-03-07", "c")]
     assert outputs.latest().run_id == "b"
     assert (tmp_path / "2022-03-07" / "report.html").read_text() == "w1 again"
-    # no leftovers of the replaced output
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["2022-03-07", "2022-03-14",
-                                                          INDEX_HTML, INDEX_JSON]
+    # no leftovers of the replaced output (the run lock, .run.lock + .owner, is not output)
+    assert sorted(p.name for p in tmp_path.iterdir()
+                  if not p.name.startswith(".run.lock")) == ["2022-03-07", "2022-03-14",
+                                                             INDEX_HTML, INDEX_JSON]
 
 
 def test_failed_run_keeps_last_good_output_and_index(tmp_path):

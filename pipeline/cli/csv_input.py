@@ -11,10 +11,11 @@ from pipeline.errors import ConfigError
 
 def read_timed_csv(path: Path, columns: tuple[str, ...]
                    ) -> tuple[np.ndarray, np.ndarray, pd.Series | None]:
-    """(times (T,) in days, values (T, C) with NaN for empty/non-numeric cells, dates or None).
+    """(times (T,) in days, values (T, C) with NaN for empty cells, dates or None).
 
-    Errors name the file and the column; times must be strictly increasing. Callers decide
-    whether NaN values are allowed (the particle filter skips them, estimates refuse them).
+    Errors name the file, the row and the column; a cell that is neither empty nor a number
+    (``abc``) is refused; times must be strictly increasing. Callers decide whether NaN values
+    are allowed (the particle filter skips them, estimates refuse them).
     """
     if not path.is_file():
         raise ConfigError(f"{path}: file not found")
@@ -42,5 +43,17 @@ def read_timed_csv(path: Path, columns: tuple[str, ...]
                           f"{np.flatnonzero(np.isnan(times))[:5].tolist()}")
     if len(times) > 1 and not (np.diff(times) > 0).all():
         raise ConfigError(f"{path}: times must be strictly increasing")
-    values = frame[list(columns)].apply(pd.to_numeric, errors="coerce").to_numpy(np.float64)
-    return times, np.array(values), dates
+    values = np.column_stack([_numeric_column(path, frame[c], c) for c in columns])
+    return times, values.astype(np.float64), dates
+
+
+def _numeric_column(path: Path, column: pd.Series, name: str) -> np.ndarray:
+    """The column as floats; empty cells are NaN (missing), any other non-number is an error."""
+    numbers = pd.to_numeric(column, errors="coerce")
+    bad = (numbers.isna() & column.notna()) | np.isinf(numbers)
+    if bad.any():
+        row = int(np.flatnonzero(bad.to_numpy())[0])
+        raise ConfigError(f"{path}: row {row + 1} (line {row + 2}), column {name!r}: "
+                          f"{column.iloc[row]!r} is not a finite number (leave the cell empty "
+                          "for a missing observation)")
+    return numbers.to_numpy(dtype=np.float64)

@@ -23,9 +23,19 @@ def _fail(exc: Exception) -> None:
     raise typer.Exit(code=1)
 
 
-def _config(trailing_days: int):  # type: ignore[no-untyped-def]
+def _config(trailing_days: int, *, base_url: str | None = None, app_token: str | None = None,
+            accept_revisions: bool = False):  # type: ignore[no-untyped-def]
+    from pipeline.data.datasf import ClientConfig
     from pipeline.data.series import SFDataConfig
-    return SFDataConfig(trailing_days=trailing_days)
+    overrides = {k: v for k, v in (("base_url", base_url), ("app_token", app_token)) if v}
+    return SFDataConfig(trailing_days=trailing_days, client=ClientConfig(**overrides),
+                        accept_revisions=accept_revisions)
+
+
+AcceptRevisions = typer.Option(
+    False, "--accept-revisions",
+    help="Take a payload even if it ends earlier, is an older vintage or revises settled days "
+         "beyond the revision policy (docs/data.md); for a payload you have reviewed.")
 
 
 @data_app.command("import")
@@ -33,13 +43,16 @@ def import_command(
     files: list[Path] = typer.Argument(..., exists=True, dir_okay=False,
                                        help="DataSF CSV exports (rows.csv?accessType=DOWNLOAD)."),
     if_empty: bool = typer.Option(False, "--if-empty",
-                                  help="Import only datasets the cache does not hold yet."),
+                                  help="Import only datasets the cache does not hold yet or "
+                                       "holds damaged (those are repaired)."),
+    accept_revisions: bool = AcceptRevisions,
 ) -> None:
     """Validate DataSF CSV exports and put them into the cache ($FLOWCAST_DATA_DIR or ./data)."""
     from pipeline.data.cache import data_dir
     from pipeline.data.csv_import import import_csv_exports
     try:
-        summaries = import_csv_exports(files, if_empty=if_empty)
+        summaries = import_csv_exports(files, if_empty=if_empty,
+                                       accept_revisions=accept_revisions)
     except FlowcastError as exc:
         _fail(exc)
     for s in summaries:
@@ -55,11 +68,23 @@ def import_command(
 
 
 @data_app.command("fetch")
-def fetch_command(trailing_days: int = TrailingDays) -> None:
+def fetch_command(
+    trailing_days: int = TrailingDays,
+    base_url: str | None = typer.Option(
+        None, "--base-url", envvar="FLOWCAST_DATASF_BASE_URL", metavar="URL",
+        help="DataSF or a mirror/proxy of it (default https://data.sfgov.org)."),
+    app_token: str | None = typer.Option(
+        None, "--app-token", envvar="FLOWCAST_DATASF_APP_TOKEN", metavar="TOKEN",
+        show_envvar=True, show_default=False,
+        help="Socrata app token (sent as X-App-Token, only to the base URL's https host). "
+             "Prefer the environment variable: a command line is visible to other users."),
+    accept_revisions: bool = AcceptRevisions,
+) -> None:
     """Fetch cases, deaths and tests from DataSF (falls back to the cache when offline)."""
     from pipeline.data.series import load_sf_series
     try:
-        series = load_sf_series(_config(trailing_days))
+        series = load_sf_series(_config(trailing_days, base_url=base_url, app_token=app_token,
+                                        accept_revisions=accept_revisions))
     except FlowcastError as exc:
         _fail(exc)
     for p in series.provenance.datasets:
@@ -89,10 +114,16 @@ def status_command() -> None:
             typer.echo(f"{spec.key} ({spec.dataset_id}): not cached — `flowcast data fetch` or "
                        f"`flowcast data import FILE`")
             continue
-        typer.echo(f"{spec.key} ({spec.dataset_id}): {manifest.source_kind} {manifest.source}; "
-                   f"{manifest.row_count} rows {manifest.first_date} … {manifest.last_date}; "
+        typer.echo(f"{spec.key} ({spec.dataset_id}): {manifest.source_kind} {manifest.source}"
+                   + (f" (answered by {manifest.final_url})"
+                      if manifest.final_url and manifest.final_url != manifest.source else "")
+                   + f"; {manifest.row_count} rows {manifest.first_date} … {manifest.last_date}; "
                    f"data as of {manifest.data_as_of}; fetched {manifest.fetched_at} "
                    f"({manifest.age_days(now):.1f} days ago)")
+        held = sorted((cache.directory(spec) / "held").glob("payload-*.reason.json"))
+        if held:
+            typer.echo(f"  {len(held)} payload(s) held for review in "
+                       f"{cache.directory(spec) / 'held'}")
 
 
 def _sir_config(population: int, infectious_days: int, ascertainment: bool):  # type: ignore[no-untyped-def]

@@ -14,8 +14,14 @@ import pandas as pd
 import typer
 
 from pipeline.cli import app
+from pipeline.cli.choices import Direction, finite
+from pipeline.cli.choices import value as choice_value
 from pipeline.cli.csv_input import read_timed_csv
 from pipeline.errors import ConfigError, FlowcastError
+
+
+_CHECKPOINT_HELP = ("model.pt of any flowcast model: `flowcast train`'s, or the weekly "
+                    "forecast's (data/models/<key>/forward/model.pt)")
 
 
 def read_observation_csv(path: Path, observed: tuple[str, ...]
@@ -35,13 +41,37 @@ def _load(checkpoint: Path, direction: str | None):  # noqa: ANN202 - (estimator
     from pipeline.estimate import ModelInfo
 
     loaded = load_checkpoint(checkpoint)
-    info = ModelInfo.from_checkpoint_extra(loaded.meta.extra, str(checkpoint))
+    info = ModelInfo.from_checkpoint_extra(_with_preset(loaded.meta.extra, checkpoint),
+                                           str(checkpoint))
     direction = direction or info.direction
     if direction != info.direction:
         raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
                           f"--direction {direction} needs a {direction} model")
     loaded.estimator.eval()
     return loaded.estimator, info, direction
+
+
+def _with_preset(extra: dict, checkpoint: Path) -> dict:
+    """The checkpoint's metadata, with ``extra["preset"]`` recovered for weekly-forecast models
+    saved before every trainer recorded it: their model-store entry
+    (``<store>/<key>/entry.json``, beside ``<direction>/model.pt``) holds the presets."""
+    import json
+
+    if "preset" in extra:
+        return extra
+    entry = checkpoint.parent.parent / "entry.json"
+    direction = extra.get("direction", checkpoint.parent.name)
+    try:
+        presets = json.loads(entry.read_text(encoding="utf-8"))["meta"]["config"]["presets"]
+        return {**extra, "preset": presets[direction]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return extra
+
+
+def _check_out_file(out: Path) -> None:
+    if out.is_dir():
+        raise ConfigError(f"--out {out} is a directory; give the samples CSV file to write "
+                          f"(e.g. {out / 'estimate.csv'})")
 
 
 def _time_label(times: np.ndarray, dates: pd.Series | None) -> dict[str, object]:
@@ -57,13 +87,14 @@ def _fail(error: FlowcastError) -> None:
 
 @app.command("estimate")
 def estimate_command(
-    checkpoint: Annotated[Path, typer.Option(help="model.pt written by `flowcast train`")],
+    checkpoint: Annotated[Path, typer.Option(help=_CHECKPOINT_HELP)],
     window: Annotated[Path, typer.Option(help="CSV of the context observations (time or date "
                                               "column + the observed columns)")],
     out: Annotated[Path, typer.Option(help="samples CSV; the summary goes to <out>_summary.csv")],
-    direction: Annotated[str | None, typer.Option(help="forward | backward (default: the "
-                                                       "model's training direction)")] = None,
+    direction: Annotated[Direction | None, typer.Option(  # type: ignore[valid-type]
+        help="default: the model's training direction")] = None,
     target_time: Annotated[float | None, typer.Option(
+        callback=finite(),
         help="time (or days after the first date) to estimate; default one step after the "
              "last row (forward) or before the first (backward)")] = None,
     samples: Annotated[int, typer.Option(min=2, help="number of samples")] = 1000,
@@ -74,7 +105,8 @@ def estimate_command(
     from pipeline.io import atomic_write_text
 
     try:
-        estimator, info, direction = _load(checkpoint, direction)
+        _check_out_file(out)
+        estimator, info, direction = _load(checkpoint, choice_value(direction))
         times, values, dates = read_observation_csv(window, info.observed_names)
         step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
         if target_time is None:
@@ -97,7 +129,7 @@ def estimate_command(
 
 @app.command("rollout")
 def rollout_command(
-    checkpoint: Annotated[Path, typer.Option(help="model.pt written by `flowcast train`")],
+    checkpoint: Annotated[Path, typer.Option(help=_CHECKPOINT_HELP)],
     series: Annotated[Path, typer.Option(help="CSV of observations (time or date column + the "
                                               "observed columns)")],
     out: Annotated[Path, typer.Option(help="output directory")],
@@ -108,9 +140,10 @@ def rollout_command(
         min=1, help="also re-anchor on the observed series every W steps (rolling windows; the "
                     "paper uses 7 and 28) and write bands over the whole series")] = None,
     paths: Annotated[int, typer.Option(min=2, help="sample paths")] = 200,
-    direction: Annotated[str | None, typer.Option(help="forward | backward (default: the "
-                                                       "model's training direction)")] = None,
+    direction: Annotated[Direction | None, typer.Option(  # type: ignore[valid-type]
+        help="default: the model's training direction")] = None,
     feedback_noise: Annotated[float | None, typer.Option(
+        callback=finite(0.0),
         help="σ of the noise added to fed-back predictions (default: the training data's "
              "observation noise; 0 feeds back the bare state)")] = None,
     seed: Annotated[int, typer.Option(help="seed of the paths")] = 0,
@@ -121,7 +154,9 @@ def rollout_command(
     from pipeline.rollout import RolloutConfig, rolling_rollout, rollout
 
     try:
-        estimator, info, direction = _load(checkpoint, direction)
+        if out.exists() and not out.is_dir():
+            raise ConfigError(f"--out {out} is a file; rollout writes a directory")
+        estimator, info, direction = _load(checkpoint, choice_value(direction))
         times, values, dates = read_observation_csv(series, info.observed_names)
         if len(times) < info.window:
             raise ConfigError(f"{series}: {len(times)} rows, the model needs at least "

@@ -9,32 +9,38 @@ from typing import Annotated
 import typer
 
 from pipeline.cli import app
+from pipeline.cli.choices import Backend, Direction, Encoder, Recipe, TrainPreset, finite, value
 
-_PRESET_HELP = ("vehicle | vehicle-sparse | sir-single | sir-multi | sir-joint (paper set-ups) "
-                "| sir-sf-joint (the SF forecast's); see docs/training.md")
+_PRESET_HELP = ("vehicle, vehicle-sparse, sir-single, sir-multi, sir-joint (paper set-ups), "
+                "sir-sf-joint (the SF forecast's); see docs/training.md")
 
 
 @app.command("train")
 def train_command(
-    preset: Annotated[str, typer.Argument(help=_PRESET_HELP)],
-    encoder: Annotated[str, typer.Option(help="mlp | transformer | transformer-ke | mamba")]
-    = "transformer",
-    backend: Annotated[str | None, typer.Option(help="zuko | nflows (default: the flow "
-                                                     "package's default)")] = None,
-    direction: Annotated[str, typer.Option(help="forward | backward")] = "forward",
-    recipe: Annotated[str, typer.Option(help="paper (the paper's optimiser settings) | fast "
-                                             "(ours, default)")] = "fast",
-    iterations: Annotated[int | None, typer.Option(help="override the recipe's iterations")]
+    preset: Annotated[TrainPreset, typer.Argument(help=_PRESET_HELP)],  # type: ignore[valid-type]
+    encoder: Annotated[Encoder, typer.Option(help="context encoder")]  # type: ignore[valid-type]
+    = Encoder("transformer"),
+    backend: Annotated[Backend | None, typer.Option(  # type: ignore[valid-type]
+        help="flow package (default: zuko)")] = None,
+    direction: Annotated[Direction, typer.Option(  # type: ignore[valid-type]
+        help="forward: context before the target; backward: after it")] = Direction("forward"),
+    recipe: Annotated[Recipe, typer.Option(  # type: ignore[valid-type]
+        help="paper (the paper's optimiser settings) or fast (ours)")] = Recipe("fast"),
+    iterations: Annotated[int | None, typer.Option(min=1,
+                                                   help="override the recipe's iterations")]
     = None,
-    batch_size: Annotated[int | None, typer.Option(help="override the recipe's batch size")]
+    batch_size: Annotated[int | None, typer.Option(min=1,
+                                                   help="override the recipe's batch size")]
     = None,
-    lr: Annotated[float | None, typer.Option(help="override the recipe's (peak) learning rate")]
+    lr: Annotated[float | None, typer.Option(callback=finite(0.0, strictly=True),
+                                             help="override the recipe's (peak) learning rate")]
     = None,
     seed: Annotated[int, typer.Option(help="seed of initialisation, batches and noise")] = 0,
     dataset: Annotated[Path | None, typer.Option(help="windowed dataset file (from `flowcast "
                                                       "simulate`); default: simulate the "
                                                       "preset's data")] = None,
-    threads: Annotated[int | None, typer.Option(help="torch threads while training")] = None,
+    threads: Annotated[int | None, typer.Option(min=1, help="torch threads while training")]
+    = None,
     out: Annotated[Path, typer.Option(help="output directory (model.pt, history.csv/json, "
                                            "loss.png, preset.json)")] = Path("runs"),
 ) -> None:
@@ -42,8 +48,9 @@ def train_command(
     from pipeline.errors import FlowcastError
 
     try:
-        result_line = run_train(preset, encoder=encoder, backend=backend, direction=direction,
-                                recipe=recipe, iterations=iterations, batch_size=batch_size,
+        result_line = run_train(value(preset), encoder=value(encoder), backend=value(backend),
+                                direction=value(direction), recipe=value(recipe),
+                                iterations=iterations, batch_size=batch_size,
                                 lr=lr, seed=seed, dataset=dataset, threads=threads, out=out)
     except FlowcastError as error:
         typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
@@ -74,21 +81,21 @@ def run_train(preset_name: str, *, encoder: str = "transformer", backend: str | 
     else:
         typer.echo(f"simulating {preset.dataset.name} ({direction}) ...", err=True)
         data = build_dataset_from_config(preset.dataset)
-    train_ds, val_ds = train_validation_split(data)
+    train_ds, val_ds = train_validation_split(data, preset.estimator.target_transform)
     estimator = build_estimator(preset.estimator, train_ds.stats, seed=seed)
     run_dir = out / preset.run_name
     typer.echo(f"training {preset.run_name}: {len(train_ds)} training / {len(val_ds)} "
                f"validation windows -> {run_dir}", err=True)
-    extra = {"preset": preset.to_dict(), "dataset_file": str(dataset) if dataset else None}
+    extra = {"dataset_file": str(dataset) if dataset else None}
     if show_progress:
         with rich_progress(preset.run_name, preset.train.iterations) as progress:
             result = train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic,
                                     run_dir, estimator_config=preset.estimator, extra=extra,
-                                    progress=progress)
+                                    progress=progress, preset=preset)
     else:
         result = train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic,
                                 run_dir, estimator_config=preset.estimator, extra=extra,
-                                progress=SilentProgress())
+                                progress=SilentProgress(), preset=preset)
     from pipeline.io import atomic_write_text
 
     atomic_write_text(run_dir / "preset.json",

@@ -6,28 +6,57 @@ Each is described by a :class:`DatasetSpec` that knows its field names in both f
 publishes: the JSON API (snake_case, every value a string) and the full CSV export (display names
 such as "Specimen Collection Date", US dates, unsorted rows).
 
+Field names changed between DataSF vintages (the later "COVID-19 Testing Over Time" export has
+``DATE, tests, pos, neg, indet``); every name a field has carried is listed on its
+:class:`FieldSpec` (``aliases``), so each known schema is read, and an unknown one fails naming the
+columns it has and the ones it needs (:func:`describe_schema`).
+
 The client pages with ``$limit``/``$offset`` under a fixed ``$order`` (Socrata gives no stable
-order without one, so pages could overlap or skip rows), sends the optional app token
-(``FLOWCAST_DATASF_APP_TOKEN`` -> header ``X-App-Token``), and retries with exponential backoff on
-connection errors, timeouts, HTTP 429 and 5xx. A 4xx other than 429 is not retried: it means the
-request itself is wrong (bad dataset id, bad query), so the error names status, URL and body.
+order without one, so pages could overlap or skip rows). Transport rules, each because a
+fault-injection probe broke the previous client (issue 15):
+
+* every ``requests``/``urllib3`` failure (dropped connection mid-body, bad gzip, timeouts, ...)
+  is retried with exponential backoff, as are HTTP 429 and 5xx; after the last attempt a
+  :class:`NetworkError`, on which the caller falls back to the cache;
+* deadlines are wall-clock: one per request (``request_deadline_s``, headers *and* body, so a
+  server trickling a byte a second cannot hold a fetch) and one per dataset fetch
+  (``fetch_deadline_s``, all pages and retries); ``timeout_s`` only bounds each socket read;
+* ``Retry-After`` (seconds or an HTTP date) is honoured, never shortened by the backoff;
+* redirects are followed by hand, only to the same host with the same scheme (https, or plain
+  http on a loopback mirror); anything else is refused, so the app token never leaves the host
+  it was meant for. The token is a per-request header, never a session default (requests keeps
+  session headers across redirects), and is not sent over plain http to a remote host;
+* the final URL (after redirects) is returned, and recorded in the cache manifest.
+
+A 4xx other than 429 is not retried: it means the request itself is wrong (bad dataset id, bad
+query), so the error names status, URL and body. Base URL and token come from the environment
+(``FLOWCAST_DATASF_BASE_URL``, ``FLOWCAST_DATASF_APP_TOKEN``) unless given in
+:class:`ClientConfig` (``flowcast data fetch --base-url/--app-token``, the flow's
+``datasf_base_url`` parameter).
 """
 from __future__ import annotations
 
+import email.utils
+import ipaddress
 import json
 import logging
 import os
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from urllib.parse import urljoin, urlsplit, urlunsplit
 
 import requests
+import urllib3.exceptions
 
 from pipeline.errors import DataSourceError
 
 log = logging.getLogger(__name__)
 
 APP_TOKEN_ENV = "FLOWCAST_DATASF_APP_TOKEN"
+BASE_URL_ENV = "FLOWCAST_DATASF_BASE_URL"
 DEFAULT_BASE_URL = "https://data.sfgov.org"
 
 # Date formats seen in DataSF payloads: API floating timestamps, CSV-export US timestamps,
@@ -38,14 +67,22 @@ CSV_DATE_FORMATS = ("%m/%d/%Y %I:%M:%S %p", "%Y/%m/%d", "%m/%d/%Y", "%Y-%m-%d")
 
 @dataclass(frozen=True)
 class FieldSpec:
-    """One column: canonical name used inside flowcast, its API name and its CSV display name."""
+    """One column: canonical name used inside flowcast, its API name, its CSV display name, and
+    any other name it carried in some DataSF vintage (``aliases``). Matching is case- and
+    surrounding-space-insensitive, so ``DATE`` and ``date`` are one name."""
 
     canonical: str
     api: str
     display: str
+    aliases: tuple[str, ...] = ()
 
     def names(self) -> tuple[str, ...]:
-        return (self.canonical, self.api, self.display)
+        return (self.canonical, self.api, self.display, *self.aliases)
+
+    def describe(self) -> str:
+        """``'New Cases' (new_cases)``; with aliases ``'Indeterminate' (indeterminate|indet)``."""
+        others = dict.fromkeys(n for n in (self.api, *self.aliases) if n != self.display)
+        return f"'{self.display}'" + (f" ({'|'.join(others)})" if others else "")
 
 
 @dataclass(frozen=True)
@@ -100,57 +137,186 @@ DEATHS = DatasetSpec(
     cumulative_of="new_deaths", as_of=(_AS_OF, _LOADED))
 
 # The tests export already uses API names for most columns; "pct" is derived (pos/(pos+neg))
-# and is recomputed by flowcast, so it is not required.
+# and is recomputed by flowcast, so it is not required. Its later export ("COVID-19 Testing Over
+# Time") renamed the date to ``DATE`` and ``indeterminate`` to ``indet`` and dropped ``pct``.
 TESTS = DatasetSpec(
     key="tests", dataset_id="nfpa-mg4g", title="COVID-19 Testing Over Time",
-    date=FieldSpec("date", "specimen_collection_date", "Specimen Collection Date"),
+    date=FieldSpec("date", "specimen_collection_date", "Specimen Collection Date",
+                   aliases=("DATE",)),
     counts=(FieldSpec("tests", "tests", "Tests"),
             FieldSpec("positives", "pos", "Pos"),
             FieldSpec("negatives", "neg", "Neg"),
-            FieldSpec("indeterminate", "indeterminate", "Indeterminate")),
-    as_of=(FieldSpec("data_as_of", "last_updated_at", "Last Updated At"), _LOADED))
+            FieldSpec("indeterminate", "indeterminate", "Indeterminate", aliases=("indet",))),
+    as_of=(FieldSpec("data_as_of", "last_updated_at", "Last Updated At",
+                     aliases=("data_as_of", "Data As Of")), _LOADED))
 
 DATASETS: dict[str, DatasetSpec] = {s.key: s for s in (CASES, DEATHS, TESTS)}
 DATASETS_BY_ID: dict[str, DatasetSpec] = {s.dataset_id: s for s in DATASETS.values()}
 
 
+def describe_schema(spec: DatasetSpec) -> str:
+    """What ``spec`` needs, every accepted name listed: for errors about unknown schemas."""
+    return (f"{spec.key} ({spec.dataset_id}) needs "
+            + ", ".join(f.describe() for f in spec.required))
+
+
+def default_base_url() -> str:
+    """``$FLOWCAST_DATASF_BASE_URL`` (a mirror or proxy), else data.sfgov.org."""
+    return os.environ.get(BASE_URL_ENV, "").strip() or DEFAULT_BASE_URL
+
+
 @dataclass(frozen=True)
 class ClientConfig:
-    """How to talk to DataSF. Tests set ``backoff_base_s`` ~0 so retries cost no time."""
+    """How to talk to DataSF. Tests set ``backoff_base_s`` ~0 so retries cost no time.
 
-    base_url: str = DEFAULT_BASE_URL
+    ``app_token`` overrides ``$<app_token_env>``; it is kept out of ``repr`` so it never reaches
+    a log line or a provenance file.
+    """
+
+    base_url: str = field(default_factory=default_base_url)
     page_size: int = 1000
-    timeout_s: float = 30.0
+    timeout_s: float = 30.0            # connect, and each socket read
+    request_deadline_s: float = 120.0  # one request, headers and body, wall clock
+    fetch_deadline_s: float = 300.0    # one dataset: every page and retry, wall clock
     max_retries: int = 4
     backoff_base_s: float = 1.0
     backoff_max_s: float = 30.0
+    retry_after_max_s: float = 120.0   # a longer Retry-After gives up at once (cache fallback)
+    max_redirects: int = 5
+    max_body_bytes: int = 64 << 20     # a daily series is < 1 MB; this only stops a runaway body
     app_token_env: str = APP_TOKEN_ENV
+    app_token: str | None = field(default=None, repr=False)
     max_pages: int = 1000  # a daily series has < 2,000 rows; this only stops a runaway loop
+
+    def __post_init__(self) -> None:
+        parts = urlsplit(self.base_url)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise DataSourceError(f"DataSF base URL must be http(s)://host[/path], got "
+                                  f"{self.base_url!r} (--base-url / ${BASE_URL_ENV})")
+
+    def token(self) -> str | None:
+        token = self.app_token if self.app_token is not None else os.environ.get(
+            self.app_token_env, "")
+        return token.strip() or None
 
 
 @dataclass(frozen=True)
 class FetchResult:
-    """All rows of one dataset (as returned, strings) plus the exact bytes to cache."""
+    """All rows of one dataset (as returned, strings) plus the exact bytes to cache.
+
+    ``url`` is the resource asked for; ``final_url`` where the answer came from after redirects
+    (query string dropped: it only held the paging)."""
 
     spec: DatasetSpec
     url: str
     rows: list[dict[str, object]]
     payload: bytes
     pages: int
+    final_url: str = ""
+
+
+@dataclass(frozen=True)
+class _Answer:
+    status: int
+    headers: Mapping[str, str]
+    body: bytes
+    url: str
+
+
+class NetworkError(DataSourceError):
+    """DataSF could not be reached (connection, timeout, 429/5xx after every retry)."""
+
+
+class HTTPStatusError(DataSourceError):
+    """DataSF answered with a status that retrying cannot fix (a 4xx other than 429)."""
+
+    def __init__(self, message: str, *, status: int, page: int = 0) -> None:
+        super().__init__(message)
+        self.status, self.page = status, page
+
+
+class RedirectRefusedError(DataSourceError):
+    """DataSF redirected somewhere the client does not follow (another host, or http)."""
+
+
+class _TransportProblem(Exception):
+    """A retryable failure of one attempt (carries the message for the final error)."""
+
+
+_REDIRECTS = (301, 302, 303, 307, 308)
 
 
 def _retryable_status(status: int) -> bool:
     return status == 429 or 500 <= status < 600
 
 
-def _body_excerpt(response: requests.Response, limit: int = 300) -> str:
-    text = response.text or ""
+def _body_excerpt(body: bytes, limit: int = 300) -> str:
+    text = body.decode("utf-8", errors="replace")
     return text[:limit] + ("…" if len(text) > limit else "")
+
+
+def _is_loopback(host: str | None) -> bool:
+    if host in (None, ""):
+        return False
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def redirect_allowed(origin_url: str, target_url: str) -> bool:
+    """Same host and port, same scheme; https, or plain http only on a loopback mirror."""
+    origin, target = urlsplit(origin_url), urlsplit(target_url)
+    if (target.scheme, target.netloc.lower()) != (origin.scheme, origin.netloc.lower()):
+        return False
+    return target.scheme == "https" or _is_loopback(target.hostname)
+
+
+def token_allowed(url: str) -> bool:
+    """The app token travels only over https (or to a loopback mirror)."""
+    parts = urlsplit(url)
+    return parts.scheme == "https" or _is_loopback(parts.hostname)
+
+
+def parse_retry_after(value: str | None, now: datetime | None = None) -> float | None:
+    """Seconds to wait from a ``Retry-After`` header (delta-seconds or HTTP date); None if absent
+    or unreadable."""
+    if value is None or not value.strip():
+        return None
+    value = value.strip()
+    if value.isdigit():
+        return float(value)
+    try:
+        when = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=UTC)
+    return max(0.0, (when - (now or datetime.now(UTC))).total_seconds())
+
+
+def _strip_query(url: str) -> str:
+    parts = urlsplit(url)
+    return urlunsplit((parts.scheme, parts.netloc, parts.path, "", ""))
+
+
+# What a failing body read raises below requests (we read with urllib3's read1, see _read), and
+# what requests would have wrapped it in: the names users know from requests.
+_BODY_ERRORS: tuple[tuple[type[BaseException], type[requests.RequestException]], ...] = (
+    (urllib3.exceptions.DecodeError, requests.exceptions.ContentDecodingError),
+    (urllib3.exceptions.ReadTimeoutError, requests.exceptions.ConnectionError),
+    (urllib3.exceptions.SSLError, requests.exceptions.SSLError),
+    (urllib3.exceptions.ProtocolError, requests.exceptions.ChunkedEncodingError),
+    (urllib3.exceptions.HTTPError, requests.exceptions.ConnectionError),
+    (OSError, requests.exceptions.ConnectionError),
+)
 
 
 @dataclass
 class DataSFClient:
-    """Paginated, retrying reader of DataSF JSON resources.
+    """Paginated, retrying, deadline-bound reader of DataSF JSON resources.
 
     ``sleep`` is injectable so tests can check the backoff schedule without waiting.
     """
@@ -158,70 +324,207 @@ class DataSFClient:
     config: ClientConfig = field(default_factory=ClientConfig)
     session: requests.Session | None = None
     sleep: Callable[[float], None] = time.sleep
+    clock: Callable[[], float] = time.monotonic
 
     def __post_init__(self) -> None:
         if self.session is None:
             self.session = requests.Session()
-        token = os.environ.get(self.config.app_token_env, "").strip()
-        if token:
-            self.session.headers["X-App-Token"] = token
+        # Never a session default: requests would carry it along redirects it follows itself.
+        self.session.headers.pop("X-App-Token", None)
 
     def backoff_delay(self, attempt: int) -> float:
         """Delay before retry ``attempt`` (1-based): base * 2**(attempt-1), capped."""
         return min(self.config.backoff_max_s, self.config.backoff_base_s * 2 ** (attempt - 1))
 
     def fetch(self, spec: DatasetSpec) -> FetchResult:
-        """Every row of ``spec``'s dataset, ordered by date, in pages of ``page_size``."""
+        """Every row of ``spec``'s dataset, ordered by date, in pages of ``page_size``.
+
+        The order field is the date's API name; if DataSF answers the first page with HTTP 400
+        (no such column: a later schema renamed it), each alias is tried in turn.
+        """
+        orders = list(dict.fromkeys((spec.date.api, *(a.lower() for a in spec.date.aliases))))
+        for order in orders:
+            try:
+                return self._fetch_ordered(spec, order)
+            except HTTPStatusError as exc:
+                if exc.status != 400 or exc.page != 0 or order == orders[-1]:
+                    raise
+                log.warning("DataSF %s: ordering by %s refused (%s); trying %s", spec.key, order,
+                            exc, orders[orders.index(order) + 1])
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _fetch_ordered(self, spec: DatasetSpec, order: str) -> FetchResult:
         url = spec.resource_url(self.config.base_url)
+        deadline = self.clock() + self.config.fetch_deadline_s
         rows: list[dict[str, object]] = []
+        final_url = ""
         for page in range(self.config.max_pages):
             params = {"$limit": str(self.config.page_size),
                       "$offset": str(page * self.config.page_size),
-                      "$order": f"{spec.date.api} ASC"}
-            batch = self._get_page(url, params)
+                      "$order": f"{order} ASC"}
+            try:
+                batch, answered_from = self._get_page(url, params, deadline)
+            except HTTPStatusError as exc:
+                raise HTTPStatusError(str(exc), status=exc.status, page=page) from exc
+            final_url = final_url or _strip_query(answered_from)
             rows.extend(batch)
             if len(batch) < self.config.page_size:
                 payload = json.dumps(rows, separators=(",", ":")).encode("utf-8")
-                return FetchResult(spec, url, rows, payload, page + 1)
+                return FetchResult(spec, url, rows, payload, page + 1, final_url)
         raise DataSourceError(f"{url}: more than {self.config.max_pages} pages; stopping")
 
-    def _get_page(self, url: str, params: dict[str, str]) -> list[dict[str, object]]:
-        assert self.session is not None
+    def _get_page(self, url: str, params: dict[str, str], deadline: float
+                  ) -> tuple[list[dict[str, object]], str]:
         attempts = self.config.max_retries + 1
-        last_problem = ""
+        last_problem = "no attempt made"
         for attempt in range(1, attempts + 1):
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                break
+            retry_after = None
             try:
-                response = self.session.get(url, params=params, timeout=self.config.timeout_s)
-            except (requests.ConnectionError, requests.Timeout) as exc:
-                last_problem = f"{type(exc).__name__}: {exc}"
+                answer = self._request(url, params, min(self.config.request_deadline_s,
+                                                        remaining))
+            except _TransportProblem as exc:
+                last_problem = str(exc)
             else:
-                if response.status_code == 200:
-                    return _parse_page(response)
-                if not _retryable_status(response.status_code):
-                    raise DataSourceError(
-                        f"HTTP {response.status_code} from {response.url}: "
-                        f"{_body_excerpt(response)!r}")
-                last_problem = f"HTTP {response.status_code}: {_body_excerpt(response)!r}"
-            if attempt < attempts:
-                delay = self.backoff_delay(attempt)
-                log.warning("DataSF %s (offset %s): %s; retry %d/%d in %.1f s", url,
-                            params["$offset"], last_problem, attempt, attempts - 1, delay)
-                self.sleep(delay)
+                if answer.status == 200:
+                    return _parse_page(answer.body, answer.url), answer.url
+                if not _retryable_status(answer.status):
+                    raise HTTPStatusError(f"HTTP {answer.status} from {answer.url}: "
+                                          f"{_body_excerpt(answer.body)!r}", status=answer.status)
+                last_problem = f"HTTP {answer.status}: {_body_excerpt(answer.body)!r}"
+                retry_after = parse_retry_after(answer.headers.get("Retry-After"))
+                if retry_after is not None:
+                    last_problem += f" (Retry-After {retry_after:.0f} s)"
+            if attempt == attempts:
+                break
+            delay = max(self.backoff_delay(attempt), retry_after or 0.0)
+            if retry_after is not None and retry_after > self.config.retry_after_max_s:
+                raise NetworkError(f"{url}: DataSF asks to retry after {retry_after:.0f} s, more "
+                                   f"than the {self.config.retry_after_max_s:.0f} s we wait; "
+                                   f"last: {last_problem}")
+            if self.clock() + delay >= deadline:
+                raise NetworkError(f"{url}: fetch deadline of {self.config.fetch_deadline_s:.0f}"
+                                   f" s would pass before retry {attempt} (in {delay:.0f} s); "
+                                   f"last: {last_problem}")
+            log.warning("DataSF %s (offset %s): %s; retry %d/%d in %.1f s", url,
+                        params["$offset"], last_problem, attempt, attempts - 1, delay)
+            self.sleep(delay)
+        if self.clock() >= deadline:
+            raise NetworkError(f"{url}: fetch deadline of {self.config.fetch_deadline_s:.0f} s "
+                               f"passed; last: {last_problem}")
         raise NetworkError(f"{url} failed after {attempts} attempts; last: {last_problem}")
 
+    def _request(self, url: str, params: dict[str, str], budget_s: float) -> _Answer:
+        """One GET with hand-followed, same-origin redirects, within ``budget_s`` seconds."""
+        current = requests.Request("GET", url, params=params).prepare().url or url
+        until = self.clock() + budget_s
+        token = self.config.token()
+        for _hop in range(self.config.max_redirects + 1):
+            headers = {"Accept": "application/json"}
+            if token is not None:
+                if token_allowed(current):
+                    headers["X-App-Token"] = token
+                else:
+                    log.warning("DataSF app token not sent to %s over plain http", current)
+            answer = self._get_once(current, headers, until, budget_s)
+            if answer.status not in _REDIRECTS:
+                return answer
+            location = answer.headers.get("Location")
+            if not location:
+                raise DataSourceError(f"HTTP {answer.status} from {current} without a Location")
+            target = urljoin(current, location)
+            if not redirect_allowed(url, target):
+                raise RedirectRefusedError(
+                    f"{current} redirects (HTTP {answer.status}) to {target}: refused, only "
+                    f"redirects to the same https host ({urlsplit(url).netloc}) are followed; the "
+                    f"app token was not sent there")
+            log.info("DataSF redirect %s -> %s", current, target)
+            current = target
+        raise DataSourceError(f"{url}: more than {self.config.max_redirects} redirects")
 
-class NetworkError(DataSourceError):
-    """DataSF could not be reached (connection, timeout, 429/5xx after every retry)."""
+    def _get_once(self, url: str, headers: dict[str, str], until: float,
+                  budget_s: float) -> _Answer:
+        """Run :meth:`_read` in a worker thread and stop waiting at ``until``.
+
+        The body loop checks the deadline itself; the thread also bounds the header phase, which
+        ``requests`` reads with per-read timeouts only. A late worker is told to stop and ends at
+        its next read (at most ``timeout_s`` later); its answer is discarded.
+        """
+        outcome: dict[str, object] = {}
+        cancel = threading.Event()
+
+        def work() -> None:
+            try:
+                outcome["answer"] = self._read(url, headers, until, cancel)
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                outcome["error"] = exc
+
+        worker = threading.Thread(target=work, name="datasf-request", daemon=True)
+        worker.start()
+        worker.join(max(0.0, until - self.clock()) + 0.05)
+        if worker.is_alive():
+            cancel.set()
+            raise _TransportProblem(f"no complete answer from {url} within the request deadline "
+                                    f"of {budget_s:.0f} s")
+        error = outcome.get("error")
+        if isinstance(error, _TransportProblem | DataSourceError):
+            raise error
+        if isinstance(error, requests.RequestException):
+            raise _TransportProblem(f"{type(error).__name__}: {error}") from error
+        if isinstance(error, BaseException):
+            raise error
+        answer = outcome["answer"]
+        assert isinstance(answer, _Answer)
+        return answer
+
+    def _read(self, url: str, headers: dict[str, str], until: float,
+              cancel: threading.Event) -> _Answer:
+        assert self.session is not None
+        remaining = max(0.001, until - self.clock())
+        timeout = (min(self.config.timeout_s, remaining), min(self.config.timeout_s, remaining))
+        with self.session.get(url, headers=headers, timeout=timeout, stream=True,
+                              allow_redirects=False) as response:
+            chunks: list[bytes] = []
+            size = 0
+            while response.status_code not in _REDIRECTS:
+                if cancel.is_set() or self.clock() > until:
+                    raise _TransportProblem(f"no complete answer from {url} within the request "
+                                            f"deadline ({size} bytes of the body so far)")
+                try:
+                    # read1 returns as soon as any bytes arrive, so the deadline is checked
+                    # between trickled bytes too (read(n) would block until n bytes).
+                    # decode_content: with stream=True requests leaves gzip/deflate to the
+                    # reader (its iter_content passes True); a bad body raises DecodeError here.
+                    chunk = response.raw.read1(1 << 16, decode_content=True)
+                except Exception as exc:
+                    raise _as_requests_error(exc) from exc
+                if not chunk:
+                    break
+                size += len(chunk)
+                if size > self.config.max_body_bytes:
+                    raise DataSourceError(f"{url}: body larger than "
+                                          f"{self.config.max_body_bytes} bytes; refused")
+                chunks.append(chunk)
+            return _Answer(response.status_code, dict(response.headers), b"".join(chunks),
+                           response.url)
 
 
-def _parse_page(response: requests.Response) -> list[dict[str, object]]:
+def _as_requests_error(exc: BaseException) -> BaseException:
+    for low, high in _BODY_ERRORS:
+        if isinstance(exc, low):
+            return high(exc)
+    return exc
+
+
+def _parse_page(body: bytes, url: str) -> list[dict[str, object]]:
     try:
-        data = json.loads(response.content)
+        data = json.loads(body)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataSourceError(
-            f"invalid JSON from {response.url} ({len(response.content)} bytes, truncated or "
-            f"damaged): {exc}") from exc
+            f"invalid JSON from {url} ({len(body)} bytes, truncated or damaged): {exc}") from exc
     if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
-        raise DataSourceError(f"{response.url}: expected a JSON array of objects, got "
+        raise DataSourceError(f"{url}: expected a JSON array of objects, got "
                               f"{type(data).__name__}")
     return data

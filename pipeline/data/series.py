@@ -22,7 +22,6 @@ construction; DataSF's own cumulative columns were compared in validation.
 """
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass, field
 from datetime import date, datetime
@@ -34,9 +33,11 @@ import pandas as pd
 import requests
 
 from pipeline.data.cache import CachedPayload, DatasetCache, SourceKind, utc_now
-from pipeline.data.csv_import import read_csv_bytes
 from pipeline.data.datasf import (DATASETS, CASES, ClientConfig, DataSFClient, DatasetSpec,
                                   NetworkError)
+from pipeline.data.payloads import decode_cached as _decode_payload
+from pipeline.data.payloads import rows_frame
+from pipeline.data.revisions import DEFAULT_POLICY, RevisionPolicy, commit_validated
 from pipeline.data.validation import GapPolicy, ValidatedFrame, validate_frame
 from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
 
@@ -54,6 +55,8 @@ class SFDataConfig:
     gap_policy: GapPolicy = GapPolicy.ZERO_FILL
     client: ClientConfig = field(default_factory=ClientConfig)
     data_dir: Path | None = None  # None -> $FLOWCAST_DATA_DIR or ./data
+    accept_revisions: bool = False  # take a payload the revision policy would hold (reviewed)
+    revision_policy: RevisionPolicy = DEFAULT_POLICY
 
     def __post_init__(self) -> None:
         unknown = [d for d in self.datasets if d not in DATASETS]
@@ -126,37 +129,23 @@ class SFSeries:
         return self.provenance.vintage
 
 
-def rows_frame(rows: list[dict[str, object]]) -> pd.DataFrame:
-    """Socrata JSON rows -> frame of strings (absent keys, i.e. nulls, become NA)."""
-    frame = pd.DataFrame.from_records(rows)
-    return frame.astype("string") if len(frame.columns) else frame
-
-
 def decode_cached(cached: CachedPayload, spec: DatasetSpec) -> pd.DataFrame:
-    source = str(cached.path)
-    if cached.path.suffix == ".csv":
-        return read_csv_bytes(cached.payload, source=source)
-    try:
-        rows = json.loads(cached.payload)
-    except json.JSONDecodeError as exc:
-        raise DataSourceError(f"{source}: cached JSON unreadable: {exc}") from exc
-    return rows_frame(rows)
+    """Kept for callers of the old name; see :func:`pipeline.data.payloads.decode_cached`."""
+    return _decode_payload(cached)
 
 
 def _fetch_live(spec: DatasetSpec, client: DataSFClient, cache: DatasetCache,
-                gap_policy: GapPolicy) -> tuple[ValidatedFrame, DatasetProvenance]:
+                config: SFDataConfig, now: datetime) -> tuple[ValidatedFrame, DatasetProvenance]:
     result = client.fetch(spec)
     validated = validate_frame(rows_frame(result.rows), spec, source=result.url,
-                               gap_policy=gap_policy)
-    report = validated.report
-    manifest = cache.store(
-        spec, result.payload, suffix="json", source_kind="api", source=result.url,
-        row_count=report.row_count, first_date=str(report.first_date.date()),
-        last_date=str(report.last_date.date()),
-        data_as_of=report.data_as_of.isoformat() if report.data_as_of is not None else None,
-        final_cumulative=report.final_cumulative)
+                               gap_policy=config.gap_policy, today=pd.Timestamp(now.date()))
+    manifest = commit_validated(cache, validated, result.payload, suffix="json",
+                                source_kind="api", source=result.url,
+                                final_url=result.final_url, gap_policy=config.gap_policy,
+                                accept_revisions=config.accept_revisions,
+                                policy=config.revision_policy)
     return validated, _provenance(manifest, from_cache=False, stale_days=0.0,
-                                  notes=report.warnings)
+                                  notes=validated.report.warnings)
 
 
 def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
@@ -169,7 +158,7 @@ def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
             f"{cache.directory(spec)}{reason}. Fetch it with `flowcast data fetch` when online, "
             f"or import a DataSF CSV export ({spec.export_url()}) with "
             f"`flowcast data import FILE`.")
-    validated = validate_frame(decode_cached(cached, spec), spec, source=str(cached.path),
+    validated = validate_frame(_decode_payload(cached), spec, source=str(cached.path),
                                gap_policy=gap_policy)
     stale = cached.manifest.age_days(now)
     # The cache's age alone hides an archived export: also say how old the data themselves are.
@@ -211,11 +200,14 @@ def _load_one(spec: DatasetSpec, config: SFDataConfig, *, offline: bool,
     if offline:
         return (*_from_cache(spec, cache, config.gap_policy, now, why=None), None)
     if unreachable is not None:
-        why = f"{unreachable} (not retried for {spec.key})"
+        # Name this dataset's own resource: the first failure's text cites the first dataset's URL
+        # (the deaths and tests notes used to carry the cases URL, gyr2-k29z).
+        why = (f"DataSF unreachable (an earlier dataset's fetch failed every retry), so "
+               f"{spec.resource_url(config.client.base_url)} was not retried for {spec.key}")
         return (*_from_cache(spec, cache, config.gap_policy, now, why=why), unreachable)
     client = DataSFClient(config.client, session=session)
     try:
-        return (*_fetch_live(spec, client, cache, config.gap_policy), None)
+        return (*_fetch_live(spec, client, cache, config, now), None)
     except NetworkError as exc:
         unreachable = why = f"DataSF unreachable: {exc}"
     except DataSourceError as exc:  # includes ValidationError: bad payload, 4xx

@@ -10,8 +10,12 @@ Rules (each violation raises :class:`pipeline.errors.ValidationError` unless not
 * every required field is present (a missing/renamed column is named in the CSV display form and
   the API form, e.g. ``missing column 'New Cases' (API field 'new_cases')``);
 * every date parses (one of the spec's formats) — otherwise the row and value are named;
-* counts are non-negative integers ("12" and "12.0" are accepted; "abc", "1.5", "-3", and empty
-  cells are errors naming column, row and date);
+* counts are finite, non-negative integers below :data:`COUNT_BOUND` ("12" and "12.0" are
+  accepted; "abc", "1.5", "-3", "inf", "1e19" and empty cells are errors naming column, row and
+  date). The bound keeps every count exact in float64 and int64: before it, ``inf`` and ``1e19``
+  passed and became INT64_MIN when cast, poisoning the cache;
+* the last date is not after the payload's own "data as of" stamp (nor after ``today`` when the
+  caller passes it): a series reaching into the future is a broken payload, not news;
 * no date appears twice (DataSF publishes one row per day; two rows leave no way to know which
   is right, so this is an error, never a silent pick);
 * gaps (missing days inside the date range) are *reported*; with ``GapPolicy.ZERO_FILL``
@@ -39,6 +43,11 @@ from pipeline.data.datasf import DatasetSpec, FieldSpec
 from pipeline.errors import ValidationError
 
 log = logging.getLogger(__name__)
+
+# Largest count accepted in any column: 100 million. San Francisco has 873,965 people; its largest
+# published count, cumulative tests, reached about 4 million by 2022. Far below 2**53, so every
+# accepted count is exact in float64 (how pandas parses them) and in int64.
+COUNT_BOUND = 100_000_000
 
 
 class GapPolicy(str, enum.Enum):
@@ -109,8 +118,9 @@ def canonical_columns(raw: pd.DataFrame, spec: DatasetSpec, *, source: str) -> p
         if found is not None:
             renames[found] = spec_field.canonical
         elif spec_field in spec.required:
+            aka = "".join(f" or '{a}'" for a in spec_field.aliases)
             missing.append(f"missing column '{spec_field.display}' "
-                           f"(API field '{spec_field.api}')")
+                           f"(API field '{spec_field.api}'{aka})")
     if missing:
         present = ", ".join(repr(str(c)) for c in raw.columns)
         raise ValidationError(f"{source}: {'; '.join(missing)} for {spec.key} "
@@ -147,6 +157,18 @@ def _parse_counts(raw: pd.DataFrame, column: str, spec_field: FieldSpec, source:
         raise ValidationError(f"{source}: {what} in '{spec_field.display}' at "
                               f"{_row_context(raw, pos)}; {int(bad.sum())} such row(s)")
     values = numbers.to_numpy(dtype=np.float64)
+    infinite = ~np.isfinite(values)
+    if infinite.any():
+        pos = int(np.flatnonzero(infinite)[0])
+        raise ValidationError(f"{source}: non-finite count {text.iloc[pos]!r} in "
+                              f"'{spec_field.display}' at {_row_context(raw, pos)}; "
+                              f"{int(infinite.sum())} such row(s)")
+    too_large = np.abs(values) >= COUNT_BOUND
+    if too_large.any():
+        pos = int(np.flatnonzero(too_large)[0])
+        raise ValidationError(f"{source}: count {text.iloc[pos]!r} in '{spec_field.display}' at "
+                              f"{_row_context(raw, pos)} is not below the bound {COUNT_BOUND:,}; "
+                              f"{int(too_large.sum())} such row(s)")
     fractional = values != np.round(values)
     if fractional.any():
         pos = int(np.flatnonzero(fractional)[0])
@@ -177,8 +199,11 @@ def _latest_stamp(frame: pd.DataFrame, column: str) -> pd.Timestamp | None:
 
 
 def validate_frame(raw: pd.DataFrame, spec: DatasetSpec, *, source: str,
-                   gap_policy: GapPolicy = GapPolicy.ZERO_FILL) -> ValidatedFrame:
-    """Check ``raw`` (strings, any supported column names) against ``spec``; see module doc."""
+                   gap_policy: GapPolicy = GapPolicy.ZERO_FILL,
+                   today: pd.Timestamp | None = None) -> ValidatedFrame:
+    """Check ``raw`` (strings, any supported column names) against ``spec``; see module doc.
+
+    ``today`` (when given): the last date may not be after it (plus a day for time zones)."""
     if len(raw) == 0:
         raise ValidationError(f"{source}: empty payload (no rows) for {spec.key} "
                               f"({spec.dataset_id})")
@@ -223,7 +248,20 @@ def validate_frame(raw: pd.DataFrame, spec: DatasetSpec, *, source: str,
                           if spec.cumulative else None),
         data_as_of=_latest_stamp(named, "data_as_of"),
         data_loaded_at=_latest_stamp(named, "data_loaded_at"), warnings=tuple(warnings))
+    _check_not_future(report, source, today)
     return ValidatedFrame(spec, typed, report)
+
+
+def _check_not_future(report: ValidationReport, source: str, today: pd.Timestamp | None) -> None:
+    """A payload may not hold days after its own vintage stamp (or after today)."""
+    last = report.last_date
+    if report.data_as_of is not None and last > report.data_as_of.normalize():
+        raise ValidationError(f"{source}: last date {last.date()} is after the payload's own "
+                              f"'data as of' {report.data_as_of.date()} (dates from the future); "
+                              f"refused")
+    if today is not None and last > pd.Timestamp(today).normalize() + pd.Timedelta(days=1):
+        raise ValidationError(f"{source}: last date {last.date()} is after today "
+                              f"({pd.Timestamp(today).date()}); refused")
 
 
 def _zero_fill(typed: pd.DataFrame, spec: DatasetSpec) -> pd.DataFrame:

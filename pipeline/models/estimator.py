@@ -3,11 +3,17 @@
 Two unit systems:
 - *original units* (what users and the estimation code see): ``log_prob``, ``sample``,
   ``noise_to_data`` take raw context windows and raw targets and return raw values/densities.
-  ``log_prob`` includes the Jacobian of the target standardization:
-  log p(y) = log p(z) - sum_d log std_d, with z = (y - mean) / std.
+  ``log_prob`` includes the Jacobian of the target map y -> u = T(y) -> z = (u - mean) / std:
+  log p(y) = log p(z) - sum_d log std_d + log|det dT/dy|.
 - *standardized units* (what training uses, the dataset tensors are standardized once):
   ``standardized_log_prob``, ``standardized_trajectory``, ``layer_outputs`` take standardized
   targets and contexts (padding rows zero).
+
+T is ``EstimatorConfig.target_transform`` (:mod:`pipeline.models.target_transforms`): the
+identity for the paper's set-ups; ``"sir-log-ratio"`` for the SF forecast's joint model, whose
+flow works on u = (log(I/S), log(R/S), log beta, log gamma) (D_flow = D - 1), so its samples are
+on the simplex with positive rates by construction and ``log_prob`` is a density w.r.t.
+(I, R, beta, gamma) (S = 1 - I - R), -inf outside that support.
 
 The standardization is stored as buffers (``context_mean/std``, ``target_mean/std``), so a
 checkpoint's ``state_dict`` carries it; ``build_estimator(config, stats)`` followed by
@@ -16,6 +22,7 @@ checkpoint's ``state_dict`` carries it; ``build_estimator(config, stats)`` follo
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,6 +33,7 @@ from torch import Tensor, nn
 from pipeline.errors import ConfigError
 from pipeline.models.encoders import EncoderConfig, build_encoder, check_window
 from pipeline.models.flows import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
+from pipeline.models.target_transforms import IDENTITY, TargetTransform, get_target_transform
 
 STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
 
@@ -37,9 +45,11 @@ class EstimatorConfig:
     features D (target size), context_channels C (observed values, then the time channel
     ``t_obs - t_target`` and, with ``absolute_time``, ``t_obs``: the layout of
     :func:`pipeline.datasets.time_features`, which every context builder reads from here),
-    window R (maximum rows; the MLP encoder needs exactly R), encoder, flow. The flow's
-    ``features`` must equal D and its ``context_features`` the encoder's
-    ``embedding_features`` (``make_estimator_config`` fills them in).
+    window R (maximum rows; the MLP encoder needs exactly R), encoder, flow,
+    ``target_transform`` (the coordinates the flow models the target in; module doc). The
+    flow's ``features`` must equal D_flow (D, or D - 1 under ``"sir-log-ratio"``) and its
+    ``context_features`` the encoder's ``embedding_features`` (``make_estimator_config`` fills
+    them in). Checkpoints saved before ``target_transform`` existed load as ``"identity"``.
     """
 
     features: int
@@ -48,6 +58,7 @@ class EstimatorConfig:
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     flow: FlowConfig | None = None
     absolute_time: bool = False
+    target_transform: str = IDENTITY
 
     def __post_init__(self) -> None:
         for name in ("features", "context_channels", "window"):
@@ -57,12 +68,14 @@ class EstimatorConfig:
             raise ConfigError(f"EstimatorConfig: absolute_time needs two time channels after at "
                               f"least one observed value, context_channels="
                               f"{self.context_channels}")
+        flow_features = get_target_transform(self.target_transform).flow_features(self.features)
         if self.flow is None:
             object.__setattr__(self, "flow", FlowConfig(
-                features=self.features, context_features=self.encoder.embedding_features))
-        if self.flow.features != self.features:
+                features=flow_features, context_features=self.encoder.embedding_features))
+        if self.flow.features != flow_features:
             raise ConfigError(f"EstimatorConfig.flow.features={self.flow.features} differs from "
-                              f"features={self.features}")
+                              f"the {flow_features} flow coordinates of features={self.features} "
+                              f"under target_transform={self.target_transform!r}")
         if self.flow.context_features != self.encoder.embedding_features:
             raise ConfigError(f"EstimatorConfig.flow.context_features="
                               f"{self.flow.context_features} differs from "
@@ -74,12 +87,16 @@ class EstimatorConfig:
 
 def make_estimator_config(features: int, context_channels: int, window: int,
                           encoder: EncoderConfig = EncoderConfig(), *,
-                          absolute_time: bool = False, **flow_options: Any) -> EstimatorConfig:
-    """EstimatorConfig whose FlowConfig takes D and E from ``features`` and ``encoder``;
-    ``flow_options`` are the other FlowConfig fields (layers, hidden_features, backend, ...)."""
-    flow = FlowConfig(features=features, context_features=encoder.embedding_features,
+                          absolute_time: bool = False, target_transform: str = IDENTITY,
+                          **flow_options: Any) -> EstimatorConfig:
+    """EstimatorConfig whose FlowConfig takes D_flow and E from ``features``,
+    ``target_transform`` and ``encoder``; ``flow_options`` are the other FlowConfig fields
+    (layers, hidden_features, backend, ...)."""
+    flow_features = get_target_transform(target_transform).flow_features(features)
+    flow = FlowConfig(features=flow_features, context_features=encoder.embedding_features,
                       **flow_options)
-    return EstimatorConfig(features, context_channels, window, encoder, flow, absolute_time)
+    return EstimatorConfig(features, context_channels, window, encoder, flow, absolute_time,
+                           target_transform)
 
 
 def _stats_tensors(stats: Any) -> dict[str, Tensor]:
@@ -101,6 +118,8 @@ class ConditionalEstimator(nn.Module):
                  config: EstimatorConfig | None = None) -> None:
         super().__init__()
         self.encoder, self.flow, self.config = encoder, flow, config
+        # ``transform`` is the object, ``target_transform`` its name (as on Standardization).
+        self.transform: TargetTransform = get_target_transform(_transform_name(stats, config))
         tensors = _stats_tensors(stats)
         for name, value in tensors.items():
             if name.endswith("_std") and not bool((value > 0).all()):
@@ -124,7 +143,18 @@ class ConditionalEstimator(nn.Module):
 
     @property
     def features(self) -> int:
+        """D_flow: the flow's dimension, i.e. the size of the noise ``noise_to_data`` takes."""
         return self.flow.config.features
+
+    @property
+    def target_features(self) -> int:
+        """D: the target's size in original units (what ``sample`` returns)."""
+        return self.transform.target_features(self.flow.config.features)
+
+    @property
+    def target_transform(self) -> str:
+        """The name of the coordinates the flow models the target in (module doc)."""
+        return self.transform.name
 
     @property
     def absolute_time(self) -> bool:
@@ -136,11 +166,12 @@ class ConditionalEstimator(nn.Module):
         """The standardization as a ``pipeline.datasets.Standardization`` (buffers' values)."""
         from pipeline.datasets import Standardization
         return Standardization(self.context_mean, self.context_std, self.target_mean,
-                               self.target_std)
+                               self.target_std, target_transform=self.target_transform)
 
     @property
     def target_log_abs_det(self) -> Tensor:
-        """log |det dz/dy| of the target standardization = -sum log std."""
+        """log |det dz/du| of the affine standardization = -sum log std (constant; the
+        transform's y-dependent part is ``transform.log_abs_det``)."""
         return -torch.log(self.target_std).sum()
 
     # --- standardization -------------------------------------------------------------------
@@ -149,10 +180,12 @@ class ConditionalEstimator(nn.Module):
         return torch.where(mask[..., None], standardized, torch.zeros((), dtype=context.dtype))
 
     def standardize_target(self, target: Tensor) -> Tensor:
-        return (target - self.target_mean) / self.target_std
+        """Original units (..., D) -> standardized flow coordinates (..., D_flow)."""
+        return (self.transform.forward(target) - self.target_mean) / self.target_std
 
     def unstandardize_target(self, z: Tensor) -> Tensor:
-        return z * self.target_std + self.target_mean
+        """Standardized flow coordinates (..., D_flow) -> original units (..., D)."""
+        return self.transform.inverse(z * self.target_std + self.target_mean)
 
     # --- standardized units (training) -----------------------------------------------------
     def embed(self, context: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -183,9 +216,17 @@ class ConditionalEstimator(nn.Module):
         return self.embed(self.standardize_context(context, mask), mask)
 
     def log_prob(self, target: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
-        """log p(target | context) in original units, (B,)."""
-        log_prob = self.flow.log_prob(self.standardize_target(target), self._embed_raw(context, mask))
-        return log_prob + self.target_log_abs_det
+        """log p(target | context) in original units, (B,); -inf outside the transform's support
+        (e.g. a negative I under ``"sir-log-ratio"``), never NaN."""
+        transform = self.transform
+        inside = transform.in_support(target)
+        # Rows outside the support are scored at a harmless in-support stand-in (the mean in
+        # flow coordinates), then set to -inf: the flow never sees log of a negative number.
+        stand_in = transform.inverse(self.target_mean).to(target)
+        safe = torch.where(inside[..., None], target, stand_in)
+        log_prob = self.flow.log_prob(self.standardize_target(safe), self._embed_raw(context, mask))
+        log_prob = log_prob + self.target_log_abs_det + transform.log_abs_det(safe).to(log_prob)
+        return torch.where(inside, log_prob, torch.full_like(log_prob, -math.inf))
 
     def noise_to_data(self, eps: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
         """Standard-normal noise (B, n, D) -> targets (B, n, D) in original units."""
@@ -199,6 +240,18 @@ class ConditionalEstimator(nn.Module):
 
     def forward(self, target: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
         return self.log_prob(target, context, mask)
+
+
+def _transform_name(stats: Any, config: EstimatorConfig | None) -> str:
+    """The target transform of an estimator: the config's; a ``Standardization`` that records
+    another one was fitted in other coordinates and is refused."""
+    fitted = getattr(stats, "target_transform", None)
+    wanted = config.target_transform if config is not None else (fitted or IDENTITY)
+    if fitted is not None and fitted != wanted:
+        raise ConfigError(f"standardization was fitted for target transform {fitted!r}, the "
+                          f"estimator config asks for {wanted!r}: split the dataset with "
+                          f"target_transform={wanted!r} (datasets.train_validation_split)")
+    return wanted
 
 
 def _full_mask(context: Tensor) -> Tensor:

@@ -5,11 +5,13 @@ tables (pandas DataFrames) into :class:`Section` objects and hands a :class:`Rep
 :func:`pipeline.report.render.write_report`. Every string here is plain text: the template
 escapes it, so data can never inject markup.
 
-Sections of the weekly report, in order (:class:`SectionKey`; titles in ``SECTION_TITLES``):
-SF S/I/R series and data vintage · 4-week forecast fan · forward/backward state estimates (2σ) · rollouts (7- and
-28-day windows, forward/backward, full and zoomed) · joint β, γ over time · NF-seeded SMC (3σ)
-· NLL table (paper Table 5 layout) · training/validation loss · backtest (relative WIS) ·
-provenance (rendered from :class:`Provenance`, not a section).
+Page 1 is the headline (``ReportContent.headline``: the published forecast's numbers, not a
+numbered section). Sections of the weekly report, in order (:class:`SectionKey`; titles in
+``SECTION_TITLES``): the published 4-week forecast · its real-time backtest against the hub
+baseline · SF S/I/R series · β, γ and R_t over time · forward/backward state estimates ·
+rollouts (7- and 28-day windows) · NF-seeded SMC · NLL table (paper Table 5 layout) ·
+training/validation loss · appendix: provenance (from :class:`Provenance`, not a section).
+Every band and interval is a 50 % or 90 % central interval.
 """
 from __future__ import annotations
 
@@ -33,27 +35,27 @@ class ReportError(FlowcastError):
 
 
 class SectionKey(enum.StrEnum):
-    SIR_SERIES = "sir-series"
     FORECAST = "forecast"
+    BACKTEST = "backtest"
+    SIR_SERIES = "sir-series"
+    PARAMETERS = "parameters"
     STATE_ESTIMATES = "state-estimates"
     ROLLOUTS = "rollouts"
-    PARAMETERS = "parameters"
     SMC = "smc"
     NLL = "nll"
     TRAINING = "training"
-    BACKTEST = "backtest"
 
 
 SECTION_TITLES: Mapping[SectionKey, str] = MappingProxyType({
+    SectionKey.FORECAST: "Forecast: the last 12 weeks and the next 4",
+    SectionKey.BACKTEST: "Backtest: the published forecast against the hub baseline",
     SectionKey.SIR_SERIES: "San Francisco S/I/R series",
-    SectionKey.FORECAST: "Forecast: the next four weeks",
+    SectionKey.PARAMETERS: "Transmission (β), recovery (γ) and R_t over time",
     SectionKey.STATE_ESTIMATES: "Forward and backward state estimates",
     SectionKey.ROLLOUTS: "Rollouts: 7- and 28-day windows",
-    SectionKey.PARAMETERS: "Transmission (β) and recovery (γ) rates over time",
     SectionKey.SMC: "NF-seeded particle filter (SMC)",
     SectionKey.NLL: "Negative log-likelihood by model variant",
     SectionKey.TRAINING: "Training and validation loss",
-    SectionKey.BACKTEST: "Backtest: forecast skill against baselines",
 })
 
 
@@ -84,46 +86,57 @@ class TableItem:
     """A table with a caption. ``frame`` may have a two-level column index (e.g. model × S/I/R
     or value × paper/ours); its index is shown as row labels.
 
+    A two-level row index shows as two label columns, equal neighbouring labels merged.
+
     ``decimals``: digits after the point for floats. ``highlight``: bold the best value of each
-    row (``"row-min"``, as the paper's tables do for the lowest NLL/KL), or nothing.
+    row (``"row-min"``, as the paper's tables do for the lowest NLL/KL) or of each column
+    (``"col-min"``), or nothing. ``css``: an extra class for the table (e.g. ``headline``).
     """
 
     frame: pd.DataFrame
     caption: str
     decimals: int = 3
-    highlight: Literal["row-min", "row-max"] | None = None
+    highlight: Literal["row-min", "row-max", "col-min"] | None = None
     note: str = ""
+    css: str = ""
 
     def __post_init__(self) -> None:
         if self.frame.empty:
             raise ReportError(f"table {self.caption[:60]!r} is empty")
-        if self.frame.columns.nlevels > 2:
+        if self.frame.columns.nlevels > 2 or self.frame.index.nlevels > 2:
             raise ReportError(f"table {self.caption[:60]!r} has {self.frame.columns.nlevels} "
-                              "column levels; at most 2 are supported")
+                              f"column and {self.frame.index.nlevels} row levels; at most 2 "
+                              "each are supported")
         # a private copy: later changes to the caller's frame must not change the report
         object.__setattr__(self, "frame", self.frame.copy(deep=True))
 
 
 @dataclass(frozen=True)
 class Section:
-    """One titled part of a report: an optional intro paragraph, then figures and tables."""
+    """One titled part of a report: alerts (diagnostics that signal trouble, in words), an
+    optional intro paragraph, then figures and tables. ``new_page``: starts a PDF page (False
+    lets a short section follow the previous one instead of leaving a page half empty)."""
 
     key: str
     title: str
     items: tuple[FigureItem | TableItem, ...]
     intro: str = ""
+    alerts: tuple[str, ...] = ()
+    new_page: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "items", tuple(self.items))
+        object.__setattr__(self, "alerts", tuple(self.alerts))
         bad = [type(i).__name__ for i in self.items if not isinstance(i, (FigureItem, TableItem))]
         if bad:
             raise ReportError(f"section {self.key!r} holds unsupported items {bad}")
 
     @classmethod
     def weekly(cls, key: SectionKey, items: Sequence[FigureItem | TableItem],
-               intro: str = "") -> Section:
+               intro: str = "", alerts: Sequence[str] = (), new_page: bool = True) -> Section:
         """A section of the weekly report with its canonical anchor and title."""
-        return cls(key=str(key), title=SECTION_TITLES[key], items=tuple(items), intro=intro)
+        return cls(key=str(key), title=SECTION_TITLES[key], items=tuple(items), intro=intro,
+                   alerts=tuple(alerts), new_page=new_page)
 
 
 def _freeze(mapping: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -172,6 +185,7 @@ class ReportContent:
     warnings: tuple[str, ...] = ()        # e.g. "Data are stale by 9 days (fetch failed)."
     summary: str = ""                     # a short lead paragraph under the title
     generated_at: dt.datetime | None = None
+    headline: Section | None = None       # page 1: the forecast's numbers, before any section
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sections", tuple(self.sections))
@@ -182,6 +196,11 @@ class ReportContent:
             raise ReportError(f"duplicate section keys {duplicates}")
         if not isinstance(self.reference_date, dt.date):
             raise ReportError(f"reference_date must be a date, got {self.reference_date!r}")
+
+    @property
+    def checks(self) -> tuple[tuple[str, str, str], ...]:
+        """(section key, section title, alert) for every section's alert: page 1 lists them."""
+        return tuple((s.key, s.title, a) for s in self.sections for a in s.alerts)
 
 
 def stale_data_warning(latest_data_date: dt.date, as_of: dt.date, tolerance_days: int = 7,

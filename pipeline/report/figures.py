@@ -6,8 +6,8 @@ Conventions (readers are epidemiologists who look at the pictures first):
 * Okabe–Ito colour-blind-safe palette; S blue, I vermilion, R bluish green, always.
 * One panel per compartment where scales differ (S ≈ 1, I ≈ 1e-3): a shared axis would flatten I.
 * Dates on the x axis with concise date labels; y axes say what and in which unit.
-* Observations are black dots, estimates a line in the compartment colour with a shaded band;
-  legends say what the band is (e.g. "mean ± 2σ").
+* Observations are black dots, estimates a line in the compartment colour with two shaded
+  bands: every band in every figure is a 50 % (darker) or 90 % (lighter) central interval.
 * Figures are 8.5 in wide at 110 dpi: about 935 px, so text stays ≥ 8 pt on an A4 page.
 
 Array conventions: ``dates (T,)``; state arrays ``(T, 3)`` with columns S, I, R; NaN marks a
@@ -108,17 +108,24 @@ def _proportion_axis(ax: Axes, compartment: str) -> None:
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 3), useMathText=True)
 
 
-def _band_panel(ax: Axes, dates: NDArray, observed: NDArray | None, mean: NDArray,
-                lower: NDArray, upper: NDArray, compartment: str, band_label: str,
-                estimate_label: str) -> None:
+# The report's one interval convention: median with 50 % and 90 % central intervals.
+LEVELS: tuple[float, ...] = (0.05, 0.25, 0.5, 0.75, 0.95)
+BAND_LABELS = ("90% interval", "50% interval")
+
+
+def _band_panel(ax: Axes, dates: NDArray, observed: NDArray | None, q: NDArray,
+                compartment: str, estimate_label: str) -> None:
+    """``q (5, T)``: quantiles at :data:`LEVELS`; 90 % band, 50 % band, median line."""
     color = COMPARTMENT_COLORS[compartment]
-    ax.fill_between(dates, lower, upper, color=color, alpha=0.25, linewidth=0,
-                    label=band_label, zorder=1)
+    ax.fill_between(dates, q[0], q[4], color=color, alpha=0.18, linewidth=0,
+                    label=BAND_LABELS[0], zorder=1)
+    ax.fill_between(dates, q[1], q[3], color=color, alpha=0.35, linewidth=0,
+                    label=BAND_LABELS[1], zorder=1)
     if observed is not None:
         # small, half-transparent dots: on a long series they must not hide the estimate
         ax.plot(dates, observed, linestyle="none", marker="o", markersize=2.0,
                 markeredgewidth=0, color="black", alpha=0.55, label="observed", zorder=2)
-    ax.plot(dates, mean, color=color, label=estimate_label, zorder=3)
+    ax.plot(dates, q[2], color=color, label=estimate_label, zorder=3)
     ax.set_title(COMPARTMENT_NAMES[compartment], loc="left")
     _proportion_axis(ax, compartment)
 
@@ -126,19 +133,23 @@ def _band_panel(ax: Axes, dates: NDArray, observed: NDArray | None, mean: NDArra
 def _legend_below(fig: Figure, ax: Axes, ncols: int = 4) -> None:
     """One legend for the whole figure, under the panels, so it never covers data."""
     handles, labels = ax.get_legend_handles_labels()
-    # grey legend patches for bands: the compartment colour is explained by the panel titles
     fig.legend(handles, labels, loc="outside lower center", ncols=ncols, frameon=False)
 
 
-def _check_bands(dates: NDArray, mean: ArrayLike, lower: ArrayLike, upper: ArrayLike,
-                 observed: ArrayLike | None) -> tuple[NDArray, ...]:
+def _check_quantiles(dates: NDArray, q: ArrayLike, observed: ArrayLike | None
+                     ) -> tuple[NDArray, NDArray | None]:
+    """``q (5, T, 3)`` at :data:`LEVELS`, ordered along the levels (NaN allowed: a gap)."""
     n = len(dates)
-    m, lo, up = (_states(a, n, name) for a, name in ((mean, "mean"), (lower, "lower"),
-                                                      (upper, "upper")))
+    arr = np.asarray(q, dtype=np.float64)
+    if arr.shape != (len(LEVELS), n, 3):
+        raise ReportError(f"quantiles must have shape ({len(LEVELS)}, {n}, 3) for levels "
+                          f"{LEVELS} × dates × S, I, R; got {arr.shape}")
+    with np.errstate(invalid="ignore"):
+        if np.any(np.diff(arr, axis=0) < 0):
+            raise ReportError("band quantiles decrease along the levels (lower bound exceeds "
+                              "its upper bound)")
     obs = None if observed is None else _states(observed, n, "observed")
-    if np.any(lo > up):
-        raise ReportError("band lower bound exceeds its upper bound")
-    return m, lo, up, obs
+    return arr, obs
 
 
 def _shade(ax: Axes, span: tuple[dt.date, dt.date] | None, label: str | None) -> None:
@@ -171,21 +182,21 @@ def sir_series_figure(df: pd.DataFrame, vintage: str | None = None) -> bytes:
 
 
 def estimate_band_figure(dates: Sequence[dt.date] | ArrayLike, observed: ArrayLike | None,
-                         mean: ArrayLike, lower: ArrayLike, upper: ArrayLike, *,
+                         quantiles: ArrayLike, *,
                          direction: Literal["forward", "backward"] = "forward",
-                         band_label: str = "mean ± 2σ",
                          context: tuple[dt.date, dt.date] | None = None) -> bytes:
-    """Estimated S, I, R (mean and band) against observations, one panel per compartment.
+    """Estimated S, I, R (median, 50 % and 90 % bands) against observations, one panel per
+    compartment. ``quantiles (5, T, 3)`` at :data:`LEVELS`.
 
     ``context``: optional date span of the conditioning window, shaded grey.
     """
     d = _dates(dates)
-    m, lo, up, obs = _check_bands(d, mean, lower, upper, observed)
+    q, obs = _check_quantiles(d, quantiles, observed)
     fig, axes = _figure(3.3, 1, 3)
     for k, (ax, c) in enumerate(zip(axes[0], COMPARTMENTS)):
         _shade(ax, context, "context window" if k == 0 else None)
-        _band_panel(ax, d, None if obs is None else obs[:, k], m[:, k], lo[:, k], up[:, k], c,
-                    band_label, f"{direction} estimate (mean)")
+        _band_panel(ax, d, None if obs is None else obs[:, k], q[:, :, k], c,
+                    f"{direction} estimate (median)")
         _date_axis(ax, maxticks=4)
         ax.set_xlabel("date of the estimated state")
     _legend_below(fig, axes[0, 0])
@@ -204,68 +215,75 @@ def default_zoom(dates: NDArray, observed_i: NDArray, days: int = 60) -> tuple[d
     return (pd.Timestamp(dates[start]).date(), pd.Timestamp(dates[stop]).date())
 
 
-def rollout_figure(dates: Sequence[dt.date] | ArrayLike, observed: ArrayLike, mean: ArrayLike,
-                   lower: ArrayLike, upper: ArrayLike, *, window_days: int,
+def rollout_figure(dates: Sequence[dt.date] | ArrayLike, observed: ArrayLike,
+                   quantiles: ArrayLike, *, window_days: int,
                    direction: Literal["forward", "backward"],
-                   zoom: tuple[dt.date, dt.date] | None = None,
-                   band_label: str = "mean ± 2σ") -> bytes:
-    """A rollout's full view (left) and a zoomed view (right) for S, I, R (rows).
+                   zoom: tuple[dt.date, dt.date] | None = None) -> bytes:
+    """A rollout's full view (left) and a zoomed view (right) for S, I, R (rows): median, 50 %
+    and 90 % bands of the sample paths (``quantiles (5, T, 3)`` at :data:`LEVELS`).
 
     ``zoom`` defaults to 60 days around the peak of observed I; the full view shades it.
     """
     d = _dates(dates)
-    m, lo, up, obs = _check_bands(d, mean, lower, upper, observed)
+    q, obs = _check_quantiles(d, quantiles, observed)
     assert obs is not None
     span = zoom or default_zoom(d, obs[:, 1])
     inside = (d >= np.datetime64(pd.Timestamp(span[0]))) & (d <= np.datetime64(pd.Timestamp(span[1])))
     if not inside.any():
         raise ReportError(f"zoom span {span[0]}..{span[1]} contains none of the dates")
     fig, axes = _figure(5.0, 3, 2, sharex="col")
-    label = f"{direction} rollout, {window_days}-day window"
+    label = f"{direction} rollout, {window_days}-day window (median)"
     for k, c in enumerate(COMPARTMENTS):
         full, zoomed = axes[k, 0], axes[k, 1]
         _shade(full, span, "zoomed span" if k == 0 else None)
-        _band_panel(full, d, obs[:, k], m[:, k], lo[:, k], up[:, k], c, band_label, label)
-        _band_panel(zoomed, d[inside], obs[inside, k], m[inside, k], lo[inside, k],
-                    up[inside, k], c, band_label, label)
+        _band_panel(full, d, obs[:, k], q[:, :, k], c, label)
+        _band_panel(zoomed, d[inside], obs[inside, k], q[:, inside, k], c, label)
         zoomed.set_ylabel("")
         zoomed.set_title(f"{COMPARTMENT_NAMES[c]} (zoomed)", loc="left")
     for ax in axes[-1]:
         _date_axis(ax, maxticks=6)
-    _legend_below(fig, axes[0, 0])
+    _legend_below(fig, axes[0, 0], ncols=3)
     return _png(fig)
 
 
 def _quantile_columns(q: ArrayLike, n: int, name: str) -> NDArray[np.float64]:
+    """``(n, 5)`` quantiles at :data:`LEVELS` per day, ordered along the levels."""
     arr = np.asarray(q, dtype=np.float64)
-    if arr.shape != (n, 3):
-        raise ReportError(f"{name} must have shape ({n}, 3) = (lower, median, upper); "
-                          f"got {arr.shape}")
-    if np.any(arr[:, 0] > arr[:, 1]) or np.any(arr[:, 1] > arr[:, 2]):
-        raise ReportError(f"{name} columns must be ordered lower ≤ median ≤ upper")
+    if arr.shape != (n, len(LEVELS)):
+        raise ReportError(f"{name} must have shape ({n}, {len(LEVELS)}) = quantiles at "
+                          f"{LEVELS}; got {arr.shape}")
+    if np.any(np.diff(arr, axis=1) < 0):
+        raise ReportError(f"{name} columns must be ordered along the levels "
+                          "(5% ≤ 25% ≤ median ≤ 75% ≤ 95%)")
     return arr
 
 
+def _quantile_panel(ax: Axes, d: NDArray, q: NDArray, color: str) -> None:
+    ax.fill_between(d, q[:, 0], q[:, 4], color=color, alpha=0.18, linewidth=0,
+                    label=BAND_LABELS[0])
+    ax.fill_between(d, q[:, 1], q[:, 3], color=color, alpha=0.35, linewidth=0,
+                    label=BAND_LABELS[1])
+    ax.plot(d, q[:, 2], color=color, label="posterior median")
+
+
 def parameter_figure(dates: Sequence[dt.date] | ArrayLike, beta_q: ArrayLike, gamma_q: ArrayLike,
-                     *, interval_label: str = "95% credible interval",
+                     rt_q: ArrayLike | None = None, *,
                      beta_prior: tuple[float, float] | None = None,
                      gamma_prior: tuple[float, float] | None = None) -> bytes:
-    """β and γ over time: posterior median and credible interval; optional prior ranges.
-
-    ``beta_q``, ``gamma_q``: arrays (T, 3) with columns lower, median, upper (per day).
-    A third panel shows the ratio of medians β/γ (an R0-like summary; not the median of β/γ).
+    """β, γ and R_t = β·S/γ over time: posterior median, 50 % and 90 % intervals; optional
+    prior ranges. Each ``*_q`` is ``(T, 5)`` at :data:`LEVELS`; ``rt_q`` is the posterior of the
+    ratio (per joint sample), not a ratio of medians.
     """
     d = _dates(dates)
     b = _quantile_columns(beta_q, len(d), "beta_q")
     g = _quantile_columns(gamma_q, len(d), "gamma_q")
-    fig, axes = _figure(6.4, 3, 1, sharex=True)
+    rows = 3 if rt_q is not None else 2
+    fig, axes = _figure(2.15 * rows, rows, 1, sharex=True)
     panels = ((axes[0, 0], b, "transmission rate β", "β (per day)", OKABE_ITO["vermilion"],
                beta_prior),
               (axes[1, 0], g, "recovery rate γ", "γ (per day)", OKABE_ITO["blue"], gamma_prior))
     for ax, q, title, ylabel, color, prior in panels:
-        ax.fill_between(d, q[:, 0], q[:, 2], color=color, alpha=0.22, linewidth=0,
-                        label=interval_label)
-        ax.plot(d, q[:, 1], color=color, label="posterior median")
+        _quantile_panel(ax, d, q, color)
         if prior is not None:
             for bound in prior:
                 ax.axhline(bound, color="#555555", linestyle=":", linewidth=1.2)
@@ -273,31 +291,34 @@ def parameter_figure(dates: Sequence[dt.date] | ArrayLike, beta_q: ArrayLike, ga
                     label="prior range (training)")
         ax.set_title(title, loc="left")
         ax.set_ylabel(ylabel)
-    ratio = axes[2, 0]
-    ratio.plot(d, b[:, 1] / g[:, 1], color=OKABE_ITO["purple"])
-    ratio.axhline(1.0, color="#555555", linestyle="--", linewidth=1.0)
-    ratio.set_title("ratio of medians β/γ (R0-like; epidemic grows while S·β/γ > 1)",
-                    loc="left")
-    ratio.set_ylabel("β/γ")
-    _date_axis(ratio)
-    ratio.set_xlabel("date")
-    _legend_below(fig, axes[0, 0], ncols=3)
+    if rt_q is not None:
+        ax = axes[2, 0]
+        _quantile_panel(ax, d, _quantile_columns(rt_q, len(d), "rt_q"), OKABE_ITO["purple"])
+        ax.axhline(1.0, color="#555555", linestyle="--", linewidth=1.0)
+        ax.set_title("effective reproduction number R_t = β·S/γ (grows while above 1)",
+                     loc="left")
+        ax.set_ylabel("R_t")
+    _date_axis(axes[-1, 0])
+    axes[-1, 0].set_xlabel("date")
+    _legend_below(fig, axes[0, 0], ncols=4)
     return _png(fig)
 
 
 def smc_band_figure(dates: Sequence[dt.date] | ArrayLike, observed: ArrayLike | None,
-                    mean: ArrayLike, lower: ArrayLike, upper: ArrayLike, *,
-                    band_label: str = "mean ± 3σ", ess: ArrayLike | None = None,
-                    n_particles: int | None = None) -> bytes:
-    """Filtered S, I, R of the NF-seeded particle filter; optional effective-sample-size panel."""
+                    quantiles: ArrayLike, *, ess: ArrayLike | None = None,
+                    n_particles: int | None = None, collapse_fraction: float = 0.05) -> bytes:
+    """Filtered S, I, R of the NF-seeded particle filter (median, 50 % and 90 % weighted
+    quantile bands, ``quantiles (5, T, 3)``); optional effective-sample-size panel with the
+    collapse threshold (``collapse_fraction`` of the particles) drawn and the days below it
+    marked."""
     d = _dates(dates)
-    m, lo, up, obs = _check_bands(d, mean, lower, upper, observed)
+    q, obs = _check_quantiles(d, quantiles, observed)
     rows = 4 if ess is not None else 3
-    fig, axes = _figure(2.1 * rows + 0.3, rows, 1, sharex=True)
+    fig, axes = _figure(1.9 * rows + 0.4, rows, 1, sharex=True)
     for k, c in enumerate(COMPARTMENTS):
-        _band_panel(axes[k, 0], d, None if obs is None else obs[:, k], m[:, k], lo[:, k],
-                    up[:, k], c, band_label, "filtered mean")
-    _legend_below(fig, axes[0, 0], ncols=3)
+        _band_panel(axes[k, 0], d, None if obs is None else obs[:, k], q[:, :, k], c,
+                    "filtered median")
+    _legend_below(fig, axes[0, 0], ncols=4)
     if ess is not None:
         e = np.asarray(ess, dtype=np.float64)
         if e.shape != (len(d),):
@@ -305,9 +326,15 @@ def smc_band_figure(dates: Sequence[dt.date] | ArrayLike, observed: ArrayLike | 
         ax = axes[3, 0]
         ax.plot(d, e, color=OKABE_ITO["black"], linewidth=1.2)
         if n_particles:
+            limit = collapse_fraction * n_particles
             ax.axhline(n_particles, color="#555555", linestyle=":", linewidth=1.0)
+            ax.axhline(limit, color=OKABE_ITO["vermilion"], linestyle="--", linewidth=1.0)
+            low = e < limit
+            ax.plot(d[low], e[low], linestyle="none", marker="o", markersize=4,
+                    color=OKABE_ITO["vermilion"])
             ax.set_ylim(0, n_particles * 1.05)
-        ax.set_title("effective sample size (before resampling)", loc="left")
+        ax.set_title(f"effective sample size (dashed: {collapse_fraction:.0%} of the "
+                     "particles; red dots: days below it)", loc="left")
         ax.set_ylabel("particles")
     _date_axis(axes[-1, 0])
     axes[-1, 0].set_xlabel("date")
@@ -338,85 +365,113 @@ def loss_curve_figure(history: pd.DataFrame, *, x: str = "step",
     return _png(fig)
 
 
-def backtest_figure(by_horizon: pd.DataFrame, baseline: str = "persistence") -> bytes:
-    """Relative WIS (left, < 1 beats ``baseline``) and 50%/90% interval coverage (right).
+def _count_axis(ax: Axes, log: bool, share: bool = False) -> None:
+    """Plain numbers on a (log) axis: 1,000 rather than 10³; shares in percent."""
+    from matplotlib import ticker
 
-    ``by_horizon``: rows (forecaster, horizon) with relative_wis, coverage_50, coverage_90 —
-    as :func:`pipeline.backtest.summary_by_horizon` returns.
-    """
-    needed = ("forecaster", "horizon", "relative_wis", "coverage_50", "coverage_90")
-    missing = [c for c in needed if c not in by_horizon.columns]
-    if missing:
-        raise ReportError(f"backtest summary lacks columns {missing}")
-    models = [m for m in dict.fromkeys(by_horizon["forecaster"]) if m != baseline]
-    horizons = np.sort(by_horizon["horizon"].unique())
-    fig, axes = _figure(4.2, 1, 2)
-    rel_ax, cov_ax = axes[0, 0], axes[0, 1]
-    width = 0.8 / max(1, len(models))
-    colors = dict(zip(models, SERIES_CYCLE))
-    colors[baseline] = "#777777"
-    for k, model in enumerate(models):
-        rows = by_horizon[by_horizon["forecaster"] == model].set_index("horizon").reindex(horizons)
-        rel_ax.bar(horizons + (k - (len(models) - 1) / 2) * width, rows["relative_wis"],
-                   width=width, color=colors[model], label=model)
-    for model in [*models, baseline]:
-        rows = by_horizon[by_horizon["forecaster"] == model].set_index("horizon").reindex(horizons)
-        if rows["coverage_50"].isna().all():
-            continue
-        cov_ax.plot(horizons, rows["coverage_50"], color=colors[model], marker="o",
-                    label=model)
-        cov_ax.plot(horizons, rows["coverage_90"], color=colors[model], marker="s",
-                    linestyle="--")
-    rel_ax.axhline(1.0, color="black", linewidth=1.0)
-    rel_ax.set_title(f"relative WIS vs {baseline}\n(below 1: better than {baseline})", loc="left")
-    rel_ax.set_xlabel("horizon (weeks ahead)")
-    rel_ax.set_ylabel("relative WIS")
-    rel_ax.set_xticks(horizons)
+    if log:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_minor_locator(ticker.NullLocator())
+    fmt = ((lambda v, _pos: f"{100 * v:.2g}%") if share else (lambda v, _pos: f"{v:,.0f}"))
+    ax.yaxis.set_major_formatter(ticker.FuncFormatter(fmt))
 
-    for nominal in (0.5, 0.9):
-        cov_ax.axhline(nominal, color="#555555", linestyle=":", linewidth=1.0)
-    cov_ax.set_ylim(0, 1.05)
-    cov_ax.set_title("interval coverage\n(dotted: nominal 50% and 90%)", loc="left")
-    cov_ax.set_xlabel("horizon (weeks ahead)")
-    cov_ax.set_ylabel("fraction of observations inside")
-    cov_ax.set_xticks(horizons)
-    # one legend entry per model: colour = model, circles/solid = 50%, squares/dashed = 90%
-    handles, labels = cov_ax.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(4, len(labels)),
-               frameon=False, title="circles/solid: 50% interval, squares/dashed: 90% interval",
-               title_fontsize=8.5)
+
+def _fan(ax: Axes, x: NDArray, q: NDArray, color: str, label: str,
+         start: tuple[NDArray, float] | None = None) -> None:
+    """Forecast fan from ``q (H, 5)`` at :data:`LEVELS`, joined to the last observation."""
+    if start is not None:
+        x = np.concatenate([[start[0]], x])
+        q = np.vstack([np.full(len(LEVELS), start[1]), q])
+    ax.fill_between(x, q[:, 0], q[:, 4], color=color, alpha=0.18, linewidth=0,
+                    label=BAND_LABELS[0])
+    ax.fill_between(x, q[:, 1], q[:, 3], color=color, alpha=0.35, linewidth=0,
+                    label=BAND_LABELS[1])
+    ax.plot(x, q[:, 2], color=color, marker="o", markersize=3.5, label=label)
+
+
+def published_forecast_figure(week_ends: Sequence[dt.date] | ArrayLike, weekly_cases: ArrayLike,
+                              weekly_i: ArrayLike, target_ends: Sequence[dt.date] | ArrayLike,
+                              cases_q: ArrayLike, i_q: ArrayLike, population: int, *,
+                              log: bool = True) -> bytes:
+    """The published forecast after the last weeks observed: weekly reported cases (left) and I
+    (right, share with people on the right axis). ``weekly_*`` at ``week_ends`` (observed, the
+    last one = the origin); ``*_q (H, 5)`` at :data:`LEVELS` at ``target_ends``. The y axes are
+    set by what is drawn (the weeks shown and the forecast's 90 % intervals) only."""
+    wd, td = _dates(week_ends, "week_ends"), _dates(target_ends, "target_ends")
+    cases, share = (np.asarray(a, dtype=np.float64) for a in (weekly_cases, weekly_i))
+    cq, iq = (_quantile_columns(q, len(td), name) for q, name in ((cases_q, "cases_q"),
+                                                                    (i_q, "i_q")))
+    fig, axes = _figure(3.6, 1, 2)
+    panels = ((axes[0, 0], cases, cq, "weekly reported cases", "cases per week", False),
+              (axes[0, 1], share, iq, "infectious I (share of the population)",
+               "I (% of population)", True))
+    for ax, obs, q, title, ylabel, is_share in panels:
+        ax.plot(wd, obs, color="black", marker="o", markersize=3.5, linewidth=1.0,
+                label="observed (week ending)")
+        _fan(ax, td, q, OKABE_ITO["vermilion"], "published forecast (median)",
+             start=(wd[-1], float(obs[-1])))
+        ax.axvline(wd[-1], color="#555555", linestyle=":", linewidth=1.0)
+        ax.set_title(title, loc="left")
+        ax.set_ylabel(ylabel + (" (log scale)" if log else ""))
+        _count_axis(ax, log, share=is_share)
+        _date_axis(ax, maxticks=5)
+    people = axes[0, 1].secondary_yaxis("right", functions=(lambda x: x * population,
+                                                            lambda p: p / population))
+    people.set_ylabel("people")
+    _count_axis(people, False)
+    _legend_below(fig, axes[0, 0], ncols=4)
     return _png(fig)
 
 
-def forecast_fan_figure(history_dates: Sequence[dt.date] | ArrayLike, history: ArrayLike,
-                        dates: Sequence[dt.date] | ArrayLike, samples: ArrayLike, *,
-                        history_days: int = 56) -> bytes:
-    """The next weeks as a fan: median with 50% and 90% intervals of the sample paths,
-    after the last ``history_days`` of observations, one panel per compartment.
+def past_forecasts_figure(panels: Mapping[str, pd.DataFrame], horizons: Sequence[int] = (1, 4),
+                          *, log: bool = True) -> bytes:
+    """Past published forecasts against what was observed: one column per target, one row per
+    horizon. ``panels[target]``: rows per (origin, horizon) with ``target_end_date``,
+    ``horizon``, ``q0.05 … q0.95`` (:data:`LEVELS`) and ``observed`` (NaN: not yet known)."""
+    targets = list(panels)
+    fig, axes = _figure(2.3 * len(horizons) + 0.5, len(horizons), len(targets), sharex=True)
+    for j, target in enumerate(targets):
+        frame = panels[target]
+        for i, h in enumerate(horizons):
+            ax = axes[i, j]
+            part = frame[frame["horizon"] == h].sort_values("target_end_date")
+            x = _dates(part["target_end_date"])
+            q = part[[f"q{lv:g}" for lv in LEVELS]].to_numpy(dtype=np.float64)
+            ax.fill_between(x, q[:, 0], q[:, 4], color=OKABE_ITO["vermilion"], alpha=0.18,
+                            linewidth=0, label=BAND_LABELS[0])
+            ax.fill_between(x, q[:, 1], q[:, 3], color=OKABE_ITO["vermilion"], alpha=0.35,
+                            linewidth=0, label=BAND_LABELS[1])
+            ax.plot(x, q[:, 2], color=OKABE_ITO["vermilion"], linewidth=1.2,
+                    label="published median")
+            ax.plot(x, part["observed"], color="black", marker="o", markersize=1.8,
+                    linewidth=0.8, label="observed")
+            ax.set_title(f"{target}, {h} week{'s' if h > 1 else ''} ahead", loc="left")
+            _count_axis(ax, log, share=target.startswith("I"))
+            _date_axis(ax, maxticks=5)
+    _legend_below(fig, axes[0, 0], ncols=4)
+    return _png(fig)
 
-    ``history (T, 3)`` observed at ``history_dates``; ``samples (n, H, 3)`` at ``dates (H,)``.
-    """
-    hd = _dates(history_dates, "history_dates")
-    obs = _states(history, len(hd), "history")
-    fd = _dates(dates)
-    paths = np.asarray(samples, dtype=np.float64)
-    if paths.ndim != 3 or paths.shape[1:] != (len(fd), 3):
-        raise ReportError(f"samples must have shape (n, {len(fd)}, 3); got {paths.shape}")
-    q05, q25, q50, q75, q95 = np.quantile(paths, [0.05, 0.25, 0.5, 0.75, 0.95], axis=0)
-    keep = slice(max(0, len(hd) - history_days), len(hd))
-    fig, axes = _figure(3.3, 1, 3)
-    for k, (ax, c) in enumerate(zip(axes[0], COMPARTMENTS)):
-        color = COMPARTMENT_COLORS[c]
-        ax.fill_between(fd, q05[:, k], q95[:, k], color=color, alpha=0.18, linewidth=0,
-                        label="90% interval")
-        ax.fill_between(fd, q25[:, k], q75[:, k], color=color, alpha=0.35, linewidth=0,
-                        label="50% interval")
-        ax.plot(fd, q50[:, k], color=color, label="median forecast")
-        ax.plot(hd[keep], obs[keep, k], linestyle="none", marker="o", markersize=2.4,
-                markeredgewidth=0, color="black", alpha=0.7, label="observed")
-        ax.axvline(hd[-1], color="#555555", linestyle=":", linewidth=1.0)
-        ax.set_title(COMPARTMENT_NAMES[c], loc="left")
-        _proportion_axis(ax, c)
-        _date_axis(ax, maxticks=4)
-    _legend_below(fig, axes[0, 0])
+
+def pit_figure(histograms: Mapping[str, Mapping[str, Sequence[int]]]) -> bytes:
+    """PIT histograms per target (panels), one bar series per forecaster, as densities (a
+    calibrated forecast is flat at 1; a U shape: intervals too narrow; a hump: too wide)."""
+    targets = list(histograms)
+    fig, axes = _figure(3.0, 1, len(targets))
+    for ax, target in zip(axes[0], targets):
+        series = histograms[target]
+        width = 0.1 / max(1, len(series))
+        for k, (name, counts) in enumerate(series.items()):
+            c = np.asarray(counts, dtype=np.float64)
+            bins = len(c)
+            density = c / max(1.0, c.sum()) * bins
+            centres = (np.arange(bins) + 0.5) / bins
+            ax.bar(centres + (k - (len(series) - 1) / 2) * width, density, width=width,
+                   color=SERIES_CYCLE[k % len(SERIES_CYCLE)], label=name)
+        ax.axhline(1.0, color="black", linestyle="--", linewidth=1.0)
+        ax.set_xlim(0, 1)
+        ax.set_title(f"PIT, {target}", loc="left")
+        ax.set_xlabel("probability integral transform")
+        ax.set_ylabel("density")
+    _legend_below(fig, axes[0, 0], ncols=3)
     return _png(fig)

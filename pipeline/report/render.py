@@ -120,6 +120,9 @@ def _best_mask(frame: pd.DataFrame, highlight: str | None) -> np.ndarray:
         return mask
     numeric = frame.apply(pd.to_numeric, errors="coerce").to_numpy(dtype=np.float64)
     finite = np.isfinite(numeric)
+    if highlight == "col-min":
+        best_col = np.where(finite, numeric, np.inf).min(axis=0)
+        return finite & (numeric == best_col[None, :])
     fill = np.inf if highlight == "row-min" else -np.inf
     filled = np.where(finite, numeric, fill)
     best = filled.min(axis=1) if highlight == "row-min" else filled.max(axis=1)
@@ -127,21 +130,40 @@ def _best_mask(frame: pd.DataFrame, highlight: str | None) -> np.ndarray:
     return mask
 
 
+def _row_labels(index: pd.Index) -> list[list[dict[str, Any]]]:
+    """Label cells per row, one per index level; a label equal to the one above (and with the
+    same higher levels) is merged into it (``rowspan``), and its row gets no cell there."""
+    keys = [label if isinstance(label, tuple) else (label,) for label in index]
+    rows: list[list[dict[str, Any]]] = [[] for _ in keys]
+    for level in range(index.nlevels):
+        owner: dict[str, Any] | None = None
+        for r, key in enumerate(keys):
+            if (level < index.nlevels - 1 and owner is not None
+                    and keys[r - 1][:level + 1] == key[:level + 1]):
+                owner["rowspan"] += 1
+                continue
+            owner = {"text": _label(key[level]), "rowspan": 1}
+            rows[r].append(owner)
+    return rows
+
+
 def _table_view(table: TableItem) -> dict[str, Any]:
     frame = table.frame
     best = _best_mask(frame, table.highlight)
     rows = []
-    for r, (label, values) in enumerate(zip(frame.index, frame.itertuples(index=False))):
+    labels = _row_labels(frame.index)
+    for r, values in enumerate(frame.itertuples(index=False)):
         cells = []
         for c, value in enumerate(values):
             text, css = _format_cell(value, table.decimals)
             if best[r, c]:
                 css = (css + " best").strip()
             cells.append({"text": text, "css": css})
-        rows.append({"label": _label(label), "cells": cells})
-    index_name = " / ".join(str(n) for n in frame.index.names if n is not None)
-    return {"header_rows": _header_rows(frame.columns), "rows": rows, "index_name": index_name,
-            "caption": table.caption, "note": table.note}
+        rows.append({"labels": labels[r], "cells": cells})
+    index_names = [str(n) if n is not None else "" for n in frame.index.names]
+    return {"header_rows": _header_rows(frame.columns), "rows": rows,
+            "index_names": index_names, "caption": table.caption, "note": table.note,
+            "css": table.css}
 
 
 def _blocks(items: Sequence[FigureItem | TableItem]) -> list[dict[str, Any]]:
@@ -163,6 +185,7 @@ def _blocks(items: Sequence[FigureItem | TableItem]) -> list[dict[str, Any]]:
 
 def _section_view(section: Section) -> dict[str, Any]:
     return {"key": section.key, "title": section.title, "intro": section.intro,
+            "alerts": section.alerts, "new_page": section.new_page,
             "blocks": _blocks(section.items)}
 
 
@@ -180,7 +203,8 @@ def render_html(content: ReportContent) -> str:
         title=content.title, version=__version__, css=_stylesheet(),
         reference_date=content.reference_date.isoformat(), data_vintage=content.data_vintage,
         generated_at=generated, warnings=content.warnings, summary=content.summary,
-        sections=[_section_view(s) for s in content.sections],
+        headline=_section_view(content.headline) if content.headline else None,
+        checks=content.checks, sections=[_section_view(s) for s in content.sections],
         provenance=_provenance_view(content.provenance))
 
 

@@ -1,22 +1,19 @@
 """The weekly report from the forecast pipeline's results (``pipeline.forecast.ForecastResults``).
 
 ``build_forecast_report(results, out_dir)`` is the hook ``pipeline.forecast.write_report``
-calls. It reads the results by attribute (no import of ``pipeline.forecast``, which imports
-torch-heavy modules), turns arrays into figures and frames into tables, and writes
+calls. It reads the results by attribute (``pipeline.forecast`` is imported for type checking
+only: it pulls in torch), turns arrays into figures and frames into tables, and writes
 ``report.html`` + ``report.pdf`` with :func:`pipeline.report.render.write_report`.
 
-Attributes read (as ``pipeline.forecast`` defines them):
-``sir_frame`` (date, S, I, R), ``vintage``, ``stale``, ``stale_notes``, ``config`` (dataclass,
-``seed``), ``future`` (dates, samples (P, H, ≥3), reference_date), ``parameters`` (long:
-direction, date, component ∈ S, I, R, beta, gamma, mean, std, q0.025, q0.5, q0.975),
-``rollouts`` {(direction, every): RolloutResult with times (days since the first date),
-mean (H, D), band(2.0), names}, ``smc`` (result with mean (1, T, D), sigma_band(3), ess (1, T),
-num_particles, state_names; dates), ``nll`` (direction, variant, mean_nll), ``models``
-(key, reused, encoder, path, histories {direction: [ {iteration, train_loss, val_nll}, ...]}),
-optional ``backtest`` (a :class:`pipeline.backtest.BacktestResult`).
+A decision document: page 1 is the headline (:mod:`pipeline.report.headline`, the published
+forecast ``results.weekly.latest`` and its backtest), then the forecast and its track record, then
+the model diagnostics (S/I/R series, β/γ/R_t, state estimates, rollouts, SMC, NLL, training), then
+the provenance appendix. Every band is a 50 % or 90 % central interval. Diagnostics that signal
+trouble (:mod:`pipeline.report.checks`) are said in words in their section and listed on page 1.
 
-A section whose inputs are missing or malformed is left out and named in the report's warnings
-(the run's other results are still worth publishing); the error is also logged.
+A diagnostic section whose inputs are malformed (a :class:`ReportError` from its builder) is
+left out and named in the report's warnings; anything else (a renamed field, a bug) fails the
+report, so a test notices.
 """
 from __future__ import annotations
 
@@ -24,34 +21,54 @@ import dataclasses
 import datetime as dt
 import logging
 import platform
+import warnings
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+from numpy.typing import NDArray
 
 from pipeline import __version__
 from pipeline.io import sha256_bytes, sha256_file
-from pipeline.report import figures
-from pipeline.report.content import (FigureItem, Provenance, ReportContent, Section, SectionKey,
-                                     TableItem, nll_table, stale_data_warning)
+from pipeline.report import checks, figures
+from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
+                                     SectionKey, TableItem, nll_table)
+from pipeline.report.headline import (PUBLISHED, Headline, compute_headline, facts_frame,
+                                      fmt_count, fmt_range, fmt_share, forecast_frame,
+                                      published_weekly, skill_frame)
 from pipeline.report.render import ReportFiles, write_report
+
+if TYPE_CHECKING:
+    from pipeline.forecast import ForecastResults
+    from pipeline.forecasting.weekly import WeeklyForecast
 
 log = logging.getLogger(__name__)
 STATES = ("S", "I", "R")
+LEVELS = figures.LEVELS
+Q_COLUMNS = tuple(f"q{level:g}" for level in LEVELS)
 _VERSIONED = ("torch", "numpy", "pandas", "scipy", "nflows", "zuko", "pyro-ppl", "prefect",
-              "matplotlib", "weasyprint")
+              "matplotlib", "weasyprint", "statsforecast")
+HISTORY_WEEKS = 12          # weeks of observations before the forecast fan
+FORECASTERS = {  # the published forecast first, the reference last
+    PUBLISHED: "published (recalibrated ensemble)",
+    "ensemble-uncalibrated": "ensemble before recalibration",
+    "autoets": "AutoETS member",
+    "nf-growth": "conditional-flow member (nf-growth)",
+    "hub-baseline": "hub baseline",
+}
+TARGETS = {"cases": "weekly reported cases", "I": "I (share of the population)"}
 
 
-def _numpy(x: Any) -> np.ndarray:
+def _numpy(x: Any) -> NDArray[np.float64]:
     if hasattr(x, "detach"):
         x = x.detach().cpu().double().numpy()
     return np.asarray(x, dtype=np.float64)
 
 
-def _observed_at(sir: pd.DataFrame, dates: pd.DatetimeIndex) -> np.ndarray:
+def _observed_at(sir: pd.DataFrame, dates: pd.DatetimeIndex) -> NDArray[np.float64]:
     frame = sir.assign(date=pd.to_datetime(sir["date"]).dt.normalize()).set_index("date")
     return frame.reindex(dates.normalize())[list(STATES)].to_numpy(dtype=np.float64)
 
@@ -60,124 +77,332 @@ def _fig(png: bytes, caption: str, alt: str) -> FigureItem:
     return FigureItem(png=png, caption=caption, alt=alt)
 
 
-# ----------------------------------------------------------------------------- sections
+def _indices(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
+    missing = [n for n in wanted if n not in names]
+    if missing:
+        raise ReportError(f"{what} lacks components {missing} (has {list(names)})")
+    return [list(names).index(n) for n in wanted]
 
-def _series_section(r: Any) -> Section:
-    sir = r.sir_frame
+
+def _label(name: str) -> str:
+    return FORECASTERS.get(name, name)
+
+
+# ----------------------------------------------------------------------------- page 1
+
+def headline_section(h: Headline) -> Section:
+    """Page 1: the forecast table, the key facts, the backtest's verdict on the intervals."""
+    skill = {s.target: s for s in h.skill}
+    cases = skill["cases"]
+    return Section(key="headline", title=f"Forecast from {h.origin}: the next four weeks", items=(
+        TableItem(forecast_frame(h), (
+            f"The published forecast (recalibrated ensemble) from {h.origin}, the Saturday "
+            f"ending the last complete week: median and 50%/90% intervals of the cases "
+            f"reported in each week (Sunday–Saturday) and of the infectious share I at its end "
+            f"(I = cases reported in the last 7 days / {h.population:,} residents). These are "
+            "the quantiles of the hub submission."), css="headline"),
+        TableItem(facts_frame(h), "", css="facts"),
+        TableItem(skill_frame(h), (
+            f"How good this forecast has been: the same method forecast in real time at "
+            f"{cases.n_origins} earlier Saturdays ({cases.first_origin} … {cases.last_origin}), "
+            "scored against what was later reported. Relative WIS = Σ WIS / Σ WIS of the "
+            "COVID-19 Forecast Hub baseline over the same forecasts (below 1: better than the "
+            "baseline); coverage: share of observations inside the 50% and 90% intervals "
+            "(nominal 0.50 and 0.90)."), decimals=2, css="skill")))
+
+
+# ----------------------------------------------------------------------------- forecast
+
+def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
+    """Every forecaster at the latest origin: median (90 % interval) per target and week."""
+    forecasts = weekly.member_forecasts()
+    rows, index = [], []
+    for target, target_label in TARGETS.items():
+        fmt = fmt_share if target == "I" else fmt_count
+        for name in [n for n in FORECASTERS if n in forecasts] + \
+                [n for n in forecasts if n not in FORECASTERS]:
+            f = forecasts[name]
+            q = {lv: f.values[target][:, int(np.argmin(np.abs(f.levels - lv)))]
+                 for lv in (0.05, 0.5, 0.95)}
+            # the first and last week only: four columns of intervals do not fit an A4 page
+            rows.append([f"{fmt(q[0.5][k])} ({fmt_range(q[0.05][k], q[0.95][k], fmt)})"
+                         for k in (0, len(f.horizons) - 1)])
+            index.append((target_label, _label(name)))
+            horizons = (f.horizons[0], f.horizons[-1])
+    origin = weekly.origin
+    columns = [f"{(origin + pd.Timedelta(days=7 * h)).date()} (+{h} wk)" for h in horizons]
+    return pd.DataFrame(rows, columns=columns,
+                        index=pd.MultiIndex.from_tuples(index, names=["target", "forecaster"]))
+
+
+def _weights_text(weekly: WeeklyForecast) -> str:
+    w = weekly.backtest.weights
+    now = w[pd.to_datetime(w["origin_date"]) == weekly.origin]
+    if now.empty:
+        return ""
+    parts = []
+    for h, group in now.groupby("horizon"):
+        shares = ", ".join(f"{m} {x:.2f}" for m, x in zip(group["member"], group["weight"]))
+        parts.append(f"{h} wk: {shares}")
+    return ("Ensemble weights at this origin, from past scores only: " + "; ".join(parts)
+            + ".")
+
+
+def forecast_section(results: ForecastResults, h: Headline) -> Section:
+    weekly = published_weekly(results)
+    seen = weekly.history.up_to(weekly.origin)
+    cases, share = seen.weekly_cases()[-HISTORY_WEEKS:], seen.weekly_I()[-HISTORY_WEEKS:]
+    ends = pd.DatetimeIndex([weekly.origin - pd.Timedelta(days=7 * k)
+                             for k in range(len(cases))][::-1])
+    q = {t: np.array([[getattr(f_t, a) for a in ("lo90", "lo50", "median", "hi50", "hi90")]
+                      for f_t in (getattr(f, attr) for f in h.horizons)])
+         for t, attr in (("cases", "cases"), ("I", "infectious"))}
+    png = figures.published_forecast_figure(
+        ends, cases, share, [f.target_end for f in h.horizons], q["cases"], q["I"],
+        h.population)
+    return Section.weekly(SectionKey.FORECAST, [
+        _fig(png, f"The published forecast from {h.origin} (median, 50% and 90% intervals) "
+                  f"after the last {len(cases)} weeks observed, on a log scale. Left: cases "
+                  "reported per week (Sunday–Saturday); right: the infectious share I at the "
+                  "week's end (right axis: people). Data after the origin (to "
+                  f"{h.last_data_day}) wait for next week's forecast.",
+             "Weekly reported cases and infectious share: observed weeks and the four-week "
+             "forecast fan"),
+        TableItem(_member_frame(weekly), (
+            "Every forecaster at this origin: median (90% interval). The published forecast "
+            "averages the members' quantiles with weights from their past scores and "
+            "recalibrates the result with the PIT of past forecasts (real time: only origins "
+            "whose truth was known on the day). " + _weights_text(weekly)), css="members")])
+
+
+# ----------------------------------------------------------------------------- backtest
+
+def _summary_tables(weekly: WeeklyForecast) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(relative WIS per target × horizon, coverage per target) — rows per forecaster."""
+    by_target = weekly.summary()["by_target"]
+    names = [n for n in FORECASTERS if n in by_target["cases"]] + \
+        [n for n in by_target["cases"] if n not in FORECASTERS]
+    horizons = weekly.backtest.config.horizons
+    rel, cov = {}, {}
+    for target, label in TARGETS.items():
+        for h in (*horizons, "all"):
+            key = f"h{h}" if h != "all" else "all"
+            rel[(label, f"{h} wk" if h != "all" else "all")] = [
+                by_target[target][n]["relative_wis_vs_baseline"][key] for n in names]
+        for col, key in (("50%", "coverage50"), ("90%", "coverage90")):
+            cov[(label, col)] = [by_target[target][n][key] for n in names]
+        cov[(label, "scored")] = [by_target[target][n]["n_scored"] for n in names]
+    index = pd.Index([_label(n) for n in names], name="forecaster")
+
+    def frame(d: dict[tuple[str, str], list[Any]]) -> pd.DataFrame:
+        out = pd.DataFrame(d, index=index)
+        out.columns = pd.MultiIndex.from_tuples(list(d))
+        return out.astype({c: float for c in d if c[1] != "scored"})
+    return frame(rel), frame(cov)
+
+
+def _past_forecasts(weekly: WeeklyForecast, target: str, horizons: Sequence[int]
+                    ) -> pd.DataFrame:
+    """Published quantiles at :data:`LEVELS` and the observed value per (origin, horizon)."""
+    scores = weekly.backtest.scores
+    mine = scores[(scores["forecaster"] == PUBLISHED) & (scores["target"] == target)]
+    observed = {(pd.Timestamp(o), int(h)): y for o, h, y in
+                zip(mine["origin_date"], mine["horizon"], mine["observed"])}
+    rows = []
+    for origin in weekly.backtest.origins:
+        f = weekly.backtest.forecasts[origin][PUBLISHED]
+        idx = [int(np.argmin(np.abs(f.levels - lv))) for lv in LEVELS]
+        for k, h in enumerate(f.horizons):
+            if h not in horizons:
+                continue
+            row = {"target_end_date": origin + pd.Timedelta(days=7 * h), "horizon": h,
+                   "observed": observed.get((origin, int(h)), np.nan)}
+            row.update(zip(Q_COLUMNS, f.values[target][k, idx]))
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def backtest_section(results: ForecastResults) -> Section:
+    weekly = published_weekly(results)
+    rel, cov = _summary_tables(weekly)
+    scores = weekly.backtest.scores
+    origins = pd.to_datetime(scores["origin_date"])
+    span = f"{origins.nunique()} weekly origins ({origins.min().date()} … {origins.max().date()})"
+    summary = weekly.summary()["by_target"]
+    pit = {TARGETS[t]: {_label(n): summary[t][n]["pit_histogram"]["counts"]
+                        for n in (PUBLISHED, "ensemble-uncalibrated") if n in summary[t]}
+           for t in TARGETS}
+    past = {TARGETS[t]: _past_forecasts(weekly, t, (1, 4)) for t in TARGETS}
+    return Section.weekly(SectionKey.BACKTEST, [
+        TableItem(rel, (
+            f"Relative WIS against the COVID-19 Forecast Hub baseline per target and horizon, "
+            f"over {span} forecast in real time: each forecast saw only the data up to its "
+            "origin, and the ensemble's weights and recalibration only scores known by then. "
+            "Σ WIS(row) / Σ WIS(baseline) over the same forecasts; below 1 beats the baseline; "
+            "bold: best in its column. Targets are never pooled."),
+            decimals=2, highlight="col-min"),
+        TableItem(cov, (
+            "Coverage: share of observed values inside the 50% and 90% intervals (nominal 0.50 "
+            "and 0.90; below nominal: intervals too narrow), and the number of scored forecasts "
+            "(origins × horizons). Successive origins share target weeks, so these shares are "
+            "noisier than their count suggests."), decimals=2),
+        _fig(figures.past_forecasts_figure(past, (1, 4)),
+             "Past published forecasts against what was reported, 1 and 4 weeks ahead: median "
+             "and 50%/90% intervals at each target week (log scale), observed values in black.",
+             "Past 1- and 4-week-ahead published forecasts with bands against observations"),
+        _fig(figures.pit_figure(pit),
+             "PIT histograms of the published forecast and of the ensemble before "
+             "recalibration (all horizons): flat at 1 = calibrated; a U shape = intervals too "
+             "narrow, a hump = too wide, a slope = biased.",
+             "PIT histograms per target")], new_page=False)
+
+
+# ----------------------------------------------------------------------------- diagnostics
+
+def series_section(results: ForecastResults) -> Section:
+    sir = results.sir_frame
     last = pd.to_datetime(sir["date"]).max().date()
-    # the figure's subtitle gets the short vintage; the caption carries the full one
-    png = figures.sir_series_figure(sir, vintage=str(r.vintage).split(";", 1)[0])
+    png = figures.sir_series_figure(sir, vintage=str(results.vintage).split(";", 1)[0])
     return Section.weekly(SectionKey.SIR_SERIES, [_fig(
         png, f"S, I and R as fractions of the San Francisco population, derived from DataSF "
-             f"cases, tests and deaths; last day {last}. Data: {r.vintage}.",
+             f"cases, tests and deaths; last day {last}. Data: {results.vintage}.",
         "Three stacked time series: susceptible, infectious and removed fractions")])
 
 
-def _forecast_section(r: Any) -> Section:
-    f = r.future
-    samples = _numpy(f.samples)[..., :3]
-    sir = r.sir_frame
-    png = figures.forecast_fan_figure(pd.to_datetime(sir["date"]),
-                                      sir[list(STATES)].to_numpy(dtype=float),
-                                      pd.DatetimeIndex(f.dates), samples)
-    return Section.weekly(SectionKey.FORECAST, [_fig(
-        png, f"Forecast from {f.reference_date} for {len(f.dates)} days: median and 50%/90% "
-             f"intervals of {samples.shape[0]} sample paths of the forward flow rollout; dots: "
-             "the last 8 weeks observed. The same paths give hub_forecast.csv.",
-        "Fan charts of the four-week forecast of S, I and R")])
-
-
-def _long_to_arrays(frame: pd.DataFrame, direction: str) -> tuple[pd.DatetimeIndex, dict]:
+def _long_to_arrays(frame: pd.DataFrame, direction: str
+                    ) -> tuple[pd.DatetimeIndex, dict[str, pd.DataFrame]]:
     part = frame[frame["direction"] == direction]
     wide = {c: part[part["component"] == c].assign(date=lambda d: pd.to_datetime(d["date"]))
             .set_index("date").sort_index() for c in part["component"].unique()}
+    if "S" not in wide:
+        raise ReportError(f"parameter table has no {direction} S rows")
     dates = wide["S"].index
     return pd.DatetimeIndex(dates), {c: w.reindex(dates) for c, w in wide.items()}
 
 
-def _estimates_section(r: Any) -> Section:
+def _q(wide: pd.DataFrame) -> NDArray[np.float64]:
+    """(T, 5) quantiles at :data:`LEVELS` of one component's rows."""
+    missing = [c for c in Q_COLUMNS if c not in wide.columns]
+    if missing:
+        raise ReportError(f"parameter table lacks quantile columns {missing}")
+    return wide[list(Q_COLUMNS)].to_numpy(dtype=np.float64)
+
+
+def estimates_section(results: ForecastResults) -> Section:
     items = []
     for direction in ("forward", "backward"):
-        dates, wide = _long_to_arrays(r.parameters, direction)
-        mean = np.column_stack([wide[c]["mean"] for c in STATES])
-        std = np.column_stack([wide[c]["std"] for c in STATES])
-        png = figures.estimate_band_figure(dates, _observed_at(r.sir_frame, dates), mean,
-                                           mean - 2 * std, mean + 2 * std, direction=direction)
+        dates, wide = _long_to_arrays(results.parameters, direction)
+        q = np.stack([_q(wide[c]) for c in STATES], axis=-1).transpose(1, 0, 2)   # (5, T, 3)
+        png = figures.estimate_band_figure(dates, _observed_at(results.sir_frame, dates), q,
+                                           direction=direction)
         side = "before" if direction == "forward" else "after"
-        items.append(_fig(png, f"{direction.capitalize()} estimates of each day's state from the "
-                               f"{r.config.window} observations {side} it: mean ± 2σ of the "
-                               "flow's samples; dots: observed.",
-                          f"{direction} state estimates of S, I, R with 2 sigma bands"))
+        items.append(_fig(png, f"{direction.capitalize()} estimates of each day's state from "
+                               f"the {results.config.window} observations {side} it: median, "
+                               "50% and 90% intervals of the flow's samples; dots: observed.",
+                          f"{direction} state estimates of S, I, R with 50% and 90% bands"))
     return Section.weekly(SectionKey.STATE_ESTIMATES, items)
 
 
-def _rollout_section(r: Any) -> Section:
-    sir = r.sir_frame
+def rollout_section(results: ForecastResults) -> Section:
+    sir = results.sir_frame
     start = pd.to_datetime(sir["date"]).min()
     items = []
-    for (direction, every), roll in sorted(r.rollouts.items(), key=lambda kv: (kv[0][1], kv[0][0])):
-        dates = start + pd.to_timedelta(np.asarray(roll.times, dtype=float), unit="D")
-        names = list(roll.names)
-        idx = [names.index(c) for c in STATES]
-        mean = _numpy(roll.mean)[:, idx]
-        lower, upper = (_numpy(b)[:, idx] for b in roll.band(2.0))
-        png = figures.rollout_figure(pd.DatetimeIndex(dates), _observed_at(sir, pd.DatetimeIndex(dates)),
-                                     mean, lower, upper, window_days=int(every),
-                                     direction=direction)
+    for (direction, every), roll in sorted(results.rollouts.items(),
+                                           key=lambda kv: (kv[0][1], kv[0][0])):
+        dates = pd.DatetimeIndex(start + pd.to_timedelta(np.asarray(roll.times, dtype=float),
+                                                         unit="D"))
+        idx = _indices(roll.names, STATES, f"{direction} {every}-day rollout")
+        # NaN where nothing was predicted (before the first window): the band leaves a gap
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # "All-NaN slice": those days
+            q = np.nanquantile(_numpy(roll.samples)[..., idx], LEVELS, axis=0)    # (5, T, 3)
+        png = figures.rollout_figure(dates, _observed_at(sir, dates), q,
+                                     window_days=int(every), direction=direction)
         items.append(_fig(png, f"{direction.capitalize()} rollout re-anchored on observations "
-                               f"every {every} days: mean ± 2σ of the sample paths; full series "
-                               "(left) and 60 days around the peak of I (right).",
+                               f"every {every} days: median, 50% and 90% intervals of the "
+                               "sample paths; full series (left) and 60 days around the peak "
+                               "of I (right).",
                           f"{direction} {every}-day rollout of S, I, R, full and zoomed"))
     return Section.weekly(SectionKey.ROLLOUTS, items)
 
 
-def _parameter_section(r: Any) -> Section:
-    dates, wide = _long_to_arrays(r.parameters, "forward")
-    q = ["q0.025", "q0.5", "q0.975"]
-    prior_beta = prior_gamma = None
-    prior = getattr(r.config, "prior", None)  # the training prior's ranges, when known
-    if prior is not None:
-        prior_beta, prior_gamma = tuple(prior.beta), tuple(prior.gamma)
-    png = figures.parameter_figure(dates, wide["beta"][q].to_numpy(), wide["gamma"][q].to_numpy(),
-                                   beta_prior=prior_beta, gamma_prior=prior_gamma)
-    latest = {c: wide[c].iloc[-1] for c in ("beta", "gamma")}
-    table = pd.DataFrame({"median": [latest[c]["q0.5"] for c in latest],
-                          "2.5%": [latest[c]["q0.025"] for c in latest],
-                          "97.5%": [latest[c]["q0.975"] for c in latest]},
-                         index=pd.Index(["β (per day)", "γ (per day)"], name="parameter"))
+def _prior(results: ForecastResults) -> Any:
+    return getattr(results.config, "prior", None)   # the training prior's ranges, when known
+
+
+def parameter_section(results: ForecastResults) -> Section:
+    dates, wide = _long_to_arrays(results.parameters, "forward")
+    prior = _prior(results)
+    priors = {"beta": tuple(prior.beta) if prior else None,
+              "gamma": tuple(prior.gamma) if prior else None}
+    rt = _q(wide["Rt"]) if "Rt" in wide else None
+    png = figures.parameter_figure(dates, _q(wide["beta"]), _q(wide["gamma"]), rt,
+                                   beta_prior=priors["beta"], gamma_prior=priors["gamma"])
+    names = {"beta": "β (per day)", "gamma": "γ (per day)", "Rt": "R_t = β·S/γ"}
+    rows = {names[c]: [wide[c]["q0.5"].iloc[-1],
+                       fmt_range(wide[c]["q0.25"].iloc[-1], wide[c]["q0.75"].iloc[-1], _g3),
+                       fmt_range(wide[c]["q0.05"].iloc[-1], wide[c]["q0.95"].iloc[-1], _g3),
+                       fmt_range(*priors[c], _g3) if priors.get(c) else "—"]
+            for c in names if c in wide}
+    table = pd.DataFrame(list(rows.values()), index=pd.Index(list(rows), name="parameter"),
+                         columns=["median", "50% interval", "90% interval", "prior range"])
+    alerts = [a for a in (checks.prior_not_updated(
+        label, wide[c]["q0.05"].to_numpy(), wide[c]["q0.95"].to_numpy(), priors[c], dates)
+        for c, label in (("beta", "β"), ("gamma", "γ"))) if a]
     return Section.weekly(SectionKey.PARAMETERS, [
-        _fig(png, "Joint estimates of the transmission rate β and recovery rate γ from the "
-                  f"{r.config.window} observations before each day: median and 95% credible "
-                  "interval; dotted lines: range of the synthetic training prior (for β its "
-                  "starting range: in the SF prior β drifts over time, and the estimate is the "
-                  "β in effect on the day).",
-             "Time series of beta and gamma with credible intervals"),
-        TableItem(table, f"β and γ on {dates[-1].date()} (latest day).", decimals=4)])
+        _fig(png, "Joint estimates of the transmission rate β, the recovery rate γ and "
+                  f"R_t = β·S/γ (per joint sample) from the {results.config.window} "
+                  "observations before each day: median, 50% and 90% intervals; dotted lines: "
+                  "range of the synthetic training prior (for β its starting range: β drifts "
+                  "in the prior, and the estimate is the β in effect on the day).",
+             "Time series of beta, gamma and R_t with 50% and 90% intervals"),
+        TableItem(table, f"β, γ and R_t on {dates[-1].date()} (latest estimated day).",
+                  decimals=4)], alerts=alerts)
 
 
-def _smc_section(r: Any) -> Section:
-    res = r.smc.result
-    names = list(res.state_names)
-    idx = [names.index(c) for c in STATES]
-    mean = _numpy(res.mean)[0][:, idx]
-    lower, upper = (_numpy(b)[0][:, idx] for b in res.sigma_band(3.0))
-    dates = pd.DatetimeIndex(r.smc.dates)
+def _g3(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def _smc_quantiles(res: Any, idx: list[int]) -> NDArray[np.float64]:
+    """(5, T, 3) weighted quantiles at :data:`LEVELS` of the (first) filter."""
+    recorded = np.asarray(res.quantile_levels, dtype=np.float64)
+    picks = []
+    for level in LEVELS:
+        hits = np.flatnonzero(np.isclose(recorded, level, rtol=0, atol=1e-9))
+        if hits.size == 0:
+            raise ReportError(f"the SMC run did not record the {level} quantile (recorded "
+                              f"{recorded.tolist()}); SMCConfig.quantiles must include "
+                              f"{list(LEVELS)}")
+        picks.append(_numpy(res.quantiles[0, :, hits[0]])[:, idx])
+    return np.stack(picks)
+
+
+def smc_section(results: ForecastResults) -> Section:
+    res = results.smc.result
+    idx = _indices(res.state_names, STATES, "the SMC result")
+    q = _smc_quantiles(res, idx)
+    dates = pd.DatetimeIndex(results.smc.dates)
     ess = _numpy(res.ess)[0]
-    n = int(getattr(res, "num_particles", 0) or r.config.smc_particles)
-    png = figures.smc_band_figure(dates, _observed_at(r.sir_frame, dates), mean, lower, upper,
-                                  ess=ess, n_particles=n)
+    n = int(getattr(res, "num_particles", 0) or results.config.smc_particles)
+    png = figures.smc_band_figure(dates, _observed_at(results.sir_frame, dates), q,
+                                  ess=ess, n_particles=n,
+                                  collapse_fraction=checks.ESS_COLLAPSE_FRACTION)
+    alert = checks.ess_collapse(ess, n, dates)
     return Section.weekly(SectionKey.SMC, [_fig(
-        png, f"Bootstrap particle filter ({n} particles) seeded with flow samples at "
-             f"{dates[0].date()}: filtered mean ± 3σ; bottom: effective sample size.",
-        "Particle filter estimates of S, I, R with 3 sigma bands and effective sample size")])
+        png, f"Bootstrap particle filter ({n:,} particles) seeded with flow samples at "
+             f"{dates[0].date()}: filtered median, 50% and 90% weighted-quantile bands; bottom: "
+             "effective sample size.",
+        "Particle filter estimates of S, I, R with 50% and 90% bands and effective sample "
+        "size")], alerts=[alert] if alert else [])
 
 
 # The paper's Table 5 columns, then any other variant this store holds (e.g. MLP).
 _PAPER_VARIANTS = ("Transformer", "Transformer + KE", "Mamba-SSM")
 
 
-def _nll_section(r: Any) -> Section:
-    frame = r.nll
+def nll_section(results: ForecastResults) -> Section:
+    frame = results.nll
     short = {"forward": "fw", "backward": "bw"}
     ours = list(dict.fromkeys(frame["variant"].astype(str)))
     variants = [*_PAPER_VARIANTS, *(v for v in ours if v not in _PAPER_VARIANTS)]
@@ -197,71 +422,30 @@ def _nll_section(r: Any) -> Section:
         highlight="row-min")])
 
 
-def _training_section(r: Any) -> Section:
+def training_section(results: ForecastResults) -> Section:
     frames = []
-    for direction, history in r.models.histories.items():
+    for direction, history in results.models.histories.items():
         h = pd.DataFrame(list(history))
         if h.empty:
             continue
         frames.append(pd.DataFrame({"step": h["iteration"], "train": h["train_loss"],
                                     "validation": h["val_nll"], "variant": f"{direction} flow"}))
+    if not frames:
+        raise ReportError("no training history in the model store entry")
     png = figures.loss_curve_figure(pd.concat(frames, ignore_index=True),
                                     ylabel="loss (standardized NLL)")
-    reused = "reused from the model cache" if r.models.reused else "trained in this run"
+    reused = "reused from the model cache" if results.models.reused else "trained in this run"
     return Section.weekly(SectionKey.TRAINING, [_fig(
         png, f"Training loss (mean since the previous evaluation) and validation NLL of the "
-             f"forward and backward {r.models.encoder} flows ({reused}).",
-        "Training and validation loss curves")])
+             f"forward and backward {results.models.encoder} joint flows ({reused}).",
+        "Training and validation loss curves")], new_page=False)
 
 
-_BACKTEST_LABELS = {"nf-rollout": "NF rollout (this model)", "smc": "plain SMC",
-                    "persistence": "persistence"}
-
-
-def backtest_table(result: Any) -> pd.DataFrame:
-    """One row per forecaster: relative WIS against persistence and against the plain SMC,
-    mean WIS and its parts, 50%/90% interval coverage, number of scored cells."""
-    from pipeline.backtest import relative_wis, summarize
-
-    summary = summarize(result)
-    names = list(summary.index)
-    vs_smc = ([relative_wis(result.scores, name, "smc") for name in names]
-              if "smc" in names else [float("nan")] * len(names))
-    return pd.DataFrame({
-        "rel. WIS vs persistence": summary["relative_wis"].to_numpy(),
-        "rel. WIS vs plain SMC": vs_smc,
-        "mean WIS": summary["mean_wis"].to_numpy(),
-        "50% coverage": summary["coverage_50"].to_numpy(),
-        "90% coverage": summary["coverage_90"].to_numpy(),
-        "scored cells": summary["n_forecasts"].to_numpy()},
-        index=pd.Index([_BACKTEST_LABELS.get(n, n) for n in names], name="forecaster"))
-
-
-def _backtest_section(r: Any) -> Section:
-    from pipeline.backtest import summary_by_horizon
-
-    result = r.backtest
-    scores = result.scores
-    origins = pd.to_datetime(scores["origin"])
-    by_h = summary_by_horizon(result)
-    return Section.weekly(SectionKey.BACKTEST, [
-        _fig(figures.backtest_figure(by_h), "Relative WIS against the persistence baseline by "
-             "horizon (left; below 1 beats persistence) and 50%/90% interval coverage (right).",
-             "Bar chart of relative WIS by horizon and coverage lines"),
-        TableItem(backtest_table(result),
-                  f"Rolling-origin backtest: forecasts from {origins.nunique()} weekly origins "
-                  f"({origins.min().date()} … {origins.max().date()}), "
-                  f"{result.config.n_samples} sample paths each, scored at 1–4 weeks on S, I and "
-                  "R with the weighted interval score of the 23 hub quantiles. Relative WIS = "
-                  "Σ WIS(row) / Σ WIS(baseline) over the same forecasts (below 1: better than "
-                  "the baseline).", decimals=3)])
-
-
-_BUILDERS: Sequence[tuple[str, Callable[[Any], Section]]] = (
-    ("S/I/R series", _series_section), ("forecast", _forecast_section),
-    ("state estimates", _estimates_section), ("rollouts", _rollout_section),
-    ("β, γ", _parameter_section), ("SMC", _smc_section), ("NLL table", _nll_section),
-    ("loss curves", _training_section), ("backtest", _backtest_section))
+# Diagnostics: a malformed input (ReportError) leaves the section out, named in the warnings.
+_DIAGNOSTICS: Sequence[tuple[str, Callable[[ForecastResults], Section]]] = (
+    ("S/I/R series", series_section), ("β, γ, R_t", parameter_section),
+    ("state estimates", estimates_section), ("rollouts", rollout_section),
+    ("SMC", smc_section), ("NLL table", nll_section), ("loss curves", training_section))
 
 
 # ----------------------------------------------------------------------------- provenance
@@ -276,19 +460,23 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _provenance(r: Any) -> Provenance:
-    csv = r.sir_frame.to_csv(index=False).encode("utf-8")
+def _provenance(results: ForecastResults) -> Provenance:
+    csv = results.sir_frame.to_csv(index=False).encode("utf-8")
     checkpoint = ""
-    models = getattr(r, "models", None)
+    models = results.models
     path = Path(getattr(models, "path", "") or ".") / "forward" / "model.pt"
-    if models is not None and path.is_file():
+    if path.is_file():
         checkpoint = sha256_file(path)
-    config = r.config
+    config = results.config
     cfg = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else dict(config)
-    extra = {"model cache key": str(getattr(models, "key", "—")),
-             "model": ("reused from the model cache" if getattr(models, "reused", False)
-                       else "trained in this run"),
+    weekly = results.weekly
+    extra = {"model cache key": str(models.key),
+             "model": "reused from the model cache" if models.reused else "trained in this run",
              "forward checkpoint": str(path) if checkpoint else "—"}
+    if weekly is not None:
+        extra["published forecast: flow member"] = (
+            f"{weekly.model_key or '—'} ("
+            f"{'reused from the model cache' if weekly.model_reused else 'trained in this run'})")
     preset_for = getattr(config, "training_preset_for", None)
     if preset_for is not None:  # the resolved pipeline.presets entries the models come from
         for direction in ("forward", "backward"):
@@ -302,52 +490,40 @@ def _provenance(r: Any) -> Provenance:
                       seed=getattr(config, "seed", None), extra=extra)
 
 
-STALE_HEADLINE = ("Stale data: DataSF could not be reached (every retry failed), so this "
-                  "forecast was made from the cached data")
+# ----------------------------------------------------------------------------- assembly
 
-
-def stale_warnings(results: Any, last_day: dt.date) -> list[str]:
-    """The report's stale-data warnings: why (DataSF unreachable, cache used), how old, and the
-    per-dataset cache notes."""
-    headline = f"{STALE_HEADLINE} ({results.vintage})."
-    age = stale_data_warning(last_day, dt.date.today(), as_of_label="today (the run date)")
-    notes = [_short_note(str(n)) for n in getattr(results, "stale_notes", ())]
-    details = ["Per dataset: " + "; ".join(notes) + "."] if notes else []
-    return [headline, *([age] if age else []), *details]
-
-
-def _short_note(note: str, limit: int = 160) -> str:
-    """A cache note without the transport's nested exception text (the run log keeps it)."""
-    note = note.split(" (Caused by", 1)[0].split("; last: ", 1)[0].rstrip(" .;")
-    return note if len(note) <= limit else note[: limit - 1] + "…"
-
-
-def forecast_report_content(results: Any) -> ReportContent:
-    """The ``ReportContent`` of one weekly run (sections that cannot be drawn become warnings)."""
-    reference = results.future.reference_date
+def data_banner(results: ForecastResults, today: dt.date | None = None) -> str | None:
+    """The report's one data banner (stale or old data), else None."""
     last = pd.to_datetime(results.sir_frame["date"]).max().date()
-    warnings = stale_warnings(results, last) if results.stale else []
-    sections = []
-    for name, build in _BUILDERS:
-        if name == "backtest" and getattr(results, "backtest", None) is None:
-            continue
+    data = getattr(results.config, "data", None)
+    return checks.data_banner(stale=results.stale, vintage=str(results.vintage),
+                              notes=results.stale_notes, last_day=last,
+                              today=today or dt.date.today(),
+                              source=getattr(data, "kind", "cache"))
+
+
+def forecast_report_content(results: ForecastResults) -> ReportContent:
+    """The ``ReportContent`` of one weekly run."""
+    headline = compute_headline(results)
+    banner = data_banner(results)
+    notes = [banner] if banner else []
+    sections = [forecast_section(results, headline), backtest_section(results)]
+    for name, build in _DIAGNOSTICS:
         try:
             sections.append(build(results))
-        except Exception as exc:  # noqa: BLE001 - publish the rest, say what is missing
+        except ReportError as exc:   # malformed inputs: publish the rest, say what is missing
             log.exception("report section %s failed", name)
-            warnings.append(f"The {name} section could not be drawn: "
-                            f"{type(exc).__name__}: {exc}")
+            notes.append(f"The {name} section could not be drawn: {exc}")
+    # the header shows the vintage's first two parts (as of, days); the full one is in §3
+    vintage = "; ".join(str(results.vintage).split("; ")[:2])
     return ReportContent(
-        title=f"San Francisco COVID-19 SIR forecast — {reference}",
-        reference_date=reference, data_vintage=str(results.vintage), sections=tuple(sections),
-        provenance=_provenance(results), warnings=tuple(warnings),
-        summary=(f"Forecasts and estimates of the susceptible (S), infectious (I) and removed (R) "
-                 f"fractions of San Francisco's population from normalizing flows trained on "
-                 f"simulated SIR epidemics ({results.models.encoder} encoder), conditioned on "
-                 f"the latest DataSF observations up to {last}."))
+        title=f"San Francisco COVID-19 forecast from {headline.origin}",
+        reference_date=headline.origin, data_vintage=vintage,
+        sections=tuple(sections), provenance=_provenance(results), warnings=tuple(notes),
+        summary=headline.sentence(), headline=headline_section(headline))
 
 
-def build_forecast_report(results: Any, out_dir: str | Path) -> list[str]:
+def build_forecast_report(results: ForecastResults, out_dir: str | Path) -> list[str]:
     """Write report.html and report.pdf for one weekly run; returns the file names written."""
     files: ReportFiles = write_report(forecast_report_content(results), out_dir)
     return [files.html_path.name, files.pdf_path.name]

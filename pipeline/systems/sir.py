@@ -26,10 +26,13 @@ the SF series has I <= 0.026 (median 0.0008, so the paper's noise alone is 30x t
 infectious period fixed at L = 10 days by the conversion (gamma near 0.1), S >= 0.86 and several
 waves. ``sir-sf`` therefore draws gamma ~ U[0.07, 0.14] (L = 7-14 days), beta ~ U[0.03, 0.3]
 (daily growth rates -0.11 to +0.23, the 1st-95th percentile range of the series), a log-uniform
-I0 in [1e-5, 5e-3] and an already-removed share R0 ~ U[0, 0.15] (later waves start from a
-partly immune population), over 150 days (one wave); observation noise 5e-4 is about the
-day-to-day scatter of SF's I around its weekly mean (2.9e-4 measured) with room for the
-reporting artefacts of S and R. docs/systems.md has the measured coverage of SF by this prior.
+I0 in [1e-5, 5e-3] and an already-removed share R0 ~ U[1e-6, 0.15] (later waves start from a
+partly immune population; the floor, about one person of SF's 874,000, keeps every state strictly
+inside the simplex, so the forecast model's log-ratio coordinates log(R/S) of a backward window's
+first-day target are finite; with R0 = 0 exactly they would be -inf), over 150 days (one
+wave); observation noise 5e-4 is about the day-to-day scatter of SF's I around its weekly mean
+(2.9e-4 measured) with room for the reporting artefacts of S and R. docs/systems.md has the
+measured coverage of SF by this prior.
 
 Everything is vectorized over the ensemble (no Python loop over trajectories; the only loop is
 over time steps) and computed in float64, the project's simulation precision.
@@ -143,7 +146,7 @@ SIR_PRIORS: dict[str, SIRPrior] = {
     "sir-single": SIRPrior(name="sir-single", beta=(0.03, 0.03), gamma=(0.01, 0.01)),
     "sir-multi": SIRPrior(name="sir-multi", beta=(0.02, 0.04), gamma=(0.005, 0.025)),
     "sir-sf": SIRPrior(name="sir-sf", beta=(0.03, 0.3), gamma=(0.07, 0.14),
-                       i0_range=(1e-5, 5e-3), r0_range=(0.0, 0.15), horizon_days=150,
+                       i0_range=(1e-5, 5e-3), r0_range=(1e-6, 0.15), horizon_days=150,
                        obs_sigma=5e-4, n_trajectories=2000, beta_walk_sigma=0.08),
 }
 

@@ -1,0 +1,62 @@
+"""`flowcast forecast`: run the weekly SF forecast flow once (Prefect's local ephemeral API, or
+the server at ``PREFECT_API_URL``). ``make forecast`` calls it."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from pipeline.cli import app
+from pipeline.cli.choices import DataSource, Encoder, choices_enum, value
+from pipeline.forecast import FORECAST_PRESETS
+
+ForecastPreset = choices_enum("ForecastPreset", tuple(FORECAST_PRESETS))
+
+
+@app.command("forecast")
+def forecast_command(
+    preset: Annotated[ForecastPreset, typer.Option(  # type: ignore[valid-type]
+        help="default: the product (about 15 min from scratch, 1 min with a cached model); "
+             "tiny: a seconds-long smoke run")] = ForecastPreset("default"),
+    encoder: Annotated[Encoder | None, typer.Option(  # type: ignore[valid-type]
+        help="context encoder (default: the preset's)")] = None,
+    data_source: Annotated[DataSource, typer.Option(  # type: ignore[valid-type]
+        help="live: DataSF with cache fallback; cache: offline; import: the --import-from "
+             "exports first")] = DataSource("live"),
+    import_from: Annotated[list[Path] | None, typer.Option(
+        metavar="PATH", help="DataSF CSV export or folder for --data-source import "
+                             "(repeat the option for several)")] = None,
+    output_dir: Annotated[Path, typer.Option(help="reports folder")] = Path("reports"),
+    seed: Annotated[int, typer.Option(help="seed of every random step")] = 0,
+    retrain: Annotated[bool, typer.Option("--retrain", help="ignore the cached model")] = False,
+) -> None:
+    """Run the weekly San Francisco forecast once and print where the report went."""
+    from pipeline.errors import FlowcastError
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("DO_NOT_TRACK", "1")
+    from flows.server_guard import guard_ephemeral_server
+    from flows.weekly_forecast import weekly_forecast
+
+    guard_ephemeral_server()  # a killed run must not orphan Prefect's temporary server
+    state = weekly_forecast(preset=value(preset), encoder=value(encoder),
+                            data_source=value(data_source),
+                            import_from=[str(p) for p in import_from] if import_from else None,
+                            output_dir=str(output_dir), seed=seed, retrain=retrain,
+                            return_state=True)
+    if not state.is_completed():
+        try:
+            state.result()
+        except FlowcastError as error:
+            typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+        except Exception as error:  # noqa: BLE001 - a failed run: one line, the log has the rest
+            typer.secho(f"error: the forecast run failed ({type(error).__name__}: {error})",
+                        fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1)
+    result = state.result()
+    typer.echo(f"report: {result['output_dir']}")
+    if result["data_stale"]:
+        typer.secho("warning: DataSF could not be reached; the forecast used cached data "
+                    f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)

@@ -1,0 +1,78 @@
+"""statsforecast ``AutoETS`` on log weekly cases: the peer to beat.
+
+The model a user would reach for: ``AutoETS(season_length=1)`` (ETS with the error, trend and
+damping chosen by AICc) fitted to log(max(weekly cases, 0.5)) of the complete weeks ending at the
+origin, forecast 4 weeks ahead. The hub quantile at level α < 0.5 is the lower end of the
+central ``100·(1 − 2α)`` % prediction interval (α > 0.5: the upper end of the ``100·(2α − 1)`` %
+one), the median is the point forecast; everything is exponentiated back to counts. I = cases / N:
+on the log scale N is a shift, so this is also AutoETS on log weekly I.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.forecasting.members import quantile_forecast_from_weekly_cases
+from pipeline.forecasting.targets import EpiHistory, QuantileForecast, TargetError
+
+AUTOETS = "autoets"
+
+
+@dataclass(frozen=True)
+class AutoETSConfig:
+    floor_cases: float = 0.5        # log of 0 cases is undefined; 0.5 is half a case
+    season_length: int = 1
+    min_weeks: int = 4              # fewer complete weeks than this: refuse, naming the origin
+
+    def __post_init__(self) -> None:
+        if self.floor_cases <= 0 or self.season_length < 1 or self.min_weeks < 2:
+            raise TargetError(f"invalid AutoETSConfig {self}: need floor_cases > 0, "
+                              "season_length >= 1, min_weeks >= 2")
+
+
+def interval_levels(levels: NDArray[np.float64]) -> list[float]:
+    """The central-interval levels (percent) whose ends are the hub quantiles, without 0."""
+    lv = np.asarray(levels, dtype=np.float64)
+    widths = {round(float(100.0 * abs(1.0 - 2.0 * a)), 9) for a in lv}
+    return sorted(w for w in widths if w > 0)
+
+
+def log_quantiles(log_series: NDArray[np.float64], horizons: tuple[int, ...],
+                  levels: NDArray[np.float64], config: AutoETSConfig = AutoETSConfig()
+                  ) -> NDArray[np.float64]:
+    """AutoETS quantiles ``(H, Q)`` on the log scale of ``log_series``."""
+    from statsforecast.models import AutoETS
+
+    widths = interval_levels(levels)
+    fc = AutoETS(season_length=config.season_length).forecast(
+        y=np.asarray(log_series, dtype=np.float64), h=max(horizons), level=widths)
+    steps = np.asarray(horizons) - 1
+    columns = []
+    for a in np.asarray(levels, dtype=np.float64):
+        width = round(float(100.0 * abs(1.0 - 2.0 * a)), 9)
+        if width == 0:
+            columns.append(fc["mean"][steps])
+        else:
+            columns.append(fc[f"{'lo' if a < 0.5 else 'hi'}-{width}"][steps])
+    out = np.stack(columns, axis=-1)
+    # the ends of nested intervals are monotone up to rounding; make it exact
+    return np.maximum.accumulate(out, axis=-1)
+
+
+@dataclass(frozen=True)
+class AutoETSMember:
+    config: AutoETSConfig = AutoETSConfig()
+    name: str = AUTOETS
+
+    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
+        weekly = history.weekly_cases()
+        if weekly.size < self.config.min_weeks:
+            raise TargetError(f"autoets at {history.origin.date()}: {weekly.size} complete weeks, "
+                              f"needs {self.config.min_weeks}")
+        logq = log_quantiles(np.log(np.maximum(weekly, self.config.floor_cases)), horizons,
+                             levels, self.config)
+        return quantile_forecast_from_weekly_cases(self.name, history.origin, horizons, levels,
+                                                   np.exp(logq), history.population)

@@ -1,0 +1,103 @@
+"""Diagnostics that signal trouble, said in words: stale or old data, a particle filter whose
+effective sample size collapsed, β/γ posteriors the data did not update from the prior.
+
+Each check returns a sentence, or None when nothing is wrong. The report shows every sentence at
+the top of its section and lists them all on page 1; the data banner is one box, whatever the
+number of datasets.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import re
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike
+
+ESS_COLLAPSE_FRACTION = 0.05      # ESS below 5 % of the particles: a handful carry the estimate
+PRIOR_WIDTH_FRACTION = 0.9        # a 90 % interval this wide, relative to the prior range
+OLD_DATA_DAYS = 7
+
+STALE_HEADLINE = ("Stale data: DataSF could not be reached (every retry failed), so this "
+                  "forecast was made from the cached data")
+_URL = re.compile(r"https?://[^\s;,)]+")
+
+
+# ----------------------------------------------------------------------------- data
+
+def _short(note: str, limit: int = 200) -> str:
+    """A note without the transport's nested exception text (the run log keeps it)."""
+    note = note.split(" (Caused by", 1)[0].split("; last: ", 1)[0].rstrip(" .;")
+    return note if len(note) <= limit else note[: limit - 1] + "…"
+
+
+def dataset_lines(notes: Sequence[str]) -> list[str]:
+    """One line per dataset from the ``"<key>: <note>"`` cache notes: the dataset's own
+    resource URL (from its own notes) and what the cache said, the error text left out."""
+    by_key: dict[str, list[str]] = {}
+    for note in notes:
+        key, _, text = str(note).partition(": ")
+        by_key.setdefault(key, []).append(text)
+    lines = []
+    for key, texts in by_key.items():
+        urls = [m.group(0) for t in texts for m in _URL.finditer(t)]
+        kept = [_short(t) for t in texts if not t.startswith("DataSF unreachable")]
+        source = f" ({urls[0]})" if urls else ""
+        lines.append(f"{key}{source}: " + ("; ".join(kept) or "from the cache"))
+    return lines
+
+
+def data_banner(*, stale: bool, vintage: str, notes: Sequence[str], last_day: dt.date,
+                today: dt.date, source: str) -> str | None:
+    """The one data banner: stale (live fetch failed, cache used) or old (newest observation
+    more than a week before the run date), else None."""
+    age = (today - last_day).days
+    age_text = (f"the newest observation ({last_day}) is {age:,} days before the run date "
+                f"({today})")
+    if stale:
+        per_dataset = dataset_lines(notes)
+        return (f"{STALE_HEADLINE} ({vintage.split(';', 1)[0]}); {age_text}."
+                + (" Per dataset: " + "; ".join(per_dataset) + "." if per_dataset else ""))
+    if age > OLD_DATA_DAYS:
+        return (f"Old data: {age_text}; this run read DataSF data from the local "
+                f"{'cache' if source == 'cache' else source} ({vintage.split(';', 1)[0]}), "
+                "as asked. The forecast describes the weeks after the data, not the coming "
+                "weeks.")
+    return None
+
+
+# ----------------------------------------------------------------------------- SMC
+
+def ess_collapse(ess: ArrayLike, n_particles: int, dates: pd.DatetimeIndex,
+                 fraction: float = ESS_COLLAPSE_FRACTION) -> str | None:
+    """Days on which the effective sample size fell below ``fraction`` of the particles."""
+    e = np.asarray(ess, dtype=np.float64)
+    low = e < fraction * n_particles
+    if not low.any():
+        return None
+    worst = int(np.argmin(e))
+    return (f"Particle filter degenerate: its effective sample size fell below "
+            f"{fraction:.0%} of the {n_particles:,} particles on {int(low.sum())} of {len(e)} "
+            f"days (minimum {e[worst]:.0f} on {dates[worst].date()}); on those days a handful "
+            "of particles carry the filtered estimate and its bands understate the uncertainty.")
+
+
+# ----------------------------------------------------------------------------- β, γ
+
+def prior_not_updated(name: str, lower: ArrayLike, upper: ArrayLike,
+                      prior: tuple[float, float] | None, dates: pd.DatetimeIndex,
+                      fraction: float = PRIOR_WIDTH_FRACTION) -> str | None:
+    """When the 90 % interval spans at least ``fraction`` of the prior range on the latest day:
+    the posterior says what the prior said, so the data did not inform the parameter."""
+    if prior is None:
+        return None
+    lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    width = (hi - lo) / (prior[1] - prior[0])
+    wide = width >= fraction
+    if not wide[-1]:
+        return None
+    return (f"{name} not identified: its 90% interval spans {width[-1]:.0%} of the training "
+            f"prior's range ({prior[0]:g}–{prior[1]:g} per day) on {dates[-1].date()}, and at "
+            f"least {fraction:.0%} of it on {int(wide.sum())} of {len(wide)} days; the estimate "
+            "restates the prior, not the data.")
