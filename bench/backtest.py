@@ -38,6 +38,38 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def design_variants(history: Any, members: list[Any], config: Any) -> dict[str, Any]:
+    """The published forecast's design choices against their alternatives, same origins: per
+    target, relative WIS (h1–h4, all) and coverage of the published forecast under each."""
+    import dataclasses
+
+    from pipeline.forecasting.backtest import run_realtime_backtest, summarize
+    from pipeline.forecasting.baseline import HubBaseline
+    from pipeline.forecasting.calibration import CalibrationConfig
+
+    never = CalibrationConfig(shrinkage_pits=float("inf"))
+    choices = {
+        "as published": (members, config.calibration),
+        "no recalibration": (members, never),
+        "recalibration may narrow (probit-normal with bias)": (
+            members, dataclasses.replace(config.calibration, widen_only=False)),
+        "empirical quantile recalibration, all past PITs": (
+            members, CalibrationConfig(method="empirical", window=None, widen_only=False)),
+        "hub baseline as a third member": ([HubBaseline(), *members], config.calibration),
+    }
+    out: dict[str, Any] = {}
+    for name, (chosen, calibration) in choices.items():
+        result = run_realtime_backtest(history, chosen,
+                                       dataclasses.replace(config, calibration=calibration))
+        out[name] = {target: {"relative_wis_vs_baseline": s["published"]["relative_wis_vs_baseline"],
+                              "coverage50": s["published"]["coverage50"],
+                              "coverage90": s["published"]["coverage90"]}
+                     for target, s in summarize(result)["by_target"].items()}
+        print(f"variant {name!r}: I all {out[name]['I']['relative_wis_vs_baseline']['all']:.3f}"
+              f", cases all {out[name]['cases']['relative_wis_vs_baseline']['all']:.3f}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
     import dataclasses
@@ -61,8 +93,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     t_members = time.perf_counter() - t0
     result = run_realtime_backtest(history, members, config)
     summary = summarize(result)
+    variants = {} if args.quick else design_variants(history, members, config)
     out = {
         **summary,
+        "variants": variants,
         "seconds": {"members": round(t_members, 2), "backtest": round(result.seconds, 2),
                     "total": round(t_members + result.seconds, 2)},
         "flow_model": {"key": model_key, "reused": reused},

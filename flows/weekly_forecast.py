@@ -19,6 +19,7 @@ good report.
 import argparse
 import dataclasses
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -40,6 +41,8 @@ ARTIFACT_NLL = "sf-weekly-nll"
 ARTIFACT_PARAMS = "sf-weekly-beta-gamma"
 ARTIFACT_REPORT = "sf-weekly-report"
 ARTIFACT_SUMMARY = "sf-weekly-summary"
+# Base http(s) address where the reports folder is served; the report artifact links there.
+REPORTS_URL_ENV = "FLOWCAST_REPORTS_URL"
 # A run made from cached data because DataSF could not be reached finishes COMPLETED under this
 # state name, carries this tag and emits this event (automations can match any of the three).
 STALE_STATE_NAME = "Completed (stale data)"
@@ -183,20 +186,43 @@ def _publish_artifacts(results: fc.ForecastResults, final_dir: Path, files: list
     create_table_artifact(results.nll.round(4).to_dict(orient="records"), key=ARTIFACT_NLL,
                           description="Mean NLL of the observed S/I/R at random SF days "
                                       "(forward/backward × model variant; paper Table 5 layout)")
-    params = results.parameters[results.parameters["component"].isin(["beta", "gamma"])]
-    latest = params.groupby(["direction", "component"]).tail(8)
+    params = results.parameters[results.parameters["component"].isin(["beta", "gamma", "Rt"])]
+    columns = ["direction", "date", "component", *(f"q{level:g}" for level in fc.REPORT_LEVELS)]
+    latest = params.groupby(["direction", "component"]).tail(8)[columns]
     create_table_artifact(latest.round(6).to_dict(orient="records"), key=ARTIFACT_PARAMS,
-                          description="β, γ estimates (mean, std, 95% interval), latest days")
+                          description="β, γ and R_t estimates (median, 50% and 90% intervals), "
+                                      "latest days")
     report = next((f for f in files if f.endswith(".html")), files[0])
-    create_link_artifact((final_dir / report).resolve().as_uri(), link_text=f"report {final_dir.name}",
-                         key=ARTIFACT_REPORT, description="Weekly SF forecast report")
-    stale = (f"**STALE DATA** (DataSF unreachable; cached data used; run tagged "
-             f"`{STALE_TAG}`, state `{STALE_STATE_NAME}`).\n\n" +
-             "\n".join(f"- {n}" for n in results.stale_notes)) if results.stale else \
-        "Data fresh."
+    _publish_report_link(final_dir, report)
+    # The report's page-1 headline, with its one data banner (stale or old data, once; the
+    # transport's long error text stays in the run log).
+    from pipeline.report.headline import compute_headline, markdown
+    from pipeline.report.weekly import data_banner
+
+    banner = data_banner(results)
+    if results.stale:
+        banner = f"{banner} (Run tagged `{STALE_TAG}`, state `{STALE_STATE_NAME}`.)"
+    create_markdown_artifact(markdown(compute_headline(results), banner,
+                                      report_path=str(final_dir / report)),
+                             key=ARTIFACT_SUMMARY,
+                             description="Headline of the weekly SF forecast (report page 1)")
+
+
+def _publish_report_link(final_dir: Path, report: str) -> None:
+    """A link the Prefect UI can open when the reports folder is served over http(s)
+    ($FLOWCAST_REPORTS_URL, its base address); browsers refuse file:// links from the UI, so
+    without it the artifact names the file on the worker's machine and says how to serve it."""
+    base = os.environ.get(REPORTS_URL_ENV, "").rstrip("/")
+    if base.startswith(("http://", "https://")):
+        create_link_artifact(f"{base}/{final_dir.name}/{report}",
+                             link_text=f"report {final_dir.name}", key=ARTIFACT_REPORT,
+                             description="Weekly SF forecast report")
+        return
     create_markdown_artifact(
-        f"# SF weekly forecast {final_dir.name}\n\n{results.vintage}\n\n{stale}\n\n"
-        f"Outputs: `{final_dir}`\n", key=ARTIFACT_SUMMARY)
+        f"Report {final_dir.name}: `{final_dir / report}` on the worker's machine. To link it "
+        f"here, serve the reports folder (e.g. `python -m http.server -d {final_dir.parent} "
+        f"8080`) and set `{REPORTS_URL_ENV}=http://<host>:8080` for the worker.",
+        key=ARTIFACT_REPORT, description="Weekly SF forecast report")
 
 
 @flow(name="weekly_forecast", log_prints=True)
@@ -277,7 +303,9 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
             model_key=models.key, seed=seed, preset=preset, files=tuple(files),
             summary={"model_reused": models.reused,
                      "nll": results.nll.to_dict(orient="records"),
-                     "backtest": fc.published_skill(weekly)})
+                     "backtest": fc.published_skill(weekly),
+                     # reports/index.html shows it (pipeline.run_outputs.render_index_html)
+                     "headline": fc.headline_record(results)})
         final_dir = outputs.promote(staging, record)
     _publish_artifacts(results, final_dir, files)
     elapsed = time.monotonic() - started

@@ -15,14 +15,15 @@ Steps, each a function here so it can be called, tested and timed without Prefec
    estimate of the day before the last window (both from the latest R observations).
 5. :func:`rollouts` — rolling rollouts re-anchored every 7 and 28 days, forward and backward
    (``pipeline.rollout``), plus :func:`future_paths`: forward sample paths past the last observed
-   day, the forecast proper (hub CSV, 1–4 weeks).
+   day (the paper's rollout forecast; the published forecast is step 9's).
 6. :func:`parameter_track` — β, γ over time (posterior mean and 95 % interval per day).
 7. :func:`nll_table` — the paper's Table 5: mean NLL of the observed state under the flow's state
    marginal at random days along the SF trajectory (forward / backward).
 8. :func:`seeded_smc` — the paper's hybrid: particles drawn from the forward joint estimate seed a
    bootstrap filter over the following observations; 3σ bands.
-9. :func:`backtest` — rolling-origin backtest of the forward flow over the latest weekly origins
-   against persistence and the plain bootstrap SMC (relative WIS, 50 %/90 % coverage).
+9. :func:`weekly_forecast` — the published forecast of weekly cases and I (an ensemble of a
+   flow member and AutoETS, :mod:`pipeline.forecasting`) at the latest Saturday, with the same
+   method's real-time backtest over every earlier Saturday.
 
 Models come from :mod:`pipeline.presets` (``sir-sf-joint`` × encoder × recipe, one preset per
 direction) and are trained and saved with :func:`pipeline.training.train_and_save`.
@@ -60,17 +61,15 @@ DataSourceKind = Literal["live", "cache", "import"]
 STATE_NAMES = ("S", "I", "R")
 JOINT_NAMES = ("S", "I", "R", "beta", "gamma")
 DIRECTIONS = ("forward", "backward")
-NF_FORECASTER = "nf-rollout"
 # Encoder choice -> the paper's Table 5 column name.
 VARIANT_LABELS = {"transformer": "Transformer", "transformer-ke": "Transformer + KE",
                   "mamba": "Mamba-SSM", "mlp": "MLP"}
-BACKTEST_BASELINES = ("persistence", "smc")
 # The report's one interval convention: 50 % and 90 % central intervals (plus the median).
 REPORT_LEVELS = (0.05, 0.25, 0.5, 0.75, 0.95)
 PARAMETER_LEVELS = (0.025, *REPORT_LEVELS, 0.975)
 # Per-step seed offsets: changing one step's draws never shifts another's.
 _SEED_OFFSETS = {"simulate": 0, "train_forward": 11, "train_backward": 12, "latest": 21,
-                 "rollout": 31, "future": 41, "params": 51, "nll": 61, "smc": 71, "backtest": 81,
+                 "rollout": 31, "future": 41, "params": 51, "nll": 61, "smc": 71,
                  "weekly": 91, "train_growth": 92}
 
 
@@ -140,9 +139,6 @@ class ForecastConfig:
     # observation noise, so the filter follows SF's I (median 8e-4) instead of diffusing it; the
     # paper's 1e-3 was sized for sir-multi's I of ~0.1. (The backtest's plain SMC keeps its own.)
     smc_process_sigma: float = 1e-4
-    backtest_origins: int = 8             # latest weekly origins scored (0: no backtest)
-    backtest_paths: int = 200
-    backtest_smc_particles: int = 2000
     trailing_days: int = 14
     seed: int = 0
     data: DataSourceConfig = field(default_factory=DataSourceConfig)
@@ -154,8 +150,7 @@ class ForecastConfig:
         if any(w < 1 for w in self.rollout_windows):
             raise ConfigError(f"rollout_windows={self.rollout_windows} must all be >= 1")
         for name in ("rollout_paths", "forecast_days", "hub_paths", "n_samples",
-                     "parameter_stride_days", "nll_locations", "smc_particles", "smc_days",
-                     "backtest_paths", "backtest_smc_particles"):
+                     "parameter_stride_days", "nll_locations", "smc_particles", "smc_days"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"ForecastConfig.{name}={getattr(self, name)} must be >= 1")
         for name in ("n_trajectories", "horizon_days", "train_iterations", "train_batch_size",
@@ -165,8 +160,6 @@ class ForecastConfig:
                 raise ConfigError(f"ForecastConfig.{name}={value} must be >= 1 (or None)")
         if self.smc_process_sigma < 0:
             raise ConfigError(f"ForecastConfig.smc_process_sigma={self.smc_process_sigma} < 0")
-        if self.backtest_origins < 0:
-            raise ConfigError(f"ForecastConfig.backtest_origins={self.backtest_origins} < 0")
         self.training_preset_for("forward")  # unknown preset/encoder/recipe fail here, early
 
     def step_seed(self, step: str) -> int:
@@ -224,8 +217,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
                            train_iterations=30, train_batch_size=256, eval_every=10,
                            rollout_paths=16, hub_paths=200, n_samples=128,
                            parameter_stride_days=7, nll_locations=20, smc_particles=200,
-                           smc_days=28, backtest_origins=2, backtest_paths=40,
-                           backtest_smc_particles=200,
+                           smc_days=28,
                            weekly=WeeklyConfig(
                                growth=GrowthModelConfig(n_trajectories=120, iterations=30,
                                                         batch_size=256,
@@ -714,54 +706,6 @@ def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]
             for target in summary}
 
 
-def backtest(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig,
-             progress: ProgressReporter | None = None) -> Any:
-    """Rolling-origin backtest of the forward flow over the latest ``backtest_origins`` weekly
-    origins against persistence and the plain bootstrap SMC (``pipeline.backtest``), or None
-    when ``backtest_origins`` is 0. Returns a :class:`pipeline.backtest.BacktestResult`.
-
-    No leakage: the flow is trained on synthetic SIR trajectories only, and each forecaster sees
-    the SF series up to the origin.
-    """
-    from pipeline.backtest import BacktestConfig, PersistenceForecaster, run_backtest
-    from pipeline.forecasters import NFRolloutForecaster, SMCForecaster
-
-    if config.backtest_origins == 0:
-        return None
-    # The plain SMC keeps its own defaults (the paper's noise 0.027, process noise 1e-3,
-    # sir-multi's beta/gamma ranges): over the 52 weekly SF origins they scored best of the
-    # settings we measured (relative WIS vs persistence 1.32; with sir-sf's ranges 1.40; with
-    # sir-sf's noise 5.46), and a baseline should be given its best shot.
-    forecasters = [PersistenceForecaster(),
-                   SMCForecaster(n_particles=config.backtest_smc_particles),
-                   NFRolloutForecaster(estimator=models.forward, name=NF_FORECASTER,
-                                       feedback_noise_sigma=config.prior.obs_sigma)]
-    bt_config = BacktestConfig(n_samples=config.backtest_paths,
-                               max_origins=config.backtest_origins,
-                               seed=config.step_seed("backtest"))
-    return run_backtest(sir_frame[["date", *STATE_NAMES]], forecasters, bt_config, progress)
-
-
-def backtest_summary(result: Any) -> dict[str, Any]:
-    """Relative WIS of the NF rollout vs persistence and vs plain SMC, and coverage (JSON-able)."""
-    from pipeline.backtest import relative_wis, summarize
-
-    s = result.scores
-    summary = summarize(result)
-    return {
-        "relative_wis": {b: float(relative_wis(s, NF_FORECASTER, b)) for b in BACKTEST_BASELINES},
-        "relative_wis_by_compartment": {
-            c: {b: float(relative_wis(s[s["compartment"] == c], NF_FORECASTER, b))
-                for b in BACKTEST_BASELINES} for c in STATE_NAMES},
-        "coverage": {str(name): {"50": float(row["coverage_50"]), "90": float(row["coverage_90"])}
-                     for name, row in summary.iterrows()},
-        "mean_wis": {str(name): float(row["mean_wis"]) for name, row in summary.iterrows()},
-        "n_origins": int(s["origin"].nunique()),
-        "origins": [str(s["origin"].min().date()), str(s["origin"].max().date())],
-        "n_samples": result.config.n_samples,
-    }
-
-
 # ------------------------------------------------------------------------------- outputs
 
 
@@ -779,7 +723,6 @@ class ForecastResults:
     parameters: pd.DataFrame
     nll: pd.DataFrame
     smc: SMCRun
-    backtest: Any = None          # pipeline.backtest.BacktestResult, or None (no backtest)
     weekly: WeeklyForecast | None = None   # the published forecast and its real-time backtest
 
 
@@ -865,9 +808,16 @@ def results_summary(results: ForecastResults) -> dict[str, Any]:
                                      "q0.025": float(fw.loc[c, "q0.025"]),
                                      "q0.975": float(fw.loc[c, "q0.975"])} for c in fw.index},
             "nll": results.nll.to_dict(orient="records"),
-            "backtest": (backtest_summary(results.backtest) if results.backtest is not None
-                         else None),
+            "backtest": published_skill(results.weekly) if results.weekly is not None else None,
+            "headline": headline_record(results) if results.weekly is not None else None,
             "config": dataclasses.asdict(results.config)}
+
+
+def headline_record(results: ForecastResults) -> dict[str, Any]:
+    """The report's page-1 headline as JSON (``results.json``, the run index)."""
+    from pipeline.report.headline import compute_headline
+
+    return compute_headline(results).to_dict()
 
 
 def write_report(results: ForecastResults, out_dir: Path) -> list[str]:

@@ -241,16 +241,20 @@ def render_index_html(runs: list[RunRecord]) -> str:
         report = next((f for f in r.files if f.endswith(".html")), None)
         link = f'<a href="{date}/{html.escape(report)}">{date}</a>' if report else date
         stale = "stale (cached data)" if r.data_stale else "fresh"
-        rows.append(f"<tr><td>{link}</td><td>{html.escape(r.data_vintage)}</td><td>{stale}</td>"
+        # the report's page-1 headline in one line (pipeline.report.headline), when recorded
+        headline = str((r.summary.get("headline") or {}).get("text", ""))
+        rows.append(f"<tr><td>{link}</td><td>{html.escape(headline)}</td>"
+                    f"<td>{html.escape(r.data_vintage)}</td><td>{stale}</td>"
                     f"<td>{html.escape(r.preset)}</td><td>{r.seed}</td>"
                     f"<td>{html.escape(r.finished_at)}</td></tr>")
-    body = "\n".join(rows) or '<tr><td colspan="6">no runs yet</td></tr>'
+    body = "\n".join(rows) or '<tr><td colspan="7">no runs yet</td></tr>'
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>flowcast weekly forecasts</title>
 <style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #ccc;padding:4px 8px;text-align:left}}</style></head>
 <body><h1>San Francisco weekly forecasts</h1>
-<table><thead><tr><th>reference date</th><th>data vintage</th><th>data</th><th>preset</th>
+<table><thead><tr><th>reference date</th><th>headline</th><th>data vintage</th><th>data</th>
+<th>preset</th>
 <th>seed</th><th>finished (UTC)</th></tr></thead>
 <tbody>
 {body}

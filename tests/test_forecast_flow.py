@@ -20,7 +20,9 @@ pytestmark = pytest.mark.slow
 # Cases end 2022-03-16; minus the 14 days still under revision -> the last day kept.
 EXPECTED_REFERENCE_DATE = "2022-03-02"
 HUB_LEVELS = 23
-HUB_SAMPLES = 200
+ORIGIN = "2022-02-26"        # the last Saturday of data: the published forecast's origin
+ROUND = "2022-03-19"         # the hub round of the run's date (2022-03-02 + 14 days)
+SF_POPULATION = 873_965
 
 
 @pytest.fixture(scope="session")
@@ -65,7 +67,7 @@ def test_outputs_exist_with_real_numbers(good_run):
         assert (roll["lower_2sigma"] <= roll["mean"]).all() and (roll["mean"] <= roll["upper_2sigma"]).all()
 
     params = pd.read_csv(out / "parameter_estimates.csv")
-    assert set(params["component"]) == {"S", "I", "R", "beta", "gamma"}
+    assert set(params["component"]) == {"S", "I", "R", "beta", "gamma", "Rt"}
     assert (params["q0.025"] <= params["q0.5"]).all() and (params["q0.5"] <= params["q0.975"]).all()
     assert np.isfinite(params[["mean", "std"]].to_numpy()).all() and (params["std"] > 0).all()
 
@@ -75,41 +77,56 @@ def test_outputs_exist_with_real_numbers(good_run):
     smc = pd.read_csv(out / "smc_bands.csv")
     assert (smc["lower_3sigma"] <= smc["mean"]).all() and (smc["mean"] <= smc["upper_3sigma"]).all()
 
-    hub = pd.read_csv(out / "hub_forecast.csv")
+    # the published forecast: weekly cases and I at the four Saturdays after the last Saturday
+    hub = pd.read_csv(out / "hub_forecast.csv", dtype={"output_type_id": str})
+    assert (hub["origin_date"] == ORIGIN).all()
+    assert set(hub["target"]) == {"I", "cases"} and sorted(hub["horizon"].unique()) == [1, 2, 3, 4]
+    end = pd.to_datetime(hub["target_end_date"]) - pd.Timestamp(ORIGIN)
+    assert (end.dt.days == 7 * hub["horizon"]).all()
     quantiles = hub[hub["output_type"] == "quantile"]
     assert quantiles["output_type_id"].nunique() == HUB_LEVELS
-    assert hub.loc[hub["output_type"] == "sample", "output_type_id"].nunique() == HUB_SAMPLES
-    assert set(hub["target"]) == {"S prop", "I prop", "R prop"}
-    assert sorted(hub["horizon"].unique()) == [1, 2, 3, 4]
-    assert (pd.to_datetime(hub["reference_date"]) == pd.Timestamp(EXPECTED_REFERENCE_DATE)).all()
-    end = pd.to_datetime(hub["target_end_date"]) - pd.Timestamp(EXPECTED_REFERENCE_DATE)
-    assert (end.dt.days == 7 * hub["horizon"]).all()
-    # quantiles are non-decreasing in the level for every target and horizon
     q = quantiles.assign(level=quantiles["output_type_id"].astype(float)).sort_values("level")
     assert (q.groupby(["target", "horizon"])["value"].diff().dropna() >= 0).all()
+    assert (hub["value"] >= 0).all()
+    by_target = q.pivot_table(index=["horizon", "level"], columns="target", values="value")
+    np.testing.assert_allclose(by_target["cases"], by_target["I"] * SF_POPULATION, rtol=1e-9)
+    members = pd.read_csv(out / "member_forecasts.csv")
+    assert set(members["forecaster"]) == {"autoets", "nf-growth", "hub-baseline",
+                                          "ensemble-uncalibrated"}
 
-    # backtest: the NF rollout against persistence and plain SMC, over the tiny preset's origins
+    # the hubverse file of the same forecast, valid under hub-config/tasks.json
+    from pipeline.forecast_hub import load_tasks_config, validate_model_output
+
+    tasks = load_tasks_config(Path(__file__).resolve().parents[1] / "hub-config" / "tasks.json")
+    submission = out / "model-output" / "flowcast-nfens" / f"{ROUND}-flowcast-nfens.csv"
+    frame = validate_model_output(submission, tasks)
+    cases_h0 = frame[(frame["target"] == "wk inc case") & (frame["horizon"] == 0)
+                     & (frame["output_type"] == "quantile")].sort_values("output_type_id")
+    same_week = q[(q["target"] == "cases") & (q["target_end_date"] == ROUND)]
+    np.testing.assert_allclose(cases_h0["value"].to_numpy(), same_week["value"].to_numpy(),
+                               rtol=1e-7)
+
+    # its real-time backtest: every Saturday origin, scored per target and horizon
     summary = json.loads((out / "results.json").read_text())
-    bt = summary["backtest"]
-    assert bt["n_origins"] == 2 and set(bt["relative_wis"]) == {"persistence", "smc"}
-    assert all(np.isfinite(v) and v > 0 for v in bt["relative_wis"].values())
+    skill = summary["backtest"]
+    assert set(skill) == {"I", "cases"}
+    assert set(skill["cases"]) == {"h1", "h2", "h3", "h4", "all"}
+    assert all(v is not None and np.isfinite(v) and v > 0 for v in skill["cases"].values())
     scores = pd.read_csv(out / "backtest_scores.csv")
-    assert set(scores["forecaster"]) == {"persistence", "smc", "nf-rollout"}
-    assert len(scores) == 3 * 2 * 4 * 3  # forecasters × origins × horizons × compartments
-    nf = scores[scores["forecaster"] == "nf-rollout"]
-    np.testing.assert_allclose(bt["coverage"]["nf-rollout"]["90"], nf["covered_90"].mean())
-    both = scores.pivot_table(index=["origin", "compartment", "horizon"], columns="forecaster",
-                              values="wis")
-    np.testing.assert_allclose(bt["relative_wis"]["smc"],
-                               both["nf-rollout"].sum() / both["smc"].sum())
+    assert set(scores["forecaster"]) == {"autoets", "nf-growth", "hub-baseline",
+                                         "ensemble-uncalibrated", "published"}
+    assert scores["origin_date"].max() < ORIGIN     # the latest origin has no truth yet
     np.testing.assert_allclose(scores["wis"], scores[["dispersion", "overprediction",
                                                       "underprediction"]].sum(axis=1))
+    backtest = json.loads((out / "backtest_summary.json").read_text())
+    assert backtest["invalid_values"] == 0
+    assert backtest["by_target"]["cases"]["published"]["relative_wis_vs_baseline"] == \
+        skill["cases"]
 
     assert (out / "report.pdf").read_bytes()[:5] == b"%PDF-"
     report = (out / "report.html").read_text()
     assert EXPECTED_REFERENCE_DATE in report and "Stale data" not in report
-    for heading in ("rel. WIS vs persistence", "rel. WIS vs plain SMC", "Transformer + KE",
-                    "Mamba-SSM", "MLP"):
+    for heading in ("Transformer + KE", "Mamba-SSM", "MLP"):
         assert heading in report, heading
     index = json.loads((root / "reports" / "index.json").read_text())
     assert [r["reference_date"] for r in index["runs"]] == [EXPECTED_REFERENCE_DATE]
@@ -143,7 +160,8 @@ def test_second_run_reuses_model_and_reproduces(good_run, tmp_path, monkeypatch)
     again = weekly_forecast(preset="tiny", data_source="cache", output_dir=str(tmp_path), seed=0)
     assert again["model_reused"] and again["model_key"] == first["model_key"]
     for name in ["latest_estimates.csv", "parameter_estimates.csv", "smc_bands.csv",
-                 "nll_table.csv", "hub_forecast.csv", "backtest_scores.csv"]:
+                 "nll_table.csv", "hub_forecast.csv", "backtest_scores.csv",
+                 "member_forecasts.csv"]:
         assert (Path(again["output_dir"]) / name).read_bytes() == \
             (Path(first["output_dir"]) / name).read_bytes(), name
 

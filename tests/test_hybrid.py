@@ -81,23 +81,3 @@ def test_state_only_model_is_rejected() -> None:
     window = ObservationWindow(times=np.arange(5.0), values=np.zeros((5, 3)), target_time=5.0)
     with pytest.raises(ConfigError, match="joint"):
         nf_seeded_smc(estimator, window, np.array([5.0]), np.zeros((1, 3)))
-
-
-def test_smc_forecaster_paths_follow_the_sir_dynamics() -> None:
-    """Plain-SMC forecaster on noisy synthetic data: the median path tracks the true future."""
-    import pandas as pd
-
-    from pipeline.forecasters import SMCForecaster
-
-    states, obs, _ = _synthetic_series(seed=2)
-    dates = pd.date_range("2020-03-01", periods=150, freq="D")
-    history = pd.DataFrame({"date": dates, "S": obs[:150, 0], "I": obs[:150, 1],
-                            "R": obs[:150, 2]})
-    forecaster = SMCForecaster(history_days=56, n_particles=1000)
-    paths = forecaster.forecast(history, 14, 300, seed=0)
-    again = forecaster.forecast(history, 14, 300, seed=0)
-    assert paths.shape == (300, 14, 3) and np.array_equal(paths, again)
-    np.testing.assert_allclose(paths.sum(-1), 1.0, atol=1e-9)
-    truth = states[150:164]
-    lo, hi = np.quantile(paths, [0.00135, 0.99865], axis=0)
-    assert ((truth >= lo - 0.005) & (truth <= hi + 0.005)).mean() > 0.95

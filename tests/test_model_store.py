@@ -123,7 +123,7 @@ def test_forecast_model_key_follows_encoder_recipe_and_seed():
         resolve_config("tiny", recipe="paper"), resolve_config("tiny", train_iterations=31))}
     assert len(keys) == 5
     # parameters that do not touch training (sample counts, data source) keep the key
-    assert model_key(resolve_config("tiny", n_samples=7, backtest_origins=0)
+    assert model_key(resolve_config("tiny", n_samples=7, hub_paths=50)
                      .training_identity(), "data") == model_key(base.training_identity(), "data")
 
 

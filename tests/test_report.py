@@ -1,4 +1,5 @@
-"""Reports: figures from synthetic arrays, self-contained HTML, PDF pages (pdftoppm), Chromium.
+"""Reports: figures from synthetic arrays, self-contained HTML, PDF pages (pdftoppm), Chromium,
+and the weekly report of a real tiny-preset run (page 1 = the published forecast's numbers).
 
 The small report below has every section of the weekly report, built the way the forecast flow
 builds it (arrays → figure builders → FigureItem; DataFrames → TableItem), from a synthetic SIR
@@ -9,16 +10,16 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import re
+import subprocess
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pytest
 from scipy.integrate import solve_ivp
 
-from pipeline.backtest import (BacktestConfig, PersistenceForecaster, run_backtest,
-                               summary_by_horizon)
-from pipeline.report import figures
+from pipeline.report import checks, figures
 from pipeline.report.content import (PNG_SIGNATURE, FigureItem, Provenance, ReportContent,
                                      ReportError, Section, SectionKey, TableItem, nll_table,
                                      paper_vs_ours, stale_data_warning)
@@ -63,32 +64,43 @@ def _figure_stats(png: bytes, tmp_path: Path, name: str):
     return image_stats(path)
 
 
+def _bands(centre: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """(5, T, 3) quantiles at figures.LEVELS of a normal with these means and sds."""
+    z = np.array([-1.645, -0.674, 0.0, 0.674, 1.645])
+    return centre[None] + z[:, None, None] * sd[None]
+
+
+def _weekly_q(median: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """(H, 5) quantiles at figures.LEVELS around ``median`` (log-normal-ish, positive)."""
+    z = np.array([-1.645, -0.674, 0.0, 0.674, 1.645])
+    return median[:, None] * np.exp(z[None, :] * spread[:, None])
+
+
 @pytest.fixture(scope="module")
 def report_figures(epidemic):
     d, obs, truth, sd = epidemic["dates"], epidemic["observed"], epidemic["truth"], epidemic["sd"]
     frame = pd.DataFrame({"date": d, "S": obs[:, 0], "I": obs[:, 1], "R": obs[:, 2]})
     figs = {"series": figures.sir_series_figure(frame, vintage="synthetic test data")}
     figs["forward"] = figures.estimate_band_figure(
-        d[30:], obs[30:], truth[30:], truth[30:] - 2 * sd[30:], truth[30:] + 2 * sd[30:],
-        direction="forward", context=(d[30].date(), d[36].date()))
+        d[30:], obs[30:], _bands(truth[30:], sd[30:]), direction="forward",
+        context=(d[30].date(), d[36].date()))
     figs["backward"] = figures.estimate_band_figure(
-        d[:130], obs[:130], truth[:130], truth[:130] - 2 * sd[:130], truth[:130] + 2 * sd[:130],
-        direction="backward")
+        d[:130], obs[:130], _bands(truth[:130], sd[:130]), direction="backward")
     for window in (7, 28):
         for direction in ("forward", "backward"):
-            width = 2 * sd * (1 + window / 28)
             figs[f"rollout-{window}-{direction}"] = figures.rollout_figure(
-                d, obs, truth, truth - width, truth + width, window_days=window,
+                d, obs, _bands(truth, sd * (1 + window / 28)), window_days=window,
                 direction=direction)
-    beta_q = np.column_stack([np.full(N_DAYS, BETA - 0.01), np.full(N_DAYS, BETA),
-                              np.full(N_DAYS, BETA + 0.012)])
-    gamma_q = np.column_stack([np.full(N_DAYS, GAMMA - 0.006), np.full(N_DAYS, GAMMA),
-                               np.full(N_DAYS, GAMMA + 0.005)])
-    figs["parameters"] = figures.parameter_figure(d, beta_q, gamma_q, beta_prior=(0.02, 0.2),
+    beta_q = BETA + np.array([-0.012, -0.005, 0, 0.005, 0.012])[None] * np.ones((N_DAYS, 1))
+    gamma_q = GAMMA + np.array([-0.006, -0.002, 0, 0.002, 0.006])[None] * np.ones((N_DAYS, 1))
+    rt_q = beta_q * obs[:, :1] / gamma_q[:, ::-1]
+    figs["parameters"] = figures.parameter_figure(d, beta_q, gamma_q, rt_q,
+                                                  beta_prior=(0.02, 0.2),
                                                   gamma_prior=(0.005, 0.1))
     ess = 1000 * (0.4 + 0.5 * np.abs(np.sin(np.arange(N_DAYS) / 9)))
-    figs["smc"] = figures.smc_band_figure(d, obs, truth, truth - 3 * sd, truth + 3 * sd,
-                                          ess=ess, n_particles=1000)
+    ess[40:43] = 12.0                     # a collapse the figure marks
+    figs["smc"] = figures.smc_band_figure(d, obs, _bands(truth, 1.5 * sd), ess=ess,
+                                          n_particles=1000)
     steps = np.arange(0, 2001, 50)
     history = pd.concat([
         pd.DataFrame({"step": steps, "variant": v, "train": 1.5 * np.exp(-steps / s) - 2.4,
@@ -97,67 +109,96 @@ def report_figures(epidemic):
         for v, s in (("Transformer", 400), ("Transformer + KE", 500))])
     figs["loss"] = figures.loss_curve_figure(history)
 
-    series = pd.DataFrame({"date": d, "S": obs[:, 0], "I": obs[:, 1], "R": obs[:, 2]})
-    result = run_backtest(series, [PersistenceForecaster(),
-                                   PersistenceForecaster(name="persistence (no symmetry)",
-                                                         symmetrize=False)],
-                          BacktestConfig(n_samples=100))
-    by_h = summary_by_horizon(result)
-    figs["backtest"] = figures.backtest_figure(by_h)
-    future = np.random.default_rng(1).normal(obs[-1], 0.004, size=(200, 28, 3))
-    figs["forecast"] = figures.forecast_fan_figure(
-        d, obs, pd.date_range(d[-1] + pd.Timedelta(days=1), periods=28), future)
-    return figs, by_h
+    # weekly cases of the synthetic epidemic: N·I at every 7th day (I·N = last 7 days' cases)
+    population = 100_000
+    week_ends = d[6::7][:12]
+    weekly = obs[6::7, 1][:12] * population
+    targets = pd.date_range(week_ends[-1] + pd.Timedelta(days=7), periods=4, freq="7D")
+    cases_q = _weekly_q(weekly[-1] * 0.9 ** np.arange(1, 5), 0.15 * np.arange(1, 5))
+    figs["forecast"] = figures.published_forecast_figure(
+        week_ends, weekly, weekly / population, targets, cases_q, cases_q / population,
+        population)
+    past = {}
+    for label, scale in (("weekly reported cases", 1.0), ("I (share of the population)",
+                                                          1 / population)):
+        rows = []
+        for h in (1, 4):
+            for k, end in enumerate(d[6::7][h:]):
+                y = obs[6 + 7 * (k + h), 1] * population
+                q = _weekly_q(np.array([y * 1.05]), np.array([0.1 * h]))[0] * scale
+                rows.append({"target_end_date": end, "horizon": h, "observed": y * scale,
+                             **{f"q{lv:g}": v for lv, v in zip(figures.LEVELS, q)}})
+        past[label] = pd.DataFrame(rows)
+    figs["past"] = figures.past_forecasts_figure(past, (1, 4))
+    figs["pit"] = figures.pit_figure({
+        "weekly reported cases": {"published": [9, 10, 11, 10, 9, 10, 10, 11, 10, 10],
+                                  "before recalibration": [20, 8, 6, 5, 5, 5, 6, 8, 12, 25]},
+        "I (share of the population)": {"published": [10] * 10,
+                                        "before recalibration": [18, 9] + [8] * 8}})
+    return figs
 
 
 def _item(figs, key, caption, width="full"):
     return FigureItem(png=figs[key], caption=caption, alt=f"Figure: {caption}", width=width)
 
 
-def _content(report_figures, warnings=()) -> ReportContent:
-    figs, by_h = report_figures
+def _content(figs, warnings=()) -> ReportContent:
     nll = nll_table({("fw", "Transformer"): -2.468, ("fw", "Transformer + KE"): -2.398,
                      ("fw", "Mamba-SSM"): -1.795, ("bw", "Transformer"): -2.231,
                      ("bw", "Transformer + KE"): -2.092})
     rollouts = [_item(figs, f"rollout-{w}-{d}", f"{d.capitalize()} rollout, {w}-day window: "
-                      "full view (left), zoomed on the peak (right); mean ± 2σ.")
+                      "full view (left), zoomed on the peak (right); 50% and 90% bands.")
                 for w in (7, 28) for d in ("forward", "backward")]
-    backtest_table = by_h.pivot(index="horizon", columns="forecaster", values="relative_wis")
+    skill = pd.DataFrame({"1 wk": [0.71, 1.0], "all": [0.9, 1.0]},
+                         index=pd.Index(["published", "hub baseline"], name="forecaster"))
+    forecast = pd.DataFrame(
+        [["730", "562–949"], ["638", "401–1,018"], ["730 (0.084%)", "562–949 (0.064–0.11%)"]],
+        columns=["median", "50% interval"],
+        index=pd.MultiIndex.from_tuples([("weekly cases", "2020-08-15"),
+                                         ("weekly cases", "2020-08-22"),
+                                         ("I·N (share)", "2020-08-15")],
+                                        names=["forecast", "week ending"]))
+    headline = Section(key="headline", title="The next four weeks", items=(
+        TableItem(forecast, "Published forecast.", css="headline"),))
     sections = (
+        Section.weekly(SectionKey.FORECAST, [_item(figs, "forecast", "Four-week forecast.")]),
+        Section.weekly(SectionKey.BACKTEST, [
+            TableItem(skill, "Relative WIS by horizon (weeks).", highlight="col-min"),
+            _item(figs, "past", "Past forecasts against observations."),
+            _item(figs, "pit", "PIT histograms.")], new_page=False),
         Section.weekly(SectionKey.SIR_SERIES, [_item(figs, "series", "Observed S, I, R.")],
                        intro="S, I, R as fractions of the population (synthetic)."),
-        Section.weekly(SectionKey.FORECAST, [_item(figs, "forecast", "Four-week forecast.")]),
+        Section.weekly(SectionKey.PARAMETERS, [_item(figs, "parameters", "β, γ and R_t.")],
+                       alerts=["β not identified by the data: its 90% interval spans 95% of "
+                               "the prior range; more words."]),
         Section.weekly(SectionKey.STATE_ESTIMATES, [
-            _item(figs, "forward", "Forward estimates with 2σ bands."),
-            _item(figs, "backward", "Backward estimates with 2σ bands.")]),
+            _item(figs, "forward", "Forward estimates with 50% and 90% bands."),
+            _item(figs, "backward", "Backward estimates with 50% and 90% bands.")]),
         Section.weekly(SectionKey.ROLLOUTS, rollouts),
-        Section.weekly(SectionKey.PARAMETERS, [_item(figs, "parameters", "β and γ, 95% CrI.")]),
-        Section.weekly(SectionKey.SMC, [_item(figs, "smc", "NF-seeded SMC, mean ± 3σ.")]),
+        Section.weekly(SectionKey.SMC, [_item(figs, "smc", "NF-seeded SMC, 50% and 90%.")]),
         Section.weekly(SectionKey.NLL, [TableItem(nll, "Mean NLL <b>aggregated</b> over S, I, R "
                                                        "(paper Table 5 layout); lower is better.",
                                                   highlight="row-min")]),
-        Section.weekly(SectionKey.TRAINING, [_item(figs, "loss", "Training/validation loss.")]),
-        Section.weekly(SectionKey.BACKTEST, [
-            _item(figs, "backtest", "Relative WIS and coverage by horizon."),
-            TableItem(backtest_table, "Relative WIS by horizon (weeks).")]),
+        Section.weekly(SectionKey.TRAINING, [_item(figs, "loss", "Training/validation loss.")],
+                       new_page=False),
     )
     provenance = Provenance(package_version="0.1.0", versions={"torch": "2.13.0", "numpy": "2"},
                             config={"preset": "sir-joint", "encoder": "transformer",
-                                    "window": 28},
+                                    "window": 28, "levels": [0.05, 0.5, 0.95]},
                             data_sha256="ab" * 32, checkpoint_sha256="cd" * 32, seed=7)
-    return ReportContent(title="San Francisco weekly SIR forecast", reference_date=dt.date(2020, 8, 9),
+    return ReportContent(title="San Francisco weekly SIR forecast", reference_date=dt.date(2020, 8, 8),
                          data_vintage="synthetic SIR, β = 0.11, γ = 0.05", sections=sections,
-                         provenance=provenance, warnings=tuple(warnings),
+                         provenance=provenance, warnings=tuple(warnings), headline=headline,
                          summary="A test report with <script>alert(1)</script> in its text.")
 
 
 # ----------------------------------------------------------------------------- figures
 
 @pytest.mark.parametrize("key", ["series", "forward", "backward", "rollout-7-forward",
-                                 "rollout-28-backward", "parameters", "smc", "loss", "backtest",
-                                 "forecast"])
+                                 "rollout-28-backward", "parameters", "smc", "loss", "forecast",
+                                 "past", "pit"])
 def test_each_figure_is_a_nontrivial_png(report_figures, tmp_path, key):
-    png = report_figures[0][key]
+    png = report_figures[key]
     _png_ok(png)
     (width, height), ink, colours = _figure_stats(png, tmp_path, key)
     assert width == round(figures.FULL_WIDTH_IN * figures.DPI)   # 8.5 in × 110 dpi = 935 px
@@ -167,7 +208,7 @@ def test_each_figure_is_a_nontrivial_png(report_figures, tmp_path, key):
 
 
 def test_compartment_colours_are_drawn(report_figures, tmp_path):
-    png = report_figures[0]["series"]
+    png = report_figures["series"]
     path = tmp_path / "series.png"
     path.write_bytes(png)
     from PIL import Image
@@ -180,16 +221,17 @@ def test_compartment_colours_are_drawn(report_figures, tmp_path):
 def test_figure_input_errors_are_named(epidemic):
     d = epidemic["dates"]
     good = epidemic["truth"]
-    with pytest.raises(ReportError, match=r"mean must have shape \(160, 3\)"):
-        figures.estimate_band_figure(d, None, good[:, :2], good, good)
+    bands = _bands(good, np.full_like(good, 0.01))
+    with pytest.raises(ReportError, match=r"quantiles must have shape \(5, 160, 3\)"):
+        figures.estimate_band_figure(d, None, bands[:3])
     with pytest.raises(ReportError, match="lower bound exceeds"):
-        figures.estimate_band_figure(d, None, good, good + 1, good)
-    with pytest.raises(ReportError, match="lower ≤ median ≤ upper"):
-        figures.parameter_figure(d, np.ones((160, 3)) * [3, 2, 1], np.ones((160, 3)))
+        figures.estimate_band_figure(d, None, bands[::-1])
+    with pytest.raises(ReportError, match="ordered along the levels"):
+        figures.parameter_figure(d, np.ones((160, 5)) * [5, 4, 3, 2, 1], np.ones((160, 5)))
     with pytest.raises(ReportError, match="lacks columns"):
         figures.sir_series_figure(pd.DataFrame({"date": d, "S": good[:, 0]}))
     with pytest.raises(ReportError, match="zoom span"):
-        figures.rollout_figure(d, good, good, good, good, window_days=7, direction="forward",
+        figures.rollout_figure(d, good, bands, window_days=7, direction="forward",
                                zoom=(dt.date(2030, 1, 1), dt.date(2030, 2, 1)))
 
 
@@ -241,10 +283,20 @@ def test_html_is_self_contained_escaped_and_complete(report_figures):
     content = _content(report_figures, warnings=["Data are stale by 9 days."])
     html = render_html(content)
     assert external_references(html) == []
-    assert html.count('src="data:image/png;base64,') == 12  # every figure embedded
+    assert html.count('src="data:image/png;base64,') == 13  # every figure embedded
     for key in SectionKey:
         assert f'id="{key}"' in html and f'href="#{key}"' in html
     assert 'id="provenance"' in html and "ab" * 32 in html
+    # page 1: the headline table comes before any warning, check or section
+    assert html.index('id="headline"') < html.index('class="warning"') < html.index(
+        'class="checks"') < html.index('id="forecast"')
+    # a two-level row index: the first level merged over its rows
+    assert '<th scope="row" rowspan="2">weekly cases</th>' in html
+    # a section's alert is at its top and listed, first clause only, on page 1
+    assert html.count("β not identified by the data") == 2
+    # flat lists of the configuration on one line
+    assert '&#34;levels&#34;: [0.05, 0.5, 0.95]' in html
+    assert re.search(r"<td class=\"best\">0\.710</td>", html)     # best of its column
     # text is escaped, never interpreted
     assert "<script>" not in html and "&lt;script&gt;alert(1)&lt;/script&gt;" in html
     assert "&lt;b&gt;aggregated&lt;/b&gt;" in html
@@ -308,15 +360,20 @@ def test_pdf_pages_and_png_conversion(report_figures, tmp_path):
     assert files.html_path.read_text(encoding="utf-8") == render_html(content)
     n_pages = pdf_page_count(files.pdf_path)
     assert n_pages == files.n_pages
-    # every section starts on a new page, in order, provenance last
+    # page 1 is the headline; then the sections in order, a new-page one on a new page, a
+    # short one (new_page=False) right after the previous; the appendix last
     pages = _section_pages(render_html(content))
-    headings = [f"{k + 1}. {s.title}" for k, s in enumerate(content.sections)] + ["Provenance"]
+    headings = [f"{k + 1}. {s.title}" for k, s in enumerate(content.sections)]
+    headings.append("Appendix: provenance")
     assert [h for h in pages if h in headings] == headings
     starts = [pages[h] for h in headings]
-    assert starts[0] == 1 and all(b > a for a, b in zip(starts, starts[1:]))
-    # 4 tall rollout figures take 2 pages (two per page), every other section one
-    assert starts[4] - starts[3] == 2
-    assert n_pages == starts[-1] == len(headings) + 1
+    assert starts[0] == 2
+    for k, section in enumerate(content.sections[1:], start=1):
+        assert starts[k] > starts[k - 1] if section.new_page else starts[k] >= starts[k - 1]
+    assert starts[-1] > starts[-2]
+    rollouts = [s.key for s in content.sections].index(SectionKey.ROLLOUTS)
+    assert starts[rollouts + 1] - starts[rollouts] == 2   # 4 tall rollout figures, two a page
+    assert n_pages == starts[-1]
 
     pngs = pdf_to_pngs(files.pdf_path, tmp_path / "pages", dpi=40)
     assert len(pngs) == n_pages
@@ -325,7 +382,7 @@ def test_pdf_pages_and_png_conversion(report_figures, tmp_path):
         assert (width, height) == (331, 468)          # A4 at 40 dpi: 8.27 × 11.69 in
         assert ink > 0.01, f"{png.name} is blank"
     # figure pages carry a lot of ink
-    (_, _), ink_rollout, colours = image_stats(pngs[starts[3] - 1])
+    (_, _), ink_rollout, colours = image_stats(pngs[starts[rollouts] - 1])
     assert ink_rollout > 0.1 and colours > 30
 
 
@@ -370,7 +427,7 @@ def test_reproduction_report_tables_beside_paper(report_figures, tmp_path):
     assert table.columns.tolist() == [("S", "paper"), ("S", "ours"), ("I", "paper"),
                                       ("I", "ours"), ("R", "paper"), ("R", "ours")]
     assert np.isnan(table.loc["fw", ("R", "ours")])
-    fig = FigureItem(report_figures[0]["forward"], "Confidence regions.", "regions")
+    fig = FigureItem(report_figures["forward"], "Confidence regions.", "regions")
     html = render_reproduction([("Table 3: KL divergence, single trajectory", table)], [fig])
     assert external_references(html) == []
     assert html.count('colspan="2"') == 3                # S, I, R each span paper + ours
@@ -381,95 +438,216 @@ def test_reproduction_report_tables_beside_paper(report_figures, tmp_path):
         paper_vs_ours(paper, ours.assign(X=1.0))
 
 
-# ----------------------------------------------------------------------------- weekly adapter
+# ----------------------------------------------------------------------------- checks
 
-@dataclasses.dataclass(frozen=True)
-class _FakeConfig:
-    window: int = 5
-    smc_particles: int = 200
-    seed: int = 3
-
-
-class _Roll:
-    """Duck type of pipeline.rollout.RolloutResult (times in days since the first date)."""
-
-    def __init__(self, times, mean, std):
-        self.times, self.mean, self.std = times, mean, std
-        self.names = ("S", "I", "R", "beta", "gamma")
-
-    def band(self, n_sigma):
-        return self.mean - n_sigma * self.std, self.mean + n_sigma * self.std
+def test_checks_say_trouble_in_words():
+    dates = pd.date_range("2022-02-01", periods=28)
+    ess = np.full(28, 150.0)
+    ess[3] = 2.0
+    text = checks.ess_collapse(ess, 200, dates)
+    assert text.startswith("Particle filter degenerate")
+    assert "below 5% of the particles on 1 of 28 days; minimum 2 of 200 on 2022-02-04" in text
+    assert checks.ess_collapse(np.full(28, 150.0), 200, dates) is None
+    wide = checks.prior_not_updated("β", np.full(28, 0.03), np.full(28, 0.29), (0.03, 0.3),
+                                    dates)
+    assert wide.startswith("β not identified by the data: its 90% interval spans 96%")
+    assert checks.prior_not_updated("β", np.full(28, 0.1), np.full(28, 0.15), (0.03, 0.3),
+                                    dates) is None
+    assert checks.prior_not_updated("β", np.zeros(28), np.ones(28), None, dates) is None
 
 
-def _fake_results(epidemic, *, stale: bool, break_smc: bool = False):
-    from types import SimpleNamespace
+def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):
+    """DataSF down: one banner; each dataset's line cites its own resource (the deaths and tests
+    notes used to carry the cases URL), without the transport's error text."""
+    import requests
+    import responses
 
-    import torch
+    from pipeline import forecast as fc
+    from pipeline.data.datasf import DATASETS, ClientConfig
+    from pipeline.data.series import SFDataConfig, load_sf_series
 
-    d, obs, truth = epidemic["dates"][:70], epidemic["observed"][:70], epidemic["truth"][:70]
-    sir = pd.DataFrame({"date": d, "S": obs[:, 0], "I": obs[:, 1], "R": obs[:, 2]})
-    joint = np.column_stack([truth, np.full(70, BETA), np.full(70, GAMMA)])
-    sd = np.column_stack([np.full((70, 3), 0.004), np.full(70, 0.005), np.full(70, 0.003)])
-    names = ("S", "I", "R", "beta", "gamma")
-    parameters = pd.concat([pd.DataFrame({
-        "direction": direction, "date": d.strftime("%Y-%m-%d"), "component": name,
-        "mean": joint[:, k], "std": sd[:, k], "q0.025": joint[:, k] - 2 * sd[:, k],
-        "q0.5": joint[:, k], "q0.975": joint[:, k] + 2 * sd[:, k]})
-        for direction in ("forward", "backward") for k, name in enumerate(names)])
-    rollouts = {(direction, every): _Roll(np.arange(70.0), torch.as_tensor(joint),
-                                          torch.as_tensor(sd))
-                for direction in ("forward", "backward") for every in (7, 28)}
-    rng = np.random.default_rng(0)
-    future_dates = pd.date_range(d[-1] + pd.Timedelta(days=1), periods=28, freq="D")
-    future = torch.as_tensor(truth[-1] + 0.003 * rng.standard_normal((200, 28, 3)))
-    smc_dates = d[-28:]
-    smc_result = SimpleNamespace(
-        state_names=names, mean=torch.as_tensor(joint[-28:])[None],
-        sigma_band=lambda n: (torch.as_tensor(joint[-28:] - n * sd[-28:])[None],
-                              torch.as_tensor(joint[-28:] + n * sd[-28:])[None]),
-        ess=torch.full((1, 28), 150.0), num_particles=200)
-    if break_smc:
-        smc_result.state_names = ("x", "y")
-    history = [{"iteration": i, "train_loss": 3.0 / i, "val_nll": 3.2 / i} for i in range(1, 21)]
-    models = SimpleNamespace(key="k" * 64, reused=True, encoder="transformer", path=Path("/nope"),
-                             histories={"forward": history, "backward": history})
-    config = _FakeConfig()
-    return SimpleNamespace(
-        config=config, sir_frame=sir, vintage="DataSF export, data as of 2020-05-11",
-        stale=stale, stale_notes=("cases: fetch failed; using the cache",) if stale else (),
-        models=models, rollouts=rollouts, parameters=parameters,
-        future=SimpleNamespace(dates=future_dates, samples=future, reference_date=d[-1].date()),
-        nll=pd.DataFrame({"direction": ["forward", "backward"], "variant": ["transformer"] * 2,
-                          "locations": [20, 20], "mean_nll": [-2.4, -2.2]}),
-        smc=SimpleNamespace(result=smc_result, dates=smc_dates))
+    fc.import_exports([str(datasf_dir)])
+    with responses.RequestsMock(assert_all_requests_are_fired=False) as rsps:
+        rsps.add(responses.GET, re.compile(r"https://data\.sfgov\.org/.*"),
+                 body=requests.ConnectionError("no route to host (test)"))
+        series = load_sf_series(SFDataConfig(client=ClientConfig(
+            base_url="https://data.sfgov.org", max_retries=1, backoff_base_s=0.0)))
+    banner = checks.data_banner(stale=True, vintage=series.vintage.describe(),
+                                notes=fc.staleness_notes(series),
+                                last_day=dt.date(2022, 3, 2), today=dt.date(2022, 3, 30),
+                                source="live")
+    assert banner.startswith("Stale data: DataSF could not be reached") and banner.count(
+        "Stale data") == 1
+    assert "28 days before the run date" in banner
+    for key, spec in DATASETS.items():
+        source = re.search(rf"{key} \(([^)]*)\)", banner).group(1)
+        assert source == spec.resource_url("https://data.sfgov.org"), (key, source)
+    assert "Caused by" not in banner and "no route to host" not in banner
+    fresh = checks.data_banner(stale=False, vintage="v", notes=(), last_day=dt.date(2022, 3, 2),
+                               today=dt.date(2022, 3, 5), source="live")
+    assert fresh is None
 
 
-@pytest.mark.slow
-def test_weekly_report_content_from_forecast_results(epidemic):
-    from pipeline.report.weekly import forecast_report_content
+# ----------------------------------------------------------------------------- a real run
 
-    content = forecast_report_content(_fake_results(epidemic, stale=True))
-    keys = [s.key for s in content.sections]
-    assert keys == ["sir-series", "forecast", "state-estimates", "rollouts", "parameters", "smc",
-                    "nll", "training"]                  # no backtest in these results
-    assert any("fetch failed" in w for w in content.warnings)
-    assert any(w.startswith("Data are stale") for w in content.warnings)
-    assert content.provenance.seed == 3 and len(content.provenance.data_sha256) == 64
-    nll = content.sections[6].items[0].frame
-    assert nll.loc["fw", "transformer"] == -2.4 and nll.loc["bw", "transformer"] == -2.2
-    beta_row = content.sections[4].items[1].frame.loc["β (per day)"]
-    assert beta_row["median"] == pytest.approx(BETA)
-    assert len(content.sections[3].items) == 4         # 7/28 days × forward/backward
+@pytest.fixture(scope="module")
+def real_results(datasf_dir, tmp_path_factory):
+    """A tiny-preset run on the recorded DataSF exports: the flow's steps, without Prefect."""
+    from pipeline import forecast as fc
+
+    root = tmp_path_factory.mktemp("real-run")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
+        config = fc.resolve_config("tiny", data=fc.DataSourceConfig(
+            kind="import", import_paths=(str(datasf_dir),)))
+        series = fc.load_series(config)
+        sir = fc.series_to_sir(series)
+        frame = sir.frame
+        models = fc.train_or_reuse_models(config, fc.simulate_training_data(config))
+        return fc.ForecastResults(
+            config=config, sir_frame=frame, vintage=series.vintage.describe(), stale=False,
+            stale_notes=(), models=models, latest=fc.latest_estimates(models, frame, config),
+            rollouts=fc.rollouts(models, frame, config),
+            future=fc.future_paths(models, frame, config),
+            parameters=fc.parameter_track(models, frame, config),
+            nll=fc.nll_table(models, frame, config), smc=fc.seeded_smc(models, frame, config),
+            weekly=fc.weekly_forecast(series, sir, config))
 
 
-@pytest.mark.slow
-def test_weekly_report_files_name_a_section_it_could_not_draw(epidemic, tmp_path):
+@pytest.fixture(scope="module")
+def real_report(real_results, tmp_path_factory):
     from pipeline.report import build_forecast_report
 
-    names = build_forecast_report(_fake_results(epidemic, stale=False, break_smc=True), tmp_path)
-    assert names == ["report.html", "report.pdf"]
-    html = (tmp_path / "report.html").read_text(encoding="utf-8")
+    out = tmp_path_factory.mktemp("real-report")
+    assert build_forecast_report(real_results, out) == ["report.html", "report.pdf"]
+    return out
+
+
+def _pdf_text(pdf: Path, page: int) -> str:
+    """One page's text, whitespace collapsed (pdftotext -layout keeps table rows together)."""
+    text = subprocess.run(["pdftotext", "-layout", "-f", str(page), "-l", str(page), str(pdf),
+                           "-"], capture_output=True, text=True, check=True, timeout=60).stdout
+    return " ".join(text.split())
+
+
+@pytest.mark.slow
+def test_page_one_carries_the_published_forecast(real_results, real_report):
+    """Page 1 of the PDF holds the headline numbers, and they are the published forecast's (the
+    hub submission's) medians and quantiles, P(growing) from its paths, R_t per sample."""
+    if reason := missing_tool_reason("pdftotext"):
+        pytest.skip(reason)
+    from pipeline.forecasting.backtest import hub_frame
+    from pipeline.report.headline import (compute_headline, fmt_count, fmt_prob, fmt_range,
+                                          fmt_rt, fmt_share)
+
+    weekly = real_results.weekly
+    latest, n = weekly.latest, weekly.history.population
+    at = {lv: int(np.flatnonzero(np.isclose(latest.levels, lv))[0])
+          for lv in (0.05, 0.25, 0.5, 0.75, 0.95)}
+    # the headline's numbers are the published quantiles, exactly (no re-estimation) ...
+    headline = compute_headline(real_results)
+    for k, f in enumerate(headline.horizons):
+        for target, got in (("cases", f.cases), ("I", f.infectious)):
+            v = latest.values[target][k]
+            assert (got.median, got.lo50, got.hi50, got.lo90, got.hi90) == (
+                v[at[0.5]], v[at[0.25]], v[at[0.75]], v[at[0.05]], v[at[0.95]])
+    # ... which are the hub-format file's quantiles
+    hub = hub_frame(latest)
+    medians = hub[(hub["output_type"] == "quantile") & (hub["output_type_id"] == "0.5")
+                  & (hub["target"] == "cases")].sort_values("horizon")["value"].to_numpy()
+    np.testing.assert_array_equal(medians, latest.values["cases"][:, at[0.5]])
+
+    page1 = _pdf_text(real_report / "report.pdf", 1)
+    assert page1.startswith(f"FLOWCAST WEEKLY REPORT San Francisco COVID-19 forecast from "
+                            f"{weekly.origin.date()}")
+    for k, h in enumerate(latest.horizons):
+        c, i = latest.values["cases"][k], latest.values["I"][k]
+        week = f"{(weekly.origin + pd.Timedelta(days=7 * h)).date()} (+{h} wk)"
+        assert (f"{week} {fmt_count(c[at[0.5]])} {fmt_range(c[at[0.25]], c[at[0.75]])} "
+                f"{fmt_range(c[at[0.05]], c[at[0.95]])}") in page1, week
+
+        def pct(x):
+            return fmt_share(x).removesuffix("%")
+        assert (f"{week} {fmt_count(n * i[at[0.5]])} ({fmt_share(i[at[0.5]])}) "
+                f"{fmt_range(n * i[at[0.25]], n * i[at[0.75]])} "
+                f"({pct(i[at[0.25]])}–{pct(i[at[0.75]])}%) "
+                f"{fmt_range(n * i[at[0.05]], n * i[at[0.95]])} "
+                f"({pct(i[at[0.05]])}–{pct(i[at[0.95]])}%)") in page1, week
+    now = weekly.history.I[-1] * n
+    assert f"About {fmt_count(now)} people in San Francisco are infectious" in page1
+    this_week = weekly.history.up_to(weekly.origin).weekly_cases()[-1]
+    p = np.mean(latest.paths[:, 0, 1] * n > this_week)
+    assert f"{fmt_prob(p)} that next week's cases exceed this week's ({fmt_count(this_week)}" \
+        in page1
+    x = real_results.latest.samples["forward"].double().numpy()
+    names = list(real_results.latest.names)
+    s, beta, gamma = (x[:, names.index(c)] for c in ("S", "beta", "gamma"))
+    rt = (beta * s / gamma)[gamma > 0]
+    q = np.quantile(rt, [0.5, 0.25, 0.75, 0.05, 0.95])
+    assert (f"{fmt_rt(q[0])} (50%: {fmt_rt(q[1])}–{fmt_rt(q[2])}; 90%: {fmt_rt(q[3])}–"
+            f"{fmt_rt(q[4])})") in page1
+    summary = weekly.summary()["by_target"]
+    for target, label in (("cases", "weekly reported cases"), ("I", "infectious share I")):
+        pub = summary[target]["published"]
+        rel = pub["relative_wis_vs_baseline"]
+        cells = [rel[f"h{h}"] for h in latest.horizons] + [rel["all"], pub["coverage50"],
+                                                           pub["coverage90"]]
+        assert f"{label} " + " ".join(f"{v:.2f}" for v in cells) in page1, label
+    assert page1.count("Old data") == 1          # one banner (imported, years-old exports)
+    assert "1. Forecast" not in page1            # page 1 is the headline only ...
+    assert "1. Forecast: the last 12 weeks" in _pdf_text(real_report / "report.pdf", 2)
+
+
+@pytest.mark.slow
+def test_real_report_pages_are_neither_blank_nor_mixed_conventions(real_results, real_report,
+                                                                   tmp_path):
+    if reason := missing_tool_reason("pdftoppm"):
+        pytest.skip(reason)
+    html = (real_report / "report.html").read_text(encoding="utf-8")
     assert external_references(html) == []
-    assert 'id="smc"' not in html and 'id="rollouts"' in html
-    assert "The SMC section could not be drawn: ValueError" in html
-    assert pdf_page_count(tmp_path / "report.pdf") >= 8
+    # one interval convention: 50% and 90%, never σ bands or 95% intervals
+    for stray in ("±", "2σ", "3σ", "95%", "97.5%"):
+        assert stray not in html, stray
+    pdf = real_report / "report.pdf"
+    n_pages = pdf_page_count(pdf)
+    assert n_pages <= 14
+    for png in pdf_to_pngs(pdf, tmp_path / "pages", dpi=30):
+        assert image_stats(png)[1] > 0.02, f"{png.name} is nearly blank"
+
+
+@pytest.mark.slow
+def test_malformed_diagnostic_is_named_and_a_renamed_field_fails(real_results):
+    from pipeline.report.weekly import forecast_report_content
+
+    smc = real_results.smc
+    broken = dataclasses.replace(real_results, smc=dataclasses.replace(
+        smc, result=dataclasses.replace(smc.result, state_names=("x", "y", "z"))))
+    content = forecast_report_content(broken)
+    assert "smc" not in [s.key for s in content.sections]
+    assert any(w.startswith("The SMC section could not be drawn: the SMC result lacks "
+                            "components ['S', 'I', 'R']") for w in content.warnings)
+    renamed = dataclasses.replace(real_results, models=SimpleNamespace(key="k", reused=True))
+    with pytest.raises(AttributeError, match="histories"):
+        forecast_report_content(renamed)       # a bug surfaces; it is not a warning
+
+
+@pytest.mark.slow
+def test_summary_artifact_and_index_carry_the_headline(real_results):
+    import html
+    import json
+
+    from pipeline.report.headline import compute_headline, fmt_count, markdown
+    from pipeline.run_outputs import RunRecord, render_index_html
+
+    h = compute_headline(real_results)
+    banner = "Stale data: DataSF could not be reached (every retry failed)."
+    md = markdown(h, banner, "reports/2022-03-02/report.html")
+    assert md.count("Stale data") == 1
+    first = h.horizons[0]
+    assert f"| {first.target_end} | {fmt_count(first.cases.median)} |" in md
+    assert "relative WIS vs the hub baseline" in md and "R_t" in md
+    record = RunRecord(reference_date="2022-03-02", run_id="r", finished_at="t",
+                       data_stale=False, data_vintage="2022-03-21", model_key="k", seed=0,
+                       preset="tiny", files=("report.html",),
+                       summary={"headline": json.loads(json.dumps(h.to_dict()))})
+    assert html.escape(h.one_line()) in render_index_html([record])

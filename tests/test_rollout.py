@@ -176,19 +176,3 @@ def test_bad_inputs_raise_named_errors() -> None:
         RolloutConfig(n_paths=0)
     with pytest.raises(ConfigError, match="NaN"):
         rolling_rollout(est, np.arange(10.0), np.full((10, 1), np.nan), every=2)
-
-
-def test_nf_rollout_forecaster_starts_the_day_after_the_history() -> None:
-    import pandas as pd
-
-    from pipeline.forecasters import NFRolloutForecaster
-
-    est = AR1Estimator(a=1.0, q=0.0, dim=3)
-    history = pd.DataFrame({"date": pd.date_range("2021-03-01", periods=10, freq="D"),
-                            "S": np.linspace(0.9, 0.8, 10), "I": 0.05,
-                            "R": np.linspace(0.05, 0.15, 10)})
-    paths = NFRolloutForecaster(est, feedback_noise_sigma=0.0).forecast(history, 7, 5, seed=0)
-    assert paths.shape == (5, 7, 3) and paths.dtype == np.float64
-    # a = 1, q = 0: every day repeats the last observed row
-    np.testing.assert_allclose(paths, np.broadcast_to([0.8, 0.05, 0.15], (5, 7, 3)), atol=1e-6)
-    assert est.calls[0][0, :, -1].tolist() == [-3.0, -2.0, -1.0]

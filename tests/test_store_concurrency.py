@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import time
+import traceback
 from pathlib import Path
 
 from pipeline.data.cache import DatasetCache
@@ -25,6 +26,15 @@ def _payload(writer: int, trial: int) -> bytes:
 
 
 def _write(root: str, writer: int, trial: int, start: mp.synchronize.Event) -> None:
+    try:
+        _write_both(root, writer, trial, start)
+    except BaseException:
+        # A forked child's traceback would be lost with its stderr; keep it for the assertion.
+        Path(root, f"writer-{writer}.error").write_text(traceback.format_exc())
+        raise
+
+
+def _write_both(root: str, writer: int, trial: int, start: mp.synchronize.Event) -> None:
     start.wait(10)
     payload = _payload(writer, trial)
     DatasetCache(Path(root)).store(
@@ -83,7 +93,8 @@ def test_concurrent_writers_never_leave_a_broken_entry(tmp_path):
             p.join(30)
         stop.set()
         reader.join(30)
-        assert all(p.exitcode == 0 for p in writers), [p.exitcode for p in writers]
+        errors = [e.read_text() for e in sorted(Path(root).glob("writer-*.error"))]
+        assert all(p.exitcode == 0 for p in writers), ([p.exitcode for p in writers], errors)
         cache, store = DatasetCache(Path(root)), ModelStore(Path(root) / "models")
         if not _complete(cache, store, allow_missing=False):
             after_failures.append(trial)

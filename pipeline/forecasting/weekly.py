@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
 from pipeline.forecasting.backtest import (PUBLISHED, BacktestConfig, BacktestResult,
@@ -74,15 +73,6 @@ class WeeklyForecast:
 
     def summary(self) -> dict[str, Any]:
         return summarize(self.backtest)
-
-    def growth_probability(self) -> float:
-        """P(weekly cases in the first forecast week exceed the week ending at the origin), from
-        the published sample paths."""
-        paths = self.latest.paths
-        if paths is None:
-            return float("nan")
-        last_week = float(self.history.weekly_cases()[-1])
-        return float(np.mean(paths[:, 0, 1] * self.history.population > last_week))
 
 
 def build_weekly_members(config: WeeklyConfig, store_root: Path,

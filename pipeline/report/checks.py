@@ -22,6 +22,9 @@ OLD_DATA_DAYS = 7
 STALE_HEADLINE = ("Stale data: DataSF could not be reached (every retry failed), so this "
                   "forecast was made from the cached data")
 _URL = re.compile(r"https?://[^\s;,)]+")
+# pipeline.data.series' cache note, said shorter (the banner is on page 1)
+_CACHE_NOTE = re.compile(r"using cache, fetched (\S+) days ago \(its last day, ([0-9-]+), is "
+                         r"[0-9,]+ days before today\)")
 
 
 # ----------------------------------------------------------------------------- data
@@ -42,7 +45,8 @@ def dataset_lines(notes: Sequence[str]) -> list[str]:
     lines = []
     for key, texts in by_key.items():
         urls = [m.group(0) for t in texts for m in _URL.finditer(t)]
-        kept = [_short(t) for t in texts if not t.startswith("DataSF unreachable")]
+        kept = [_CACHE_NOTE.sub(r"cache fetched \1 days ago, last day \2", _short(t))
+                for t in texts if not t.startswith("DataSF unreachable")]
         source = f" ({urls[0]})" if urls else ""
         lines.append(f"{key}{source}: " + ("; ".join(kept) or "from the cache"))
     return lines
@@ -77,10 +81,10 @@ def ess_collapse(ess: ArrayLike, n_particles: int, dates: pd.DatetimeIndex,
     if not low.any():
         return None
     worst = int(np.argmin(e))
-    return (f"Particle filter degenerate: its effective sample size fell below "
-            f"{fraction:.0%} of the {n_particles:,} particles on {int(low.sum())} of {len(e)} "
-            f"days (minimum {e[worst]:.0f} on {dates[worst].date()}); on those days a handful "
-            "of particles carry the filtered estimate and its bands understate the uncertainty.")
+    return (f"Particle filter degenerate: effective sample size below {fraction:.0%} of the "
+            f"particles on {int(low.sum())} of {len(e)} days; minimum {e[worst]:.0f} of "
+            f"{n_particles:,} on {dates[worst].date()}. On those days a handful of particles "
+            "carry the filtered estimate, and its bands understate the uncertainty.")
 
 
 # ----------------------------------------------------------------------------- β, γ
@@ -97,7 +101,8 @@ def prior_not_updated(name: str, lower: ArrayLike, upper: ArrayLike,
     wide = width >= fraction
     if not wide[-1]:
         return None
-    return (f"{name} not identified: its 90% interval spans {width[-1]:.0%} of the training "
-            f"prior's range ({prior[0]:g}–{prior[1]:g} per day) on {dates[-1].date()}, and at "
-            f"least {fraction:.0%} of it on {int(wide.sum())} of {len(wide)} days; the estimate "
+    return (f"{name} not identified by the data: its 90% interval spans {width[-1]:.0%} of "
+            f"the training prior's range on {dates[-1].date()}; the prior range is "
+            f"{prior[0]:g}–{prior[1]:g} per day, and the interval spans at least "
+            f"{fraction:.0%} of it on {int(wide.sum())} of {len(wide)} days. The estimate "
             "restates the prior, not the data.")

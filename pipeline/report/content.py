@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as dt
 import enum
 import json
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -28,6 +29,7 @@ import pandas as pd
 from pipeline.errors import FlowcastError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_FLAT_LIST = re.compile(r"\[\s+([^\[\]{}]*?)\s+\]")
 
 
 class ReportError(FlowcastError):
@@ -170,7 +172,9 @@ class Provenance:
         return rows
 
     def config_json(self) -> str:
-        return json.dumps(dict(self.config), indent=2, sort_keys=True, default=str)
+        text = json.dumps(dict(self.config), indent=2, sort_keys=True, default=str)
+        # lists of plain values on one line: the appendix is half as long
+        return _FLAT_LIST.sub(lambda m: "[" + " ".join(m.group(1).split()) + "]", text)
 
 
 @dataclass(frozen=True)

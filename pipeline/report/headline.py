@@ -312,18 +312,15 @@ def forecast_frame(h: Headline) -> pd.DataFrame:
 
 
 def facts_frame(h: Headline) -> pd.DataFrame:
-    """Key facts beside the table: now, this week, P(growing), R_t."""
+    """Key facts under the table: P(growing) per horizon, R_t with its intervals."""
     rt = h.rt.value
     growth = " / ".join(fmt_prob(f.p_growing) for f in h.horizons)
+    # infectious now and this week's cases are in the lead sentence just above the table
     facts = {
-        "infectious now": f"{fmt_count(h.infectious_now_people)} people "
-                          f"({fmt_share(h.infectious_now)}; cases reported in the 7 days to "
-                          f"{h.last_data_day}, the last data day)",
-        "cases, week ending at the origin": f"{fmt_count(h.origin_week_cases)} "
-                                            f"(7 days to {h.origin})",
-        "P(growing)": f"{fmt_prob(h.p_growing)} that next week's cases exceed this week's; "
-                      f"cases above this week's at 1–{len(h.horizons)} weeks: {growth} "
-                      f"({h.n_paths} published sample paths)",
+        "P(growing)": f"{fmt_prob(h.p_growing)} that next week's cases exceed this week's "
+                      f"({fmt_count(h.origin_week_cases)}, 7 days to {h.origin}); at "
+                      f"1–{len(h.horizons)} weeks: {growth} ({h.n_paths} published sample "
+                      "paths)",
         "R_t = β·S/γ": f"{fmt_rt(rt.median)} (50%: {fmt_range(rt.lo50, rt.hi50, fmt_rt)}; "
                        f"90%: {fmt_range(rt.lo90, rt.hi90, fmt_rt)}) on {h.rt.date}, per "
                        f"sample of the joint flow's forward estimate"
@@ -331,7 +328,7 @@ def facts_frame(h: Headline) -> pd.DataFrame:
                           "out)" if h.rt.n_dropped else ""),
     }
     return pd.DataFrame({"value": list(facts.values())},
-                        index=pd.Index(list(facts), name="now"))
+                        index=pd.Index(list(facts), name="growth"))
 
 
 def skill_frame(h: Headline) -> pd.DataFrame:

@@ -60,6 +60,7 @@ FORECASTERS = {  # the published forecast first, the reference last
     "hub-baseline": "hub baseline",
 }
 TARGETS = {"cases": "weekly reported cases", "I": "I (share of the population)"}
+_SHORT_TARGETS = {"cases": "weekly cases", "I": "I (share)"}
 
 
 def _numpy(x: Any) -> NDArray[np.float64]:
@@ -96,19 +97,17 @@ def headline_section(h: Headline) -> Section:
     cases = skill["cases"]
     return Section(key="headline", title=f"Forecast from {h.origin}: the next four weeks", items=(
         TableItem(forecast_frame(h), (
-            f"The published forecast (recalibrated ensemble) from {h.origin}, the Saturday "
-            f"ending the last complete week: median and 50%/90% intervals of the cases "
-            f"reported in each week (Sunday–Saturday) and of the infectious share I at its end "
-            f"(I = cases reported in the last 7 days / {h.population:,} residents). These are "
-            "the quantiles of the hub submission."), css="headline"),
+            f"Published forecast (recalibrated ensemble) from Saturday {h.origin}: median and "
+            "50%/90% intervals of the cases reported in each week (Sunday–Saturday) and of I "
+            f"at its end (I·N = cases reported in the last 7 days; N = {h.population:,}); the "
+            "hub submission's quantiles."), css="headline"),
         TableItem(facts_frame(h), "", css="facts"),
         TableItem(skill_frame(h), (
-            f"How good this forecast has been: the same method forecast in real time at "
-            f"{cases.n_origins} earlier Saturdays ({cases.first_origin} … {cases.last_origin}), "
-            "scored against what was later reported. Relative WIS = Σ WIS / Σ WIS of the "
-            "COVID-19 Forecast Hub baseline over the same forecasts (below 1: better than the "
-            "baseline); coverage: share of observations inside the 50% and 90% intervals "
-            "(nominal 0.50 and 0.90)."), decimals=2, css="skill")))
+            f"Track record: the same method forecast in real time at {cases.n_origins} earlier "
+            f"Saturdays ({cases.first_origin} … {cases.last_origin}). Relative WIS = Σ WIS / "
+            "Σ WIS of the COVID-19 Forecast Hub baseline (below 1: better); coverage: share of "
+            "observations inside the 50% and 90% intervals (nominal 0.50, 0.90)."),
+            decimals=2, css="skill")))
 
 
 # ----------------------------------------------------------------------------- forecast
@@ -117,7 +116,7 @@ def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
     """Every forecaster at the latest origin: median (90 % interval) per target and week."""
     forecasts = weekly.member_forecasts()
     rows, index = [], []
-    for target, target_label in TARGETS.items():
+    for target in TARGETS:
         fmt = fmt_share if target == "I" else fmt_count
         for name in [n for n in FORECASTERS if n in forecasts] + \
                 [n for n in forecasts if n not in FORECASTERS]:
@@ -127,7 +126,7 @@ def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
             # the first and last week only: four columns of intervals do not fit an A4 page
             rows.append([f"{fmt(q[0.5][k])} ({fmt_range(q[0.05][k], q[0.95][k], fmt)})"
                          for k in (0, len(f.horizons) - 1)])
-            index.append((target_label, _label(name)))
+            index.append((_SHORT_TARGETS[target], _label(name)))
             horizons = (f.horizons[0], f.horizons[-1])
     origin = weekly.origin
     columns = [f"{(origin + pd.Timedelta(days=7 * h)).date()} (+{h} wk)" for h in horizons]
