@@ -68,6 +68,16 @@ def wait_healthy(api: str, proc: subprocess.Popen, log: Path, timeout: float) ->
     pytest.fail(f"prefect server not healthy after {timeout} s:\n{log.read_text()[-3000:]}")
 
 
+def start_prefect_server(tmp_path: Path, env: dict[str, str], port: int,
+                         api: str) -> subprocess.Popen:
+    """A Prefect server on 127.0.0.1:``port``, healthy (its log in ``tmp_path/server.log``)."""
+    server_log = tmp_path / "server.log"
+    proc = start([PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port),
+                  "--analytics-off"], env, server_log)
+    wait_healthy(api, proc, server_log, 60)
+    return proc
+
+
 def api_post(api: str, path: str, body: dict) -> object:
     req = urllib.request.Request(f"{api}{path}", data=json.dumps(body).encode(),
                                  headers={"Content-Type": "application/json"}, method="POST")
@@ -90,10 +100,7 @@ def test_serve_and_run_deployment(tmp_path, datasf_dir):
     reports = tmp_path / "reports"
     procs: list[subprocess.Popen] = []
     try:
-        server_log = tmp_path / "server.log"
-        procs.append(start([PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port),
-                            "--analytics-off"], env, server_log))
-        wait_healthy(api, procs[0], server_log, 60)
+        procs.append(start_prefect_server(tmp_path, env, port, api))
 
         serve_log = tmp_path / "serve.log"
         procs.append(start([sys.executable, "-m", "flows.deploy", "--preset", "tiny",

@@ -76,11 +76,15 @@ def _complete(cache: DatasetCache, store: ModelStore, *, allow_missing: bool) ->
 
 
 def test_concurrent_writers_never_leave_a_broken_entry(tmp_path):
-    ctx = mp.get_context("fork")
+    # forkserver: writers fork from a clean server process, not from pytest's, which by now may
+    # hold other tests' threads (Prefect's harness) that a plain fork copies mid-flight.
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["pipeline.data.cache", "pipeline.model_store"])
     failures = ctx.Value("i", 0)
     after_failures = []
     for trial in range(TRIALS):
         root = str(tmp_path / f"trial-{trial}")
+        Path(root).mkdir()
         start, stop = ctx.Event(), ctx.Event()
         reader = ctx.Process(target=_read_until, args=(root, stop, failures))
         writers = [ctx.Process(target=_write, args=(root, w, trial, start))

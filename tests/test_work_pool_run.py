@@ -12,13 +12,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
 import pytest
 
-from tests.test_deployment_run import api_post, free_port, start, stop, wait_healthy
+from tests.test_deployment_run import api_post, free_port, start, start_prefect_server, stop
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -59,10 +58,7 @@ def test_prefect_yaml_deploy_worker_run_and_stale_artifact(tmp_path, datasf_dir)
     yaml_before = (REPO / "prefect.yaml").read_bytes()
     procs: list[subprocess.Popen] = []
     try:
-        server_log = tmp_path / "server.log"
-        procs.append(start([PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port),
-                            "--analytics-off"], env, server_log))
-        wait_healthy(api, procs[0], server_log, 60)
+        procs.append(start_prefect_server(tmp_path, env, port, api))
 
         pool = _cli(["work-pool", "create", POOL, "--type", "process"], env, 60)
         assert pool.returncode == 0, pool.stdout + pool.stderr
