@@ -454,6 +454,10 @@ def test_checks_say_trouble_in_words():
     assert checks.prior_not_updated("β", np.full(28, 0.1), np.full(28, 0.15), (0.03, 0.3),
                                     dates) is None
     assert checks.prior_not_updated("β", np.zeros(28), np.ones(28), None, dates) is None
+    observed = np.array([0.001, 0.026, 0.01])
+    over = checks.rollout_overshoot("forward 28-day rollout", [0.002, 0.3, np.nan], observed)
+    assert over.startswith("The forward 28-day rollout diverges: its median I reaches 0.3, 12×")
+    assert checks.rollout_overshoot("x", [0.002, 0.05, np.nan], observed) is None
 
 
 def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):

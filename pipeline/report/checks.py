@@ -16,6 +16,7 @@ import pandas as pd
 from numpy.typing import ArrayLike
 
 ESS_COLLAPSE_FRACTION = 0.05      # ESS below 5 % of the particles: a handful carry the estimate
+ROLLOUT_OVERSHOOT = 3.0           # a rollout median this many times the observed peak of I
 PRIOR_WIDTH_FRACTION = 0.9        # a 90 % interval this wide, relative to the prior range
 OLD_DATA_DAYS = 7
 
@@ -85,6 +86,23 @@ def ess_collapse(ess: ArrayLike, n_particles: int, dates: pd.DatetimeIndex,
             f"particles on {int(low.sum())} of {len(e)} days; minimum {e[worst]:.0f} of "
             f"{n_particles:,} on {dates[worst].date()}. On those days a handful of particles "
             "carry the filtered estimate, and its bands understate the uncertainty.")
+
+
+# ----------------------------------------------------------------------------- rollouts
+
+def rollout_overshoot(label: str, median_i: ArrayLike, observed_i: ArrayLike,
+                      factor: float = ROLLOUT_OVERSHOOT) -> str | None:
+    """When a rollout's median I exceeds ``factor`` times the highest I ever observed: chained
+    estimates compounded their errors, so the rollout says nothing about the epidemic there."""
+    median = np.asarray(median_i, dtype=np.float64)
+    peak = float(np.nanmax(np.asarray(observed_i, dtype=np.float64)))
+    top = float(np.nanmax(median)) if np.isfinite(median).any() else float("nan")
+    if not (peak > 0 and top > factor * peak):
+        return None
+    return (f"The {label} diverges: its median I reaches {top:.3g}, {top / peak:.0f}× the "
+            f"highest I observed ({peak:.3g}). Chained estimates compound their errors over "
+            "the window; this is the paper's reconstruction method shown for reference, not "
+            "the published forecast (section 1).")
 
 
 # ----------------------------------------------------------------------------- β, γ

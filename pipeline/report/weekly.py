@@ -306,6 +306,7 @@ def rollout_section(results: ForecastResults) -> Section:
     sir = results.sir_frame
     start = pd.to_datetime(sir["date"]).min()
     items = []
+    alerts: list[str] = []
     for (direction, every), roll in sorted(results.rollouts.items(),
                                            key=lambda kv: (kv[0][1], kv[0][0])):
         dates = pd.DatetimeIndex(start + pd.to_timedelta(np.asarray(roll.times, dtype=float),
@@ -317,12 +318,17 @@ def rollout_section(results: ForecastResults) -> Section:
             q = np.nanquantile(_numpy(roll.samples)[..., idx], LEVELS, axis=0)    # (5, T, 3)
         png = figures.rollout_figure(dates, _observed_at(sir, dates), q,
                                      window_days=int(every), direction=direction)
+        alert = checks.rollout_overshoot(f"{direction} {every}-day rollout",
+                                         q[LEVELS.index(0.5), :, STATES.index("I")],
+                                         sir["I"].to_numpy())
+        if alert:
+            alerts.append(alert)
         items.append(_fig(png, f"{direction.capitalize()} rollout re-anchored on observations "
                                f"every {every} days: median, 50% and 90% intervals of the "
                                "sample paths; full series (left) and 60 days around the peak "
                                "of I (right).",
                           f"{direction} {every}-day rollout of S, I, R, full and zoomed"))
-    return Section.weekly(SectionKey.ROLLOUTS, items)
+    return Section.weekly(SectionKey.ROLLOUTS, items, alerts=alerts)
 
 
 def _prior(results: ForecastResults) -> Any:
