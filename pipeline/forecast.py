@@ -758,13 +758,15 @@ def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
     every forecaster's quantiles beside it, and the real-time backtest's scores."""
     from pipeline.forecasting.backtest import PUBLISHED, hub_frame
 
-    frames = [hub_frame(f).assign(forecaster=name)
+    population = weekly.history.population
+    frames = [hub_frame(f, population).assign(forecaster=name)
               for name, f in weekly.member_forecasts().items() if name != PUBLISHED]
     members = pd.concat(frames, ignore_index=True)
     scores = weekly.backtest.scores.assign(
         origin_date=lambda f: pd.to_datetime(f["origin_date"]).dt.strftime("%Y-%m-%d"),
         target_end_date=lambda f: pd.to_datetime(f["target_end_date"]).dt.strftime("%Y-%m-%d"))
-    return {"hub_forecast.csv": hub_frame(weekly.latest), "member_forecasts.csv": members,
+    return {"hub_forecast.csv": hub_frame(weekly.latest, population),
+            "member_forecasts.csv": members,
             "backtest_scores.csv": scores}
 
 

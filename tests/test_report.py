@@ -556,7 +556,7 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
             assert (got.median, got.lo50, got.hi50, got.lo90, got.hi90) == (
                 v[at[0.5]], v[at[0.25]], v[at[0.75]], v[at[0.05]], v[at[0.95]])
     # ... which are the hub-format file's quantiles
-    hub = hub_frame(latest)
+    hub = hub_frame(latest, real_results.weekly.history.population)
     medians = hub[(hub["output_type"] == "quantile") & (hub["output_type_id"] == "0.5")
                   & (hub["target"] == "cases")].sort_values("horizon")["value"].to_numpy()
     np.testing.assert_array_equal(medians, latest.values["cases"][:, at[0.5]])

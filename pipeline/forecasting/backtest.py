@@ -39,9 +39,9 @@ from pipeline.forecasting.calibration import (CalibrationConfig, pit_from_quanti
                                               recalibrate)
 from pipeline.forecasting.ensemble import (PUBLISHED, UNCALIBRATED, EnsembleConfig,
                                            InvalidCounts, add_counts, check_compatible,
-                                           count_invalid, member_matrix, published_from_cases,
-                                           sample_paths, skill_weights, vincentize)
-from pipeline.forecasting.members import Member
+                                           count_invalid, member_matrix, sample_paths,
+                                           skill_weights, vincentize)
+from pipeline.forecasting.members import Member, quantile_forecast_from_weekly_cases
 from pipeline.forecasting.targets import (DAYS_PER_WEEK, HORIZONS_WEEKS, TARGETS, EpiHistory,
                                           QuantileForecast, observed_targets)
 from pipeline.io import atomic_write_json, atomic_write_text
@@ -249,9 +249,9 @@ def publish(history: EpiHistory, current: dict[str, QuantileForecast], members: 
         for k, h in enumerate(config.horizons)])
     template = next((current[n].paths for n in members if current[n].paths is not None), None)
     paths = sample_paths(history, levels, calibrated, config.n_paths, template)
-    uncal = published_from_cases(UNCALIBRATED, t, config.horizons, levels, raw,
+    uncal = quantile_forecast_from_weekly_cases(UNCALIBRATED, t, config.horizons, levels, raw,
                                  history.population)
-    pub = published_from_cases(PUBLISHED, t, config.horizons, levels, calibrated,
+    pub = quantile_forecast_from_weekly_cases(PUBLISHED, t, config.horizons, levels, calibrated,
                                history.population, paths)
     return pub, uncal, weights
 
@@ -382,9 +382,9 @@ def _format_level(level: float) -> str:
     return f"{level:.3f}".rstrip("0").rstrip(".")
 
 
-def hub_frame(forecast: QuantileForecast) -> pd.DataFrame:
+def hub_frame(forecast: QuantileForecast, population: int) -> pd.DataFrame:
     """Hub-format rows (:data:`HUB_COLUMNS`) of a forecast: quantiles of I and cases, and the
-    sample paths' I and weekly cases (N·I) when it has paths."""
+    sample paths' I and weekly cases (N·I, ``population`` N) when it has paths."""
     origin = forecast.origin
     frames = []
     for target in TARGETS:
@@ -396,8 +396,6 @@ def hub_frame(forecast: QuantileForecast) -> pd.DataFrame:
             "output_type_id": np.tile([_format_level(lv) for lv in forecast.levels], n_h),
             "value": values.reshape(-1)}))
     if forecast.paths is not None:
-        ratio = forecast.values["cases"][:, 0] / np.maximum(forecast.values["I"][:, 0], 1e-300)
-        population = float(np.median(ratio)) if np.isfinite(ratio).all() else 1.0
         i_paths = forecast.paths[:, :, 1].T                                  # (H, n)
         n_h, n_s = i_paths.shape
         for target, vals in (("I", i_paths), ("cases", i_paths * population)):
@@ -424,7 +422,7 @@ def write_backtest(result: BacktestResult, out_dir: str | Path,
     written = []
     for forecast in result.published:
         path = root / "forecasts" / f"{forecast.origin.date()}-published.csv"
-        atomic_write_text(path, _csv(hub_frame(forecast)))
+        atomic_write_text(path, _csv(hub_frame(forecast, result.population)))
         written.append(path)
     scores = result.scores.copy()
     for col in ("origin_date", "target_end_date"):

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
@@ -102,16 +101,6 @@ def check_compatible(forecasts: Sequence[QuantileForecast]) -> None:
             raise EnsembleError(f"{f.forecaster} ({f.origin.date()}, h={f.horizons}) does not "
                                 f"match {ref.forecaster} ({ref.origin.date()}, h={ref.horizons}) "
                                 "in origin, horizons or levels")
-
-
-def published_from_cases(name: str, origin: pd.Timestamp, horizons: tuple[int, ...],
-                         levels: NDArray[np.float64], cases: NDArray[np.float64],
-                         population: int, paths: NDArray[np.float64] | None = None
-                         ) -> QuantileForecast:
-    from pipeline.forecasting.members import quantile_forecast_from_weekly_cases
-
-    return quantile_forecast_from_weekly_cases(name, origin, horizons, levels, cases, population,
-                                               paths)
 
 
 # ------------------------------------------------------------------------------- sample paths
