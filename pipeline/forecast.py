@@ -53,6 +53,7 @@ from pipeline.forecasting.nf_member import GrowthModelConfig
 from pipeline.forecast_hub import Submission
 from pipeline.forecasting.weekly import WeeklyConfig, WeeklyForecast
 from pipeline.progress import ProgressReporter
+from pipeline.scoring import CENTRAL_LEVELS
 from pipeline.systems.waves import WavePrior
 
 log = logging.getLogger(__name__)
@@ -65,7 +66,7 @@ DIRECTIONS = ("forward", "backward")
 VARIANT_LABELS = {"transformer": "Transformer", "transformer-ke": "Transformer + KE",
                   "mamba": "Mamba-SSM", "mlp": "MLP"}
 # The report's one interval convention: 50 % and 90 % central intervals (plus the median).
-REPORT_LEVELS = (0.05, 0.25, 0.5, 0.75, 0.95)
+REPORT_LEVELS = CENTRAL_LEVELS
 PARAMETER_LEVELS = (0.025, *REPORT_LEVELS, 0.975)
 # Per-step seed offsets: changing one step's draws never shifts another's.
 _SEED_OFFSETS = {"simulate": 0, "train_forward": 11, "train_backward": 12, "latest": 21,

@@ -59,7 +59,8 @@ class HubFormatError(FlowcastError):
     """A forecast or a hub file that does not meet the hub format (levels, NaN, dates...)."""
 
 
-def _format_level(level: float) -> str:
+def format_level(level: float) -> str:
+    """A quantile level as hub files write it: ``0.025``, ``0.5``, ``0.1``."""
     return f"{level:.3f}".rstrip("0").rstrip(".")
 
 
@@ -179,7 +180,7 @@ def submission_frame(forecast: QuantileForecast, *, population: float, reference
     and the hub horizons left out with reasons. Raises ``HubFormatError`` if none is left."""
     _check_forecast(forecast, population, config)
     assert forecast.paths is not None
-    level_ids = [_format_level(lv) for lv in config.quantile_levels]
+    level_ids = [format_level(lv) for lv in config.quantile_levels]
     sample_ids = [str(k + 1) for k in range(config.n_samples)]
     rows: list[pd.DataFrame] = []
     omitted: dict[int, str] = {}

@@ -52,6 +52,8 @@ from numpy.typing import ArrayLike, NDArray
 from pipeline.errors import FlowcastError
 
 _LEVEL_TOL = 1e-9
+# The product's one interval convention: the median and the central 50 % and 90 % intervals.
+CENTRAL_LEVELS: tuple[float, ...] = (0.05, 0.25, 0.5, 0.75, 0.95)
 
 
 class ScoringError(FlowcastError):

@@ -14,6 +14,8 @@ import pytest
 import requests
 import responses
 
+from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
+
 
 pytestmark = pytest.mark.slow
 
@@ -22,7 +24,6 @@ EXPECTED_REFERENCE_DATE = "2022-03-02"
 HUB_LEVELS = 23
 ORIGIN = "2022-02-26"        # the last Saturday of data: the published forecast's origin
 ROUND = "2022-03-19"         # the hub round of the run's date (2022-03-02 + 14 days)
-SF_POPULATION = 873_965
 
 
 @pytest.fixture(scope="session")
@@ -89,7 +90,7 @@ def test_outputs_exist_with_real_numbers(good_run):
     assert (q.groupby(["target", "horizon"])["value"].diff().dropna() >= 0).all()
     assert (hub["value"] >= 0).all()
     by_target = q.pivot_table(index=["horizon", "level"], columns="target", values="value")
-    np.testing.assert_allclose(by_target["cases"], by_target["I"] * SF_POPULATION, rtol=1e-9)
+    np.testing.assert_allclose(by_target["cases"], by_target["I"] * SF_POPULATION_2020_CENSUS, rtol=1e-9)
     members = pd.read_csv(out / "member_forecasts.csv")
     assert set(members["forecaster"]) == {"autoets", "nf-growth", "hub-baseline",
                                           "ensemble-uncalibrated"}

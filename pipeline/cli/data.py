@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from pipeline.cli import app
+from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
 from pipeline.errors import FlowcastError
 
 data_app = typer.Typer(no_args_is_help=True, help="San Francisco COVID-19 data from DataSF.")
@@ -132,7 +133,7 @@ def _sir_config(population: int, infectious_days: int, ascertainment: bool):  # 
                                ascertainment=AscertainmentConfig() if ascertainment else None)
 
 
-Population = typer.Option(873_965, "--population", min=1, help="Population N (2020 Census).")
+Population = typer.Option(SF_POPULATION_2020_CENSUS, "--population", min=1, help="Population N (2020 Census).")
 InfectiousDays = typer.Option(10, "--infectious-days", min=1, help="Infectious period L (days).")
 Ascertainment = typer.Option(False, "--ascertainment/--no-ascertainment",
                              help="Correct cases for under-ascertainment from test positivity.")
@@ -188,7 +189,7 @@ def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output
     for path in paths:
         typer.echo(f"wrote {path}")
     inside = comparison.states_aligned.inside
-    typer.echo(f"SF days inside the prior's 1–99 % state band (offset 0): "
+    typer.echo("SF days inside the prior's 1–99 % state band (offset 0): "
                + ", ".join(f"{k} {v:.0%}" for k, v in inside.items()))
     typer.echo(json.dumps({"best_offset": comparison.states_best.offset,
                            "inside_at_best_offset": comparison.states_best.inside}))

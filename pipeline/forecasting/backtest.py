@@ -32,7 +32,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
-from pipeline.forecast_hub import HUB_QUANTILE_LEVELS
+from pipeline.forecast_hub import HUB_QUANTILE_LEVELS, format_level
 from pipeline.forecasting.autoets import AutoETSMember
 from pipeline.forecasting.baseline import HUB_BASELINE, HubBaseline
 from pipeline.forecasting.calibration import (CalibrationConfig, pit_from_quantiles,
@@ -378,10 +378,6 @@ def summarize(result: BacktestResult) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------ writing
 
 
-def _format_level(level: float) -> str:
-    return f"{level:.3f}".rstrip("0").rstrip(".")
-
-
 def hub_frame(forecast: QuantileForecast, population: int) -> pd.DataFrame:
     """Hub-format rows (:data:`HUB_COLUMNS`) of a forecast: quantiles of I and cases, and the
     sample paths' I and weekly cases (N·I, ``population`` N) when it has paths."""
@@ -393,7 +389,7 @@ def hub_frame(forecast: QuantileForecast, population: int) -> pd.DataFrame:
         h = np.repeat(np.asarray(forecast.horizons), n_q)
         frames.append(pd.DataFrame({
             "target": target, "horizon": h, "output_type": "quantile",
-            "output_type_id": np.tile([_format_level(lv) for lv in forecast.levels], n_h),
+            "output_type_id": np.tile([format_level(lv) for lv in forecast.levels], n_h),
             "value": values.reshape(-1)}))
     if forecast.paths is not None:
         i_paths = forecast.paths[:, :, 1].T                                  # (H, n)

@@ -30,6 +30,7 @@ from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
 from pipeline.report.content import ReportError
+from pipeline.scoring import CENTRAL_LEVELS
 
 DPI = 110
 FULL_WIDTH_IN = 8.5
@@ -109,7 +110,7 @@ def _proportion_axis(ax: Axes, compartment: str) -> None:
 
 
 # The report's one interval convention: median with 50 % and 90 % central intervals.
-LEVELS: tuple[float, ...] = (0.05, 0.25, 0.5, 0.75, 0.95)
+LEVELS = CENTRAL_LEVELS
 BAND_LABELS = ("90% interval", "50% interval")
 
 

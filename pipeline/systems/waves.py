@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
 from pipeline.errors import ConfigError
 
-SF_POPULATION = 873_965
 REPORTING_WINDOW_DAYS = 7
 
 
@@ -40,7 +40,7 @@ REPORTING_WINDOW_DAYS = 7
 class WavePrior:
     """Ranges each trajectory's settings are drawn from (uniform unless named log-uniform)."""
 
-    population: int = SF_POPULATION
+    population: int = SF_POPULATION_2020_CENSUS
     window_days: int = REPORTING_WINDOW_DAYS
     days: int = 200
     burn_in_days: int = 30
