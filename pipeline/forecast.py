@@ -647,9 +647,7 @@ def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastC
     context, mask = window_context(window, "forward", r)
     particles = sample_conditional(models.forward, context, mask, config.smc_particles,
                                    config.step_seed("smc")).double()                # (1, N, 5)
-    particles[..., :3] = particles[..., :3].clamp_min(0.0)
-    particles[..., :3] /= particles[..., :3].sum(-1, keepdim=True)
-    particles[..., 3:] = particles[..., 3:].clamp_min(0.0)
+    _check_valid_seed(particles)
     prior = config.prior
     # The filter's model is the training prior's: its noise, and beta (and gamma) drifting as
     # fast as the prior's walk. Static parameters (jitter 0) cannot follow a wave's turn: on the
@@ -669,6 +667,18 @@ def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastC
                                                              *REPORT_LEVELS}))),
                            times=torch.as_tensor(times[start:]))
     return SMCRun(result=result, dates=dates[start:])
+
+
+def _check_valid_seed(particles: Tensor) -> None:
+    """The seeding draws must already be states and rates: the joint model's log-ratio
+    coordinates guarantee it, so a violation means a wrong model, not something to clip."""
+    state, rates = particles[..., :3], particles[..., 3:]
+    bad = ((state < 0).any(-1) | ((state.sum(-1) - 1).abs() > 1e-6)
+           | (rates <= 0).any(-1) | ~torch.isfinite(particles).all(-1))
+    if bool(bad.any()):
+        raise ConfigError(f"{int(bad.sum())} of {bad.numel()} flow draws seeding the SMC filter "
+                          "are not valid S/I/R states with positive rates; the forecast's joint "
+                          "model must use target_transform='sir-log-ratio' (retrain it)")
 
 
 @dataclass(frozen=True)
