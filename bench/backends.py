@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from pipeline.io import atomic_write_json
-from pipeline.models.flows import BACKENDS, FlowConfig, build_flow
+from pipeline.models.maf import BACKENDS, FlowConfig, build_flow
 
 RESULTS = Path(__file__).resolve().parent / "results" / "backends.json"
 

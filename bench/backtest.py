@@ -1,10 +1,10 @@
 """Real-time backtest of the published weekly forecast → bench/results/backtest.json.
 
 Every Saturday origin of the shared DataSF data with 4 weeks of truth (from 8 weeks into the
-data), with the weekly forecast's own settings (``pipeline.forecast`` preset ``default``: the same
+data), with the weekly forecast's own settings (``pipeline.forecast.steps`` preset ``default``: the same
 members, flow model, ensemble and recalibration the weekly run publishes). At each origin every member sees the
 data up to that day only; the published forecast is their quantile average with weights and a
-recalibration fitted to past origins' scores only (:mod:`pipeline.forecasting.backtest`).
+recalibration fitted to past origins' scores only (:mod:`pipeline.ensemble.backtest`).
 Targets I and weekly reported cases, 1–4 weeks, 23 hub quantiles; WIS relative to the COVID-19
 Forecast Hub baseline per target × horizon (never pooled across targets), 50 %/90 % coverage,
 PIT histograms, and the count of invalid values in the published sample paths.
@@ -43,9 +43,9 @@ def design_variants(history: Any, members: list[Any], config: Any) -> dict[str, 
     target, relative WIS (h1–h4, all) and coverage of the published forecast under each."""
     import dataclasses
 
-    from pipeline.forecasting.backtest import run_realtime_backtest, summarize
-    from pipeline.forecasting.baseline import HubBaseline
-    from pipeline.forecasting.calibration import CalibrationConfig
+    from pipeline.ensemble.backtest import run_realtime_backtest, summarize
+    from pipeline.evaluation.hub_baseline import HubBaseline
+    from pipeline.ensemble.calibration import CalibrationConfig
 
     never = CalibrationConfig(shrinkage_pits=float("inf"))
     choices = {
@@ -75,9 +75,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import dataclasses
 
     from pipeline import forecast as fc
-    from pipeline.forecasting.backtest import (backtest_origins, load_sf_history,
+    from pipeline.ensemble.backtest import (backtest_origins, load_sf_history,
                                                run_realtime_backtest, summarize)
-    from pipeline.forecasting.weekly import build_weekly_members
+    from pipeline.ensemble.weekly import build_weekly_members
     from pipeline.io import atomic_write_json
 
     fc.import_exports([args.data], if_empty=True)

@@ -47,7 +47,7 @@ def _env(data_dir: Path) -> dict[str, str]:
 
 
 def _import_data(datasf: str, env: dict[str, str]) -> None:
-    code = ("import sys; from pipeline.forecast import import_exports; "
+    code = ("import sys; from pipeline.forecast.steps import import_exports; "
             "import_exports(sys.argv[1:])")
     subprocess.run([sys.executable, "-c", code, datasf], env=env, cwd=ROOT, check=True,
                    stdout=subprocess.DEVNULL)

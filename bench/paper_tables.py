@@ -14,7 +14,7 @@ training.
 
 Protocol (see docs/estimation.md, "Reference posteriors"):
 
-* Models: the presets of :mod:`pipeline.presets` with the ``fast`` recipe, capped by a per-model
+* Models: the presets of :mod:`pipeline.training.presets` with the ``fast`` recipe, capped by a per-model
   wall-clock budget (the cosine schedule is compressed to end annealed at the budget). Table 1 uses
   the ``vehicle`` preset on the fixed-step ``vehicle-full`` data (Δt = 1); Table 2 the ``vehicle``
   preset (``vehicle-dropout``); Tables 3/4 ``sir-single`` and ``sir-multi``. Encoders: transformer,
@@ -26,12 +26,12 @@ Protocol (see docs/estimation.md, "Reference posteriors"):
   SIR: 100 random target positions (uniform over the valid positions; single: along one fresh
   noisy realisation of the fixed trajectory; multi: one position on each of 100 fresh
   trajectories with (β, γ) from the prior).
-* "True distribution" = the reference posterior of :mod:`pipeline.reference` (simulator draws
+* "True distribution" = the reference posterior of :mod:`pipeline.inference.reference` (simulator draws
   weighted by the likelihood of the window's observations), 1,000 draws.
 * KL: ``knn_kl_divergence(model samples, reference draws)`` = D(estimate ‖ truth), k = 1,
   1,000 vs 1,000 samples; 2-D (p_x, p_y) for the vehicle, 1-D per compartment for SIR; the
   mean over windows is reported.
-* SMC (Table 1): bootstrap filter (:mod:`pipeline.smc`, vehicle model) with 1,000 particles
+* SMC (Table 1): bootstrap filter (:mod:`pipeline.inference.smc`, vehicle model) with 1,000 particles
   started from the prior around the first context observation o_n (not weighted by it again),
   four steps with observation updates (o_{n+1} … o_{n+4}), one propagation without (the
   paper's protocol), particles resampled by weight.
@@ -50,11 +50,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.estimate import (assemble_context, confidence_regions, draw_noise,
+from pipeline.inference.estimate import (assemble_context, confidence_regions, draw_noise,
                                uses_absolute_time)
 from pipeline.io import atomic_write_json, atomic_write_text
-from pipeline.metrics import knn_kl_divergence
-from pipeline.reference import (SIRReferenceConfig, simulate_sir_candidates,
+from pipeline.evaluation.metrics import knn_kl_divergence
+from pipeline.inference.reference import (SIRReferenceConfig, simulate_sir_candidates,
                                 simulate_vehicle_candidates, sir_reference, vehicle_reference)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -151,12 +151,12 @@ def required_models() -> list[tuple[str, str, str, str | None]]:
 def trained_estimator(preset_name: str, encoder: str, direction: str, cfg: BenchConfig,
                       dataset_name: str | None = None):  # noqa: ANN201 - ConditionalEstimator
     """Load the cached checkpoint or train it (fast recipe, time budget) and cache it."""
-    from pipeline.checkpoints import load_checkpoint
-    from pipeline.datasets import build_dataset_from_config, train_validation_split
+    from pipeline.training.checkpoints import load_checkpoint
+    from pipeline.training.datasets import build_dataset_from_config, train_validation_split
     from pipeline.errors import CheckpointError
     from pipeline.models.estimator import build_estimator
-    from pipeline.presets import get_preset
-    from pipeline.training import train_and_save
+    from pipeline.training.presets import get_preset
+    from pipeline.training.trainer import train_and_save
 
     preset = get_preset(preset_name, encoder, recipe="fast", direction=direction, seed=cfg.seed)
     dataset = preset.dataset
@@ -233,8 +233,8 @@ def smc_vehicle_samples(config, values, ctx_times, n_particles: int, seed: int) 
     The paper's prior p(o_n) says nothing of the unobserved heading, steering and speed; they
     are drawn from the simulator's own vehicles at t_n (both ψ branches), the prior the
     reference posterior uses too, so the baseline starts from the same knowledge of them."""
-    from pipeline.smc import SMCConfig, run_filter
-    from pipeline.smc_models import VehicleModel
+    from pipeline.inference.smc import SMCConfig, run_filter
+    from pipeline.inference.smc_models import VehicleModel
     from pipeline.systems.vehicle import simulate_vehicle
 
     b = values.shape[0]

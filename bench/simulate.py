@@ -32,7 +32,7 @@ import psutil
 import torch
 
 import pipeline
-from pipeline.datasets import windows_from_sir, windows_from_vehicle
+from pipeline.training.datasets import windows_from_sir, windows_from_vehicle
 from pipeline.io import atomic_write_json
 from pipeline.systems.sir import simulate_ensemble
 from pipeline.systems.vehicle import simulate_vehicle

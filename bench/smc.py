@@ -5,7 +5,7 @@ Workload (paper, "Particle Filter" and the SIR tables): 100 windows at random lo
 p(o_n) = N(o_n, σ²) (projected on the simplex), four filter steps update with o_{n+1..n+4}, and
 one more step propagates to n+5 with no update. pyro runs the 100 windows one after the other
 (as the paper did); ours runs all 100 as one batch of independent filters in one call.
-Both use the same model (:class:`pipeline.smc_models.SIRStateModel`: RK4, process noise τ, σ).
+Both use the same model (:class:`pipeline.inference.smc_models.SIRStateModel`: RK4, process noise τ, σ).
 
 Fairness: same model and particle count on both sides, same torch thread count (``--threads``,
 default 1, reported: with OpenMP's passive waiting, which this project sets, every small op of a
@@ -38,8 +38,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 from pipeline.io import atomic_write_json  # noqa: E402
-from pipeline.smc import SMCConfig, run_filter  # noqa: E402
-from pipeline.smc_models import SIRStateModel, run_pyro_sir_filter  # noqa: E402
+from pipeline.inference.smc import SMCConfig, run_filter  # noqa: E402
+from pipeline.inference.smc_models import SIRStateModel, run_pyro_sir_filter  # noqa: E402
 from pipeline.systems.sir import get_prior, simulate_ensemble  # noqa: E402
 
 RESULT_PATH = os.path.join(os.path.dirname(__file__), "results", "smc.json")

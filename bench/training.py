@@ -37,11 +37,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from pipeline.datasets import build_dataset_from_config, train_validation_split
+from pipeline.training.datasets import build_dataset_from_config, train_validation_split
 from pipeline.io import atomic_write_json
 from pipeline.models.estimator import build_estimator
-from pipeline.presets import FAST_ITERATION_FRACTION, get_preset
-from pipeline.training import TrainConfig, TrainResult, train
+from pipeline.training.presets import FAST_ITERATION_FRACTION, get_preset
+from pipeline.training.trainer import TrainConfig, TrainResult, train
 
 BACKENDS = ("zuko", "nflows")
 ENCODERS = ("mlp", "transformer", "mamba")
@@ -64,7 +64,7 @@ QUICK = Scale(12, 256, 2, 3, 40, 40, tta_batch_divisor=8)
 
 
 def throughput(train_ds, backend: str, encoder: str, scale: Scale, seed: int = 0) -> float:
-    """Iterations per second of the training step (as in ``pipeline.training``)."""
+    """Iterations per second of the training step (as in ``pipeline.training.trainer``)."""
     preset = get_preset("sir-multi", encoder, recipe="paper", backend=backend)
     estimator = build_estimator(preset.estimator, train_ds.stats, seed=seed)
     stats = train_ds.stats

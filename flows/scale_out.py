@@ -24,7 +24,7 @@ from prefect_dask import DaskTaskRunner
 
 from pipeline import forecast as fc
 
-# The paper's variants (Table 5 rows) as (name, encoder choice of pipeline.presets); the
+# The paper's variants (Table 5 rows) as (name, encoder choice of pipeline.training.presets); the
 # "transformer-ke" preset trains the transformer with the kinetic-energy terms.
 PAPER_VARIANTS: dict[str, str] = {"transformer": "transformer",
                                   "transformer-ke": "transformer-ke", "mamba": "mamba",

@@ -1,4 +1,4 @@
-"""The ``weekly_forecast`` Prefect flow: thin tasks over :mod:`pipeline.forecast`.
+"""The ``weekly_forecast`` Prefect flow: thin tasks over :mod:`pipeline.forecast.steps`.
 
 Run once, locally (Prefect's ephemeral API; no server needed)::
 
@@ -8,9 +8,9 @@ Run once, locally (Prefect's ephemeral API; no server needed)::
 
 Tasks hand large objects (tensors, models) to each other in memory, so every task has
 ``cache_policy=NO_CACHE`` and does not persist results: the expensive step (training) is cached
-by :mod:`pipeline.model_store` instead, keyed by what determines the model. Outputs are staged in
+by :mod:`pipeline.training.model_store` instead, keyed by what determines the model. Outputs are staged in
 ``<output_dir>/.staging-<date>-<run>/`` and promoted to ``<output_dir>/<reference-date>/`` only
-after every step succeeded (:mod:`pipeline.run_outputs`), so a failed run never replaces the last
+after every step succeeded (:mod:`pipeline.outputs.run_folders`), so a failed run never replaces the last
 good report.
 """
 # No `from __future__ import annotations`: Prefect builds the parameter model from the live
@@ -33,7 +33,7 @@ from prefect.states import Completed
 from prefect.tasks import exponential_backoff
 
 from pipeline import forecast as fc
-from pipeline.run_outputs import RunOutputs, RunRecord, new_run_id
+from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 
 FORECAST_PRESETS_CHOICES = tuple(fc.FORECAST_PRESETS)
 # Artifact keys are stable so the UI shows each one's history across weekly runs.
@@ -304,7 +304,7 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
             summary={"model_reused": models.reused,
                      "nll": results.nll.to_dict(orient="records"),
                      "backtest": fc.published_skill(weekly),
-                     # reports/index.html shows it (pipeline.run_outputs.render_index_html)
+                     # reports/index.html shows it (pipeline.outputs.run_folders.render_index_html)
                      "headline": fc.headline_record(results)})
         final_dir = outputs.promote(staging, record)
     _publish_artifacts(results, final_dir, files)

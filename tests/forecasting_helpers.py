@@ -1,4 +1,4 @@
-"""Synthetic histories and members for the tests of pipeline.forecasting (no I/O)."""
+"""Synthetic histories and members for the tests of pipeline.ensemble (no I/O)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,8 +8,8 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.data.sir_transform import proportions, sir_counts
-from pipeline.forecasting.members import quantile_forecast_from_weekly_cases
-from pipeline.forecasting.targets import EpiHistory, QuantileForecast
+from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
+from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 
 POPULATION = 100_000
 

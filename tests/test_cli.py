@@ -173,7 +173,7 @@ def forecast_store(tmp_path_factory):
 
 
 def test_estimate_and_rollout_accept_the_forecast_checkpoints(cli, forecast_store, tmp_path):
-    from pipeline.checkpoints import load_checkpoint
+    from pipeline.training.checkpoints import load_checkpoint
 
     forward = forecast_store / "forward" / "model.pt"
     extra = load_checkpoint(forward).meta.extra

@@ -13,7 +13,7 @@ import typer
 from typer.testing import CliRunner
 
 import pipeline
-from pipeline.datasets import (ABSOLUTE_TIME_FEATURE, FORMAT, FORMAT_VERSION, TIME_FEATURE,
+from pipeline.training.datasets import (ABSOLUTE_TIME_FEATURE, FORMAT, FORMAT_VERSION, TIME_FEATURE,
                                DatasetConfig, build_dataset,
                                build_dataset_from_config, dataset_sha256, load_dataset,
                                progress_total, save_dataset, split_by_trajectory,

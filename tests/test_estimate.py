@@ -12,13 +12,13 @@ import torch
 from torch import Tensor
 from typer.testing import CliRunner
 
-from pipeline.datasets import make_windows
+from pipeline.training.datasets import make_windows
 from pipeline.errors import ConfigError
-from pipeline.estimate import (ObservationWindow, batch_window_context, confidence_regions,
+from pipeline.inference.estimate import (ObservationWindow, batch_window_context, confidence_regions,
                                estimate, unit_sphere_points)
 from pipeline.models.encoders import EncoderConfig
 from pipeline.models.estimator import build_estimator, make_estimator_config
-from pipeline.rollout import RolloutConfig, propagate_paths
+from pipeline.inference.rollout import RolloutConfig, propagate_paths
 from pipeline.systems.sir import simulate_ensemble
 from pipeline.systems.vehicle import simulate_vehicle
 
@@ -197,7 +197,7 @@ def test_unit_sphere_points_have_unit_norm() -> None:
 
 
 def test_cli_estimate_and_rollout_round_trip(tmp_path: Path) -> None:
-    from pipeline.checkpoints import save_checkpoint
+    from pipeline.training.checkpoints import save_checkpoint
     from pipeline.cli import _register, app
 
     _register()

@@ -8,14 +8,14 @@ import io
 import pytest
 import torch
 
-from pipeline.checkpoints import dataclass_from_dict
-from pipeline.datasets import Standardization
+from pipeline.training.checkpoints import dataclass_from_dict
+from pipeline.training.datasets import Standardization
 from pipeline.errors import ConfigError
-from pipeline.kinetic import KineticWeights, kinetic_loss
+from pipeline.training.kinetic import KineticWeights, kinetic_loss
 from pipeline.models import (EncoderConfig, EstimatorConfig,
                              add_context_noise, build_estimator, make_estimator_config)
 from pipeline.models.encoders import ENCODER_KINDS
-from pipeline.models.flows import BACKENDS
+from pipeline.models.maf import BACKENDS
 
 D, C, R, E = 2, 3, 5, 4
 COMBINATIONS = [(kind, backend) for kind in ENCODER_KINDS for backend in BACKENDS]

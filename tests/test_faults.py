@@ -29,8 +29,8 @@ from pipeline.data.datasf import (BASE_URL_ENV, CASES, DEATHS, TESTS, ClientConf
 from pipeline.data.series import SFDataConfig, load_dataset, load_sf_series
 from pipeline.errors import CheckpointError, ValidationError
 from pipeline.io import LockTimeoutError
-from pipeline.model_store import ModelStore
-from pipeline.run_outputs import RunOutputs
+from pipeline.training.model_store import ModelStore
+from pipeline.outputs.run_folders import RunOutputs
 
 CASES_EXPORT = "AndrewCorry__data_wrangling_1/COVID-19_Cases_Over_Time.csv"
 FAULTS = {f.name: f for f in faults()}
@@ -264,8 +264,8 @@ def test_swapped_forward_and_backward_checkpoints_are_refused(tmp_path, monkeypa
     The checkpoints are stand-ins (load_checkpoint stubbed): the check is in the loader."""
     from types import SimpleNamespace
 
-    import pipeline.checkpoints
-    from pipeline.forecast import _load_models, resolve_config
+    import pipeline.training.checkpoints
+    from pipeline.forecast.steps import _load_models, resolve_config
 
     recorded = {"forward": "backward", "backward": "forward"}  # the two files swapped on disk
 
@@ -273,7 +273,7 @@ def test_swapped_forward_and_backward_checkpoints_are_refused(tmp_path, monkeypa
         meta = SimpleNamespace(extra={"direction": recorded[Path(path).parent.name]}, history=[])
         return SimpleNamespace(estimator=torch.nn.Linear(1, 1), meta=meta)
 
-    monkeypatch.setattr(pipeline.checkpoints, "load_checkpoint", fake_load)
+    monkeypatch.setattr(pipeline.training.checkpoints, "load_checkpoint", fake_load)
     entry = SimpleNamespace(path=tmp_path / "entry", key="k", reused=True)
     with pytest.raises(CheckpointError) as info:
         _load_models(resolve_config("tiny"), entry)

@@ -11,7 +11,7 @@ from nflows.transforms.autoregressive import MaskedAffineAutoregressiveTransform
 from scipy import stats as sps
 
 from pipeline.errors import ConfigError
-from pipeline.models.flows import BACKENDS, FlowConfig, build_flow
+from pipeline.models.maf import BACKENDS, FlowConfig, build_flow
 
 BACKEND_PARAMS = pytest.mark.parametrize("backend", BACKENDS)
 

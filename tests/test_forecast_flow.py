@@ -96,7 +96,7 @@ def test_outputs_exist_with_real_numbers(good_run):
                                           "ensemble-uncalibrated"}
 
     # the hubverse file of the same forecast, valid under hub-config/tasks.json
-    from pipeline.forecast_hub import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
 
     tasks = load_tasks_config(Path(__file__).resolve().parents[1] / "hub-config" / "tasks.json")
     submission = out / "model-output" / "flowcast-nfens" / f"{ROUND}-flowcast-nfens.csv"

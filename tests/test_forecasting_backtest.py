@@ -9,13 +9,13 @@ import pandas as pd
 import pytest
 from scipy.stats import norm
 
-from pipeline.forecasting.backtest import (HUB_COLUMNS, BacktestConfig, backtest_origins,
+from pipeline.ensemble.backtest import (HUB_COLUMNS, BacktestConfig, backtest_origins,
                                            run_realtime_backtest, score_forecasts, sf_history,
                                            summarize, summarize_forecaster)
-from pipeline.forecasting.baseline import HubBaseline
-from pipeline.forecasting.ensemble import PUBLISHED, UNCALIBRATED, EnsembleConfig, skill_weights
-from pipeline.forecasting.members import quantile_forecast_from_weekly_cases
-from pipeline.forecasting.targets import EpiHistory, observed_targets
+from pipeline.evaluation.hub_baseline import HubBaseline
+from pipeline.ensemble.combine import PUBLISHED, UNCALIBRATED, EnsembleConfig, skill_weights
+from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
+from pipeline.ensemble.targets import EpiHistory, observed_targets
 from tests.forecasting_helpers import POPULATION, LogNormalMember, random_walk_history
 from tests.test_datasf_client import EXPORTS
 
@@ -117,7 +117,7 @@ def test_backtest_cli_on_the_real_data_writes_hub_forecasts_scores_and_summary(
     from typer.testing import CliRunner
 
     from pipeline.cli import _register, app
-    from pipeline.forecast import import_exports
+    from pipeline.forecast.steps import import_exports
 
     import_exports([str(datasf_dir)])           # into this test's FLOWCAST_DATA_DIR
     _register()

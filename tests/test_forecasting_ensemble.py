@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from pipeline.forecast_hub import HUB_QUANTILE_LEVELS
-from pipeline.forecasting.calibration import (CalibrationConfig, pit_from_quantiles, quantiles_at,
+from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
+from pipeline.ensemble.calibration import (CalibrationConfig, pit_from_quantiles, quantiles_at,
                                               recalibrated_levels, recalibrate)
-from pipeline.forecasting.ensemble import (EnsembleConfig, count_invalid, sample_paths,
+from pipeline.ensemble.combine import (EnsembleConfig, count_invalid, sample_paths,
                                            skill_weights, vincentize)
 from tests.forecasting_helpers import POPULATION, random_walk_history
 

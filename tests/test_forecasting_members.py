@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from pipeline.forecast_hub import HUB_QUANTILE_LEVELS
-from pipeline.forecasting.autoets import AutoETSMember, interval_levels
-from pipeline.forecasting.baseline import HubBaseline, HubBaselineConfig, baseline_quantiles
-from pipeline.forecasting.members import quantile_forecast_from_weekly_cases
-from pipeline.forecasting.targets import TargetError
+from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
+from pipeline.ensemble.autoets import AutoETSMember, interval_levels
+from pipeline.evaluation.hub_baseline import HubBaseline, HubBaselineConfig, baseline_quantiles
+from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
+from pipeline.ensemble.targets import TargetError
 from tests.forecasting_helpers import POPULATION, history_from_cases, random_walk_history
 
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)

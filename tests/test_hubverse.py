@@ -14,11 +14,11 @@ import pytest
 import torch
 import yaml
 
-from pipeline.forecast_hub import (HUB_QUANTILE_LEVELS, HubFormatError, HubValidationError,
+from pipeline.outputs.hubverse import (HUB_QUANTILE_LEVELS, HubFormatError, HubValidationError,
                                    SubmissionConfig, load_tasks_config, model_output_path,
                                    reference_date_for, sf_hub_tasks_config,
                                    validate_model_output, write_model_output)
-from pipeline.forecasting.targets import QuantileForecast
+from pipeline.ensemble.targets import QuantileForecast
 from pipeline.systems.sir import simulate_sir
 
 REPO = Path(__file__).resolve().parents[1]

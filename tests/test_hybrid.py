@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from pipeline.errors import ConfigError
-from pipeline.estimate import ObservationWindow
-from pipeline.hybrid import HybridConfig, nf_seeded_smc, to_valid_particles
+from pipeline.inference.estimate import ObservationWindow
+from pipeline.inference.hybrid import HybridConfig, nf_seeded_smc, to_valid_particles
 from pipeline.systems.sir import observe, simulate_sir
 
 

@@ -8,8 +8,8 @@ import torch
 from torch import nn
 
 from pipeline.errors import ConfigError
-from pipeline.kinetic import KineticWeights, kinetic_loss, kinetic_loss_terms, path_lengths
-from pipeline.models.flows import BACKENDS, ConditionalFlow, FlowConfig, build_flow
+from pipeline.training.kinetic import KineticWeights, kinetic_loss, kinetic_loss_terms, path_lengths
+from pipeline.models.maf import BACKENDS, ConditionalFlow, FlowConfig, build_flow
 
 
 

@@ -8,7 +8,7 @@ from scipy.spatial.distance import cdist
 from scipy.stats import norm
 
 from pipeline.errors import ConfigError
-from pipeline.metrics import (SIGMA_LEVELS, interval_coverage, kde_log_prob, knn_kl_divergence,
+from pipeline.evaluation.metrics import (SIGMA_LEVELS, interval_coverage, kde_log_prob, knn_kl_divergence,
                               mean_nll)
 
 REPLICATES = 20

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.errors import CheckpointError
 from pipeline.io import sha256_bytes
-from pipeline.model_store import ENTRY_FILE, ModelStore, canonical_json, model_key
+from pipeline.training.model_store import ENTRY_FILE, ModelStore, canonical_json, model_key
 
 CONFIG = {"preset": "sir-joint", "recipe": "fast", "encoder": "mlp", "seed": 3, "window": (5,)}
 
@@ -86,13 +86,13 @@ def test_failed_build_leaves_no_entry(tmp_path):
 
 
 def test_forecast_models_are_the_training_presets():
-    """pipeline.presets is the single source of the weekly models' settings: the default forecast
+    """pipeline.training.presets is the single source of the weekly models' settings: the default forecast
     is sir-sf-joint × transformer × fast with only the iteration count shortened; tiny only
     shrinks; the filters and rollouts take their noise from the same (sir-sf) prior."""
     import dataclasses
 
-    from pipeline.forecast import resolve_config
-    from pipeline.presets import get_preset
+    from pipeline.forecast.steps import resolve_config
+    from pipeline.training.presets import get_preset
 
     default = resolve_config("default")
     for direction in ("forward", "backward"):
@@ -115,7 +115,7 @@ def test_forecast_models_are_the_training_presets():
 
 
 def test_forecast_model_key_follows_encoder_recipe_and_seed():
-    from pipeline.forecast import resolve_config
+    from pipeline.forecast.steps import resolve_config
 
     base = resolve_config("tiny")
     keys = {model_key(c.training_identity(), "data") for c in (
@@ -129,7 +129,7 @@ def test_forecast_model_key_follows_encoder_recipe_and_seed():
 
 def test_forecast_config_rejects_unknown_preset_parts():
     from pipeline.errors import ConfigError
-    from pipeline.forecast import resolve_config
+    from pipeline.forecast.steps import resolve_config
 
     with pytest.raises(ConfigError, match="unknown encoder 'lstm'"):
         resolve_config("tiny", encoder="lstm")

@@ -5,11 +5,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.forecast_hub import HUB_QUANTILE_LEVELS
-from pipeline.forecasting.nf_member import (GrowthModelConfig, NFGrowthMember,
+from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
+from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember,
                                             build_growth_dataset, decode_paths, growth_targets,
                                             trailing_week_sums, train_or_reuse_growth_model)
-from pipeline.forecasting.targets import EpiHistory
+from pipeline.ensemble.targets import EpiHistory
 from pipeline.systems.waves import WavePrior, simulate_waves
 
 TINY = GrowthModelConfig(n_trajectories=120, iterations=30, batch_size=256,

@@ -6,15 +6,15 @@ import dataclasses
 import pytest
 import torch
 
-from pipeline.datasets import ABSOLUTE_TIME_FEATURE, build_dataset, save_dataset
+from pipeline.training.datasets import ABSOLUTE_TIME_FEATURE, build_dataset, save_dataset
 from pipeline.errors import ConfigError
 from pipeline.models.estimator import build_estimator
-from pipeline.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
+from pipeline.training.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
 
 
 
 def _unit_stats(channels: int, features: int, target_transform: str = "identity"):
-    from pipeline.datasets import Standardization
+    from pipeline.training.datasets import Standardization
 
     return Standardization(torch.zeros(channels), torch.ones(channels), torch.zeros(features),
                            torch.ones(features), target_transform=target_transform)
@@ -108,7 +108,7 @@ def test_preset_shapes_match_the_datasets(name, dataset):
 def test_cli_trains_and_writes_a_loadable_checkpoint(tmp_path):
     from typer.testing import CliRunner
 
-    from pipeline.checkpoints import load_checkpoint
+    from pipeline.training.checkpoints import load_checkpoint
     from pipeline.cli import _register, app
 
     data_file = tmp_path / "sir.pt"

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pipeline.errors import ConfigError
-from pipeline.reference import (SIRCandidates, SIRReferenceConfig, VehicleCandidates, kish_ess,
+from pipeline.inference.reference import (SIRCandidates, SIRReferenceConfig, VehicleCandidates, kish_ess,
                                 simulate_sir_candidates, sir_reference, vehicle_reference,
                                 weighted_reference)
 from pipeline.systems.sir import SIR_PRIORS, get_prior
@@ -134,7 +134,7 @@ def test_vehicle_reference_weights_use_the_context_times() -> None:
 
 def test_vehicle_reference_from_simulator_before_switch_is_unimodal() -> None:
     config = get_vehicle_config("vehicle-full")
-    from pipeline.reference import simulate_vehicle_candidates
+    from pipeline.inference.reference import simulate_vehicle_candidates
 
     candidates = simulate_vehicle_candidates(config, 4000, seed=0)
     truth = candidates.positions[0]
@@ -149,7 +149,7 @@ def test_vehicle_reference_from_simulator_before_switch_is_unimodal() -> None:
 
 def test_reference_refuses_a_prior_whose_beta_drifts():
     from pipeline.errors import ConfigError
-    from pipeline.reference import SIRReferenceConfig, simulate_sir_candidates
+    from pipeline.inference.reference import SIRReferenceConfig, simulate_sir_candidates
     from pipeline.systems.sir import SIR_PRIORS
 
     with pytest.raises(ConfigError, match="constant beta"):

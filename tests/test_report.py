@@ -540,7 +540,7 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
     hub submission's) medians and quantiles, P(growing) from its paths, R_t per sample."""
     if reason := missing_tool_reason("pdftotext"):
         pytest.skip(reason)
-    from pipeline.forecasting.backtest import hub_frame
+    from pipeline.ensemble.backtest import hub_frame
     from pipeline.report.headline import (compute_headline, fmt_count, fmt_prob, fmt_range,
                                           fmt_rt, fmt_share)
 
@@ -641,7 +641,7 @@ def test_summary_artifact_and_index_carry_the_headline(real_results):
     import json
 
     from pipeline.report.headline import compute_headline, fmt_count, markdown
-    from pipeline.run_outputs import RunRecord, render_index_html
+    from pipeline.outputs.run_folders import RunRecord, render_index_html
 
     h = compute_headline(real_results)
     banner = "Stale data: DataSF could not be reached (every retry failed)."

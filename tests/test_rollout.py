@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from pipeline.errors import ConfigError
-from pipeline.estimate import ObservationWindow
-from pipeline.rollout import (RolloutConfig, rolling_anchor_indices, rolling_rollout, rollout)
+from pipeline.inference.estimate import ObservationWindow
+from pipeline.inference.rollout import (RolloutConfig, rolling_anchor_indices, rolling_rollout, rollout)
 
 
 class AR1Estimator:

@@ -7,7 +7,7 @@ import os
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.run_outputs import (INDEX_HTML, INDEX_JSON, RUN_RECORD, RunOutputs, RunRecord,
+from pipeline.outputs.run_folders import (INDEX_HTML, INDEX_JSON, RUN_RECORD, RunOutputs, RunRecord,
                                   recover_interrupted_promotions)
 
 

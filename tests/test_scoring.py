@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pipeline.scoring import (ScoringError, interval_coverage, interval_score, pit_values,
+from pipeline.evaluation.scoring import (ScoringError, interval_coverage, interval_score, pit_values,
                               quantile_score, quantiles_from_samples, weighted_interval_score)
 
 # K = 2 central intervals: (0.1, 0.9) has α = 0.2, (0.25, 0.75) has α = 0.5; median 0.5.

@@ -289,7 +289,7 @@ def test_sf_beta_walk_has_the_configured_log_increments_and_drives_the_dynamics(
 
 
 def test_joint_windows_of_a_walk_prior_target_the_beta_at_the_target_time():
-    from pipeline.datasets import windows_from_sir
+    from pipeline.training.datasets import windows_from_sir
 
     ensemble = simulate_ensemble("sir-sf", n_trajectories=4, seed=2)
     for direction in ("forward", "backward"):

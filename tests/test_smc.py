@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from pipeline.errors import ConfigError
-from pipeline.smc import (SMCConfig, run_filter, seeded_filter, systematic_resample_indices,
+from pipeline.inference.smc import (SMCConfig, run_filter, seeded_filter, systematic_resample_indices,
                           weighted_quantiles)
-from pipeline.smc_models import (LinearGaussianModel, SIRParamsModel, SIRStateModel, VehicleModel,
+from pipeline.inference.smc_models import (LinearGaussianModel, SIRParamsModel, SIRStateModel, VehicleModel,
                                  gaussian_log_likelihood, is_planar, kalman_filter,
                                  project_to_simplex)
 from pipeline.systems.sir import rk4_step, simulate_ensemble

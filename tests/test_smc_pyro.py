@@ -5,8 +5,8 @@ import math
 
 import torch
 
-from pipeline.smc import SMCConfig, run_filter
-from pipeline.smc_models import SIRStateModel, run_pyro_sir_filter
+from pipeline.inference.smc import SMCConfig, run_filter
+from pipeline.inference.smc_models import SIRStateModel, run_pyro_sir_filter
 from pipeline.systems.sir import simulate_ensemble
 
 NAN = float("nan")

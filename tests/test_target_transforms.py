@@ -14,18 +14,18 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.checkpoints import load_checkpoint, save_checkpoint
-from pipeline.datasets import (Standardization, compute_standardization, train_validation_split,
+from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
+from pipeline.training.datasets import (Standardization, compute_standardization, train_validation_split,
                                windows_from_sir)
 from pipeline.errors import ConfigError, DatasetError
-from pipeline.estimate import ObservationWindow, sample_conditional
+from pipeline.inference.estimate import ObservationWindow, sample_conditional
 from pipeline.models.encoders import EncoderConfig
 from pipeline.models.estimator import build_estimator, make_estimator_config
 from pipeline.models.target_transforms import get_target_transform
-from pipeline.presets import get_preset
-from pipeline.rollout import RolloutConfig, rollout
+from pipeline.training.presets import get_preset
+from pipeline.inference.rollout import RolloutConfig, rollout
 from pipeline.systems.sir import SIR_PRIORS, sample_initial_states, simulate_ensemble
-from pipeline.training import TrainConfig, train, train_and_save
+from pipeline.training.trainer import TrainConfig, train, train_and_save
 
 F64 = torch.float64
 LOG_RATIO = get_target_transform("sir-log-ratio")
@@ -293,7 +293,7 @@ def test_a_28_day_rollout_stays_valid(sf_joint) -> None:
 
 def test_smc_seed_refuses_invalid_draws_instead_of_clipping_them() -> None:
     from pipeline.errors import ConfigError
-    from pipeline.forecast import _check_valid_seed
+    from pipeline.forecast.steps import _check_valid_seed
 
     good = torch.tensor([[[0.9, 0.05, 0.05, 0.2, 0.1], [0.8, 0.1, 0.1, 0.3, 0.1]]],
                         dtype=torch.float64)

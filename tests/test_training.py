@@ -7,12 +7,12 @@ import math
 import pytest
 import torch
 
-from pipeline.datasets import DatasetMeta, WindowedDataset, compute_standardization
+from pipeline.training.datasets import DatasetMeta, WindowedDataset, compute_standardization
 from pipeline.errors import TrainingDivergedError
-from pipeline.kinetic import KineticWeights
+from pipeline.training.kinetic import KineticWeights
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig
 from pipeline.models.estimator import build_estimator, make_estimator_config
-from pipeline.training import (EvalRecord, TrainConfig, _DivergenceWatch, evaluate_nll,
+from pipeline.training.trainer import (EvalRecord, TrainConfig, _DivergenceWatch, evaluate_nll,
                                history_from_csv, history_to_csv, lr_factor, plot_loss_curves,
                                save_history, train, train_and_save)
 
@@ -218,7 +218,7 @@ def test_history_round_trip_and_plot(tmp_path):
 
 
 def test_train_and_save_writes_checkpoint_history_and_plot(toy, tmp_path):
-    from pipeline.checkpoints import load_checkpoint
+    from pipeline.training.checkpoints import load_checkpoint
 
     train_ds, val_ds = toy
     estimator = _estimator(train_ds.stats)

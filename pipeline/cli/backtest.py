@@ -4,7 +4,7 @@ For every weekly origin in the range it writes the hub-format forecast a user wo
 that day (``forecasts/<origin>-published.csv``), plus ``scores.csv`` (WIS and its parts, 50 %/90 %
 coverage and PIT per forecaster × target × horizon × origin) and ``summary.json`` (relative WIS
 vs the hub baseline and coverage per target × horizon). See
-:mod:`pipeline.forecasting.backtest`.
+:mod:`pipeline.ensemble.backtest`.
 """
 from __future__ import annotations
 
@@ -49,9 +49,9 @@ def backtest_command(
 ) -> None:
     """Real-time backtest over weekly origins: published forecasts, scores and a summary."""
     from pipeline import forecast as fc
-    from pipeline.forecasting.backtest import (backtest_origins, load_sf_history,
+    from pipeline.ensemble.backtest import (backtest_origins, load_sf_history,
                                                run_realtime_backtest, summarize, write_backtest)
-    from pipeline.forecasting.weekly import build_weekly_members
+    from pipeline.ensemble.weekly import build_weekly_members
     from pipeline.progress import rich_progress
 
     try:

@@ -8,8 +8,8 @@ from typing import overload
 
 import typer
 
-from pipeline.models.flows.base import BACKENDS
-from pipeline.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES
+from pipeline.models.maf.base import BACKENDS
+from pipeline.training.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES
 from pipeline.systems.sir import SIR_PRIORS
 
 

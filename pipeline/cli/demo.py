@@ -28,7 +28,7 @@ def kinetic(
     """Train an unconditional MAF on two moons with and without the kinetic term; plot every
     layer's output and report path lengths and held-out NLL."""
     from pipeline.demos.kinetic import KineticDemoConfig, run_kinetic_demo
-    from pipeline.kinetic import KineticWeights
+    from pipeline.training.kinetic import KineticWeights
     from pipeline.progress import rich_progress
 
     config = KineticDemoConfig(iterations=iterations, seed=seed, layers=layers,

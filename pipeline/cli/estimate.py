@@ -37,8 +37,8 @@ def read_observation_csv(path: Path, observed: tuple[str, ...]
 
 def _load(checkpoint: Path, direction: str | None):  # noqa: ANN202 - (estimator, ModelInfo, str)
     """The checkpoint's estimator, its ModelInfo, and the direction (default: the model's own)."""
-    from pipeline.checkpoints import load_checkpoint
-    from pipeline.estimate import ModelInfo
+    from pipeline.training.checkpoints import load_checkpoint
+    from pipeline.inference.estimate import ModelInfo
 
     loaded = load_checkpoint(checkpoint)
     info = ModelInfo.from_checkpoint_extra(_with_preset(loaded.meta.extra, checkpoint),
@@ -101,7 +101,7 @@ def estimate_command(
     seed: Annotated[int, typer.Option(help="seed of the samples")] = 0,
 ) -> None:
     """Estimate the state at one time from a window of observations: samples + summary CSVs."""
-    from pipeline.estimate import ObservationWindow, estimate
+    from pipeline.inference.estimate import ObservationWindow, estimate
     from pipeline.io import atomic_write_text
 
     try:
@@ -149,9 +149,9 @@ def rollout_command(
     seed: Annotated[int, typer.Option(help="seed of the paths")] = 0,
 ) -> None:
     """Roll the model out from a series (paths.csv, summary.csv; rolling.csv with --window-every)."""
-    from pipeline.estimate import ObservationWindow
+    from pipeline.inference.estimate import ObservationWindow
     from pipeline.io import atomic_write_text
-    from pipeline.rollout import RolloutConfig, rolling_rollout, rollout
+    from pipeline.inference.rollout import RolloutConfig, rolling_rollout, rollout
 
     try:
         if out.exists() and not out.is_dir():

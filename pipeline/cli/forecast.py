@@ -10,7 +10,7 @@ import typer
 
 from pipeline.cli import app
 from pipeline.cli.choices import DataSource, Encoder, choices_enum, value
-from pipeline.forecast import FORECAST_PRESETS
+from pipeline.forecast.steps import FORECAST_PRESETS
 
 ForecastPreset = choices_enum("ForecastPreset", tuple(FORECAST_PRESETS))
 

@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 
 from pipeline.cli import app
-from pipeline.datasets import (DEFAULT_VAL_FRACTION, DEFAULT_WINDOW, DatasetConfig,
+from pipeline.training.datasets import (DEFAULT_VAL_FRACTION, DEFAULT_WINDOW, DatasetConfig,
                                build_dataset_from_config, describe, progress_total, save_dataset)
 from pipeline.errors import FlowcastError
 from pipeline.progress import rich_progress

@@ -28,8 +28,8 @@ from pipeline.cli.csv_input import read_timed_csv
 from pipeline.errors import ConfigError, FlowcastError
 from pipeline.io import atomic_write_text
 from pipeline.progress import rich_progress
-from pipeline.smc import SMCConfig, run_filter
-from pipeline.smc_models import (DEFAULT_PROCESS_SIGMA, SIRParamsModel,
+from pipeline.inference.smc import SMCConfig, run_filter
+from pipeline.inference.smc_models import (DEFAULT_PROCESS_SIGMA, SIRParamsModel,
                                  SIRStateModel, VehicleModel)
 from pipeline.systems.sir import SIR_PRIORS
 from pipeline.systems.vehicle import get_vehicle_config

@@ -64,11 +64,11 @@ def run_train(preset_name: str, *, encoder: str = "transformer", backend: str | 
               dataset: Path | None = None, threads: int | None = None,
               out: Path = Path("runs"), show_progress: bool = True) -> str:
     """The command's work, callable from tests; returns the summary line."""
-    from pipeline.datasets import build_dataset_from_config, load_dataset, train_validation_split
+    from pipeline.training.datasets import build_dataset_from_config, load_dataset, train_validation_split
     from pipeline.models.estimator import build_estimator
-    from pipeline.presets import get_preset
+    from pipeline.training.presets import get_preset
     from pipeline.progress import SilentProgress, rich_progress
-    from pipeline.training import train_and_save
+    from pipeline.training.trainer import train_and_save
 
     preset = get_preset(preset_name, encoder, recipe=recipe, backend=backend,
                         direction=direction, seed=seed)

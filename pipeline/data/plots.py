@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.data.sir_transform import SIRSeries
+from pipeline.names import COMPARTMENTS
 
-COMPARTMENTS = ("S", "I", "R")
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,8 @@ import numpy as np
 import torch
 
 from pipeline.io import atomic_write_bytes, atomic_write_json
-from pipeline.kinetic import KineticWeights, kinetic_loss, path_lengths
-from pipeline.models.flows import Backend, ConditionalFlow, FlowConfig, build_flow
+from pipeline.training.kinetic import KineticWeights, kinetic_loss, path_lengths
+from pipeline.models.maf import Backend, ConditionalFlow, FlowConfig, build_flow
 from pipeline.progress import ProgressReporter, SilentProgress
 
 MOONS_CENTRE = np.array([0.5, 0.25])

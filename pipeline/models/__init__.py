@@ -8,7 +8,7 @@ from pipeline.models.encoders import (EncoderConfig, MambaEncoderConfig, MLPEnco
                                       TransformerEncoderConfig, build_encoder)
 from pipeline.models.estimator import (ConditionalEstimator, EstimatorConfig, add_context_noise,
                                        build_estimator, make_estimator_config)
-from pipeline.models.flows import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
+from pipeline.models.maf import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
 
 __all__ = ["ConditionalEstimator", "ConditionalFlow", "EncoderConfig", "EstimatorConfig",
            "FlowConfig", "FlowTrajectory", "MLPEncoderConfig", "MambaEncoderConfig",

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from pipeline.errors import ConfigError
 from pipeline.models.encoders import EncoderConfig, build_encoder, check_window
-from pipeline.models.flows import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
+from pipeline.models.maf import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
 from pipeline.models.target_transforms import IDENTITY, TargetTransform, get_target_transform
 
 STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
@@ -44,7 +44,7 @@ class EstimatorConfig:
 
     features D (target size), context_channels C (observed values, then the time channel
     ``t_obs - t_target`` and, with ``absolute_time``, ``t_obs``: the layout of
-    :func:`pipeline.datasets.time_features`, which every context builder reads from here),
+    :func:`pipeline.training.datasets.time_features`, which every context builder reads from here),
     window R (maximum rows; the MLP encoder needs exactly R), encoder, flow,
     ``target_transform`` (the coordinates the flow models the target in; module doc). The
     flow's ``features`` must equal D_flow (D, or D - 1 under ``"sir-log-ratio"``) and its
@@ -163,8 +163,8 @@ class ConditionalEstimator(nn.Module):
 
     @property
     def stats(self) -> Any:
-        """The standardization as a ``pipeline.datasets.Standardization`` (buffers' values)."""
-        from pipeline.datasets import Standardization
+        """The standardization as a ``pipeline.training.datasets.Standardization`` (buffers' values)."""
+        from pipeline.training.datasets import Standardization
         return Standardization(self.context_mean, self.context_std, self.target_mean,
                                self.target_std, target_transform=self.target_transform)
 

@@ -1,7 +1,7 @@
 """Target transforms: the coordinates a conditional flow models its target in.
 
 The one place that knows them. The estimator (``pipeline.models.estimator``) and the dataset
-standardization (``pipeline.datasets.Standardization``) both go through
+standardization (``pipeline.training.datasets.Standardization``) both go through
 :func:`get_target_transform`; a model's choice is recorded in ``EstimatorConfig.target_transform``
 (so a checkpoint rebuilds it; configs without the field are ``"identity"``).
 

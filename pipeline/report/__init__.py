@@ -13,7 +13,7 @@ from pipeline.report.render import (ReportFiles, render_html, render_pdf, render
 
 
 def build_forecast_report(results, out_dir):  # type: ignore[no-untyped-def]
-    """Weekly report of a ``pipeline.forecast.ForecastResults`` (see ``report.weekly``)."""
+    """Weekly report of a ``pipeline.forecast.steps.ForecastResults`` (see ``report.weekly``)."""
     from pipeline.report.weekly import build_forecast_report as build
 
     return build(results, out_dir)

@@ -29,8 +29,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
+from pipeline.names import COMPARTMENTS
 from pipeline.report.content import ReportError
-from pipeline.scoring import CENTRAL_LEVELS
+from pipeline.evaluation.scoring import CENTRAL_LEVELS
 
 DPI = 110
 FULL_WIDTH_IN = 8.5
@@ -40,7 +41,6 @@ OKABE_ITO: Mapping[str, str] = {
     "black": "#000000", "orange": "#E69F00", "sky_blue": "#56B4E9", "green": "#009E73",
     "yellow": "#F0E442", "blue": "#0072B2", "vermilion": "#D55E00", "purple": "#CC79A7",
 }
-COMPARTMENTS = ("S", "I", "R")
 COMPARTMENT_COLORS: Mapping[str, str] = {"S": OKABE_ITO["blue"], "I": OKABE_ITO["vermilion"],
                                          "R": OKABE_ITO["green"]}
 COMPARTMENT_NAMES: Mapping[str, str] = {"S": "Susceptible S", "I": "Infectious I",

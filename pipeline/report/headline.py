@@ -22,8 +22,8 @@ from numpy.typing import NDArray
 from pipeline.report.content import ReportError
 
 if TYPE_CHECKING:  # the report must not import torch-heavy modules at run time
-    from pipeline.forecast import ForecastResults
-    from pipeline.forecasting.weekly import WeeklyForecast
+    from pipeline.forecast.steps import ForecastResults
+    from pipeline.ensemble.weekly import WeeklyForecast
 
 PUBLISHED = "published"
 TARGET_LABELS = {"cases": "weekly reported cases", "I": "infectious share I"}

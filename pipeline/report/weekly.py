@@ -1,7 +1,7 @@
-"""The weekly report from the forecast pipeline's results (``pipeline.forecast.ForecastResults``).
+"""The weekly report from the forecast pipeline's results (``pipeline.forecast.steps.ForecastResults``).
 
-``build_forecast_report(results, out_dir)`` is the hook ``pipeline.forecast.write_report``
-calls. It reads the results by attribute (``pipeline.forecast`` is imported for type checking
+``build_forecast_report(results, out_dir)`` is the hook ``pipeline.forecast.steps.write_report``
+calls. It reads the results by attribute (``pipeline.forecast.steps`` is imported for type checking
 only: it pulls in torch), turns arrays into figures and frames into tables, and writes
 ``report.html`` + ``report.pdf`` with :func:`pipeline.report.render.write_report`.
 
@@ -42,8 +42,8 @@ from pipeline.report.headline import (PUBLISHED, Headline, compute_headline, fac
 from pipeline.report.render import ReportFiles, write_report
 
 if TYPE_CHECKING:
-    from pipeline.forecast import ForecastResults
-    from pipeline.forecasting.weekly import WeeklyForecast
+    from pipeline.forecast.steps import ForecastResults
+    from pipeline.ensemble.weekly import WeeklyForecast
 
 log = logging.getLogger(__name__)
 STATES = ("S", "I", "R")
@@ -483,7 +483,7 @@ def _provenance(results: ForecastResults) -> Provenance:
             f"{weekly.model_key or '—'} ("
             f"{'reused from the model cache' if weekly.model_reused else 'trained in this run'})")
     preset_for = getattr(config, "training_preset_for", None)
-    if preset_for is not None:  # the resolved pipeline.presets entries the models come from
+    if preset_for is not None:  # the resolved pipeline.training.presets entries the models come from
         for direction in ("forward", "backward"):
             p = preset_for(direction)
             extra[f"{direction} training preset"] = (

@@ -46,11 +46,10 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
+from pipeline.names import COMPARTMENTS, PARAMETERS
 from pipeline.progress import ProgressReporter, SilentProgress
 
 DTYPE = torch.float64
-COMPARTMENTS = ("S", "I", "R")
-PARAMETERS = ("beta", "gamma")
 # Advance the progress reporter every this many RK4 steps: per-step updates of a rich bar would
 # cost more than the arithmetic of a 500-trajectory step.
 _PROGRESS_BLOCK = 50

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from zuko.flows import MaskedAutoregressiveTransform
 from zuko.transforms import LULinearTransform, MonotonicAffineTransform
 
-from pipeline.models.flows.base import (ConditionalFlow, FlowConfig, LUParameters,
+from pipeline.models.maf.base import (ConditionalFlow, FlowConfig, LUParameters,
                                         reverse_permutation)
 
 

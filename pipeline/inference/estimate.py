@@ -19,7 +19,7 @@ Sampling goes through ``estimator.noise_to_data`` with standard-normal noise dra
 scale·eps, then the flow) and makes every estimate reproducible from its seed without touching
 global RNG state.
 
-The context's time channels are built with :func:`pipeline.datasets.time_features`, the same
+The context's time channels are built with :func:`pipeline.training.datasets.time_features`, the same
 code the datasets use, so a window read from a CSV reaches the model exactly as training windows
 did.
 """
@@ -35,9 +35,8 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
+from pipeline.names import DIRECTIONS, Direction
 
-Direction = Literal["forward", "backward"]
-DIRECTIONS: tuple[str, ...] = ("forward", "backward")
 SIGMA_RADII: tuple[float, ...] = (1.0, 2.0, 3.0)
 DEFAULT_QUANTILES: tuple[float, ...] = (0.00135, 0.02275, 0.05, 0.15866, 0.25, 0.5, 0.75,
                                         0.84134, 0.95, 0.97725, 0.99865)
@@ -145,9 +144,9 @@ def assemble_context(values: Tensor, times: Tensor, mask: Tensor, target_time: T
     ``values (B, R, C)``, ``times (B, R)``, ``mask (B, R)`` (False = padding), ``target_time (B,)``;
     ``absolute_time``: the estimator's layout (:func:`uses_absolute_time`). Padding rows are all
     zeros (the dataset convention). The time channels come from
-    :func:`pipeline.datasets.time_features`, the function the training windows are built with.
+    :func:`pipeline.training.datasets.time_features`, the function the training windows are built with.
     """
-    from pipeline.datasets import time_features
+    from pipeline.training.datasets import time_features
 
     rows = torch.cat([values, time_features(times, target_time, absolute_time).to(values.dtype)],
                      dim=-1)
@@ -372,7 +371,7 @@ class ModelInfo:
     @classmethod
     def from_dataset(cls, name: str, direction: str, target: str = "state",
                      window: int = 5) -> ModelInfo:
-        from pipeline.datasets import DatasetConfig
+        from pipeline.training.datasets import DatasetConfig
         from pipeline.systems import sir, vehicle
 
         config = DatasetConfig(name=name, direction=direction, target=target, window=window)

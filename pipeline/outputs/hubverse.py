@@ -10,7 +10,7 @@ value``, validated by :func:`validate_model_output` against ``hub-config/tasks.j
   -1..3 (-1 is the week just past, a nowcast).
 * ``wk inc case``: reported cases in the epiweek ending on ``target_end_date``; ``I prop``: the
   infectious share of the population on that day. The published forecast
-  (:mod:`pipeline.forecasting.weekly`) forecasts weeks ending on Saturdays 1–4 weeks after its
+  (:mod:`pipeline.ensemble.weekly`) forecasts weeks ending on Saturdays 1–4 weeks after its
   origin (the last Saturday of data); a hub horizon is filled when its target week is one of them.
 * quantiles: the published forecast's own 23 quantiles, unchanged (the report's headline shows
   the same numbers); samples: its weekly sample paths, ``output_type_id`` ``"1"``..``"n"``, one id
@@ -42,7 +42,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import FlowcastError
-from pipeline.forecasting.targets import QuantileForecast
+from pipeline.ensemble.targets import QuantileForecast
 from pipeline.io import atomic_write_text, sha256_bytes
 
 HUB_QUANTILE_LEVELS: tuple[float, ...] = (

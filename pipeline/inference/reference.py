@@ -32,7 +32,7 @@ What the candidates are:
   times; the target is the candidate's position at the target time.
 
 The KL floor: two references built from *independent* candidate sets, compared with the same
-k-NN estimator (:func:`pipeline.metrics.knn_kl_divergence`). It shows what "0" looks like for
+k-NN estimator (:func:`pipeline.evaluation.metrics.knn_kl_divergence`). It shows what "0" looks like for
 this estimator at this sample size (finite samples, duplicates from resampling, the reference's
 own Monte-Carlo error); an estimate cannot be told apart from the truth below it.
 """

@@ -52,11 +52,11 @@ from pipeline.io import atomic_open, sha256_file
 from pipeline.models.target_transforms import TargetTransform, get_target_transform
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.systems import sir as sir_system
+from pipeline.names import COMPARTMENTS, DIRECTIONS, PARAMETERS
 from pipeline.systems import vehicle as vehicle_system
 
 FORMAT = "flowcast.windowed-dataset"
 FORMAT_VERSION = 1
-DIRECTIONS = ("forward", "backward")
 TARGET_KINDS = ("state", "state+params")
 SPLITS = ("all", "train", "validation")
 SIR_DATASETS = ("sir-single", "sir-multi", "sir-sf")
@@ -438,12 +438,12 @@ def windows_from_sir(ensemble: sir_system.SIREnsemble, direction: str = "forward
     kept = torch.ones(ensemble.observations.shape[:2], dtype=torch.bool)
     windows = make_windows(ensemble.times, ensemble.observations, kept, ensemble.states,
                            parameters, direction, window)
-    features = sir_system.COMPARTMENTS + (sir_system.PARAMETERS if parameters is not None else ())
+    features = COMPARTMENTS + (PARAMETERS if parameters is not None else ())
     prior = dataclasses.replace(ensemble.prior, n_trajectories=ensemble.n_trajectories)
     return _assemble(
         system="sir", config_name=ensemble.prior.name, system_config=prior, seed=ensemble.seed,
         direction=direction, target_kind=target, window=window, val_fraction=val_fraction,
-        context_features=tuple(f"{c}_obs" for c in sir_system.COMPARTMENTS) + (TIME_FEATURE,),
+        context_features=tuple(f"{c}_obs" for c in COMPARTMENTS) + (TIME_FEATURE,),
         target_features=features, n_trajectories=ensemble.n_trajectories,
         n_observed_points=int(kept.sum()), n_observed_values=ensemble.n_observed_values,
         windows=windows)

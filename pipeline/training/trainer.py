@@ -46,9 +46,9 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
-from pipeline.datasets import Standardization, WindowedDataset
+from pipeline.training.datasets import Standardization, WindowedDataset
 from pipeline.errors import ConfigError, TrainingDivergedError
-from pipeline.kinetic import KineticWeights, kinetic_loss
+from pipeline.training.kinetic import KineticWeights, kinetic_loss
 from pipeline.models.estimator import EstimatorConfig, add_context_noise
 from pipeline.io import atomic_open, atomic_write_json, atomic_write_text
 from pipeline.progress import ProgressReporter, SilentProgress
@@ -289,10 +289,10 @@ def train(estimator: nn.Module, train_ds: WindowedDataset, val_ds: WindowedDatas
           progress: ProgressReporter | None = None) -> TrainResult:
     """Train ``estimator`` in place on ``train_ds``; return the history and the best state.
 
-    ``train_ds`` / ``val_ds`` are :class:`pipeline.datasets.WindowedDataset` sharing the
+    ``train_ds`` / ``val_ds`` are :class:`pipeline.training.datasets.WindowedDataset` sharing the
     training-split standardization (``val_ds.stats`` is ignored: ``train_ds.stats`` is used
     for both). ``estimator`` must expose ``standardized_log_prob(target, context, mask)`` on
-    standardized tensors. ``kinetic`` (:class:`pipeline.kinetic.KineticWeights`) adds the
+    standardized tensors. ``kinetic`` (:class:`pipeline.training.kinetic.KineticWeights`) adds the
     kinetic terms when its lambda_2 or lambda_3 is positive. At return the estimator holds the
     best state (lowest validation NLL) and is in eval mode.
     """
@@ -479,14 +479,14 @@ def train_and_save(estimator: nn.Module, train_ds: WindowedDataset, val_ds: Wind
                    preset: Any = None) -> TrainResult:
     """Train, then (only on success) write ``model.pt``, ``history.csv/json``, ``loss.png``.
 
-    ``preset`` (a :class:`pipeline.presets.TrainingPreset`) is recorded as ``extra["preset"]``,
+    ``preset`` (a :class:`pipeline.training.presets.TrainingPreset`) is recorded as ``extra["preset"]``,
     which ``flowcast estimate``/``rollout`` read (dataset, direction, window): every flowcast
     trainer passes it, so every flowcast checkpoint carries the same metadata.
 
     A :class:`TrainingDivergedError` propagates before anything is written, so a diverged run
     never leaves a checkpoint behind (nor replaces a previous good one).
     """
-    from pipeline.checkpoints import save_checkpoint
+    from pipeline.training.checkpoints import save_checkpoint
 
     result = train(estimator, train_ds, val_ds, config, kinetic, progress)
     if on_trained is not None:

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.forecasting.members import quantile_forecast_from_weekly_cases
-from pipeline.forecasting.targets import EpiHistory, QuantileForecast, TargetError
+from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
+from pipeline.ensemble.targets import EpiHistory, QuantileForecast, TargetError
 
 AUTOETS = "autoets"
 

@@ -1,4 +1,4 @@
-"""State-space models the particle filter (:mod:`pipeline.smc`) runs on.
+"""State-space models the particle filter (:mod:`pipeline.inference.smc`) runs on.
 
 Each model has ``state_names``, ``observation_names`` and three vectorized methods over
 F filters × N particles: ``initial(F, N, generator) -> (F, N, D)``,

@@ -14,7 +14,7 @@
    w = n/(n + n0)·w_skill + n0/(n + n0)·(1/M).
 2. **Quantile averaging** (Vincentization): the published τ-quantile is Σ_m w_m q_m(τ).
 3. **Recalibration** of the average from the past PIT values of the (uncalibrated) average at the
-   same target × horizon (:mod:`pipeline.forecasting.calibration`).
+   same target × horizon (:mod:`pipeline.ensemble.calibration`).
 4. **Published = cases**; I = cases / N (N·I is the 7-day case count, L = 7), so the published
    I and cases are one forecast.
 5. **Sample paths** (weekly S, I, R at origin + 7h) from the published case quantiles: ensemble
@@ -35,8 +35,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
-from pipeline.forecasting.calibration import quantiles_at
-from pipeline.forecasting.targets import EpiHistory, QuantileForecast
+from pipeline.ensemble.calibration import quantiles_at
+from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 
 PUBLISHED = "published"
 UNCALIBRATED = "ensemble-uncalibrated"

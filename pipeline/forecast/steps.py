@@ -10,11 +10,11 @@ Steps, each a function here so it can be called, tested and timed without Prefec
    docs/systems.md) cut into forward and backward windows whose target is the joint
    (S, I, R, β, γ) — the paper's "joint state and parameter estimation".
 3. :func:`train_or_reuse_models` — train the forward and backward estimators, or reuse the cached
-   pair (:mod:`pipeline.model_store`, key = training config + training-data hash).
+   pair (:mod:`pipeline.training.model_store`, key = training config + training-data hash).
 4. :func:`latest_estimates` — forward estimate of the day after the last observation and backward
    estimate of the day before the last window (both from the latest R observations).
 5. :func:`rollouts` — rolling rollouts re-anchored every 7 and 28 days, forward and backward
-   (``pipeline.rollout``), plus :func:`future_paths`: forward sample paths past the last observed
+   (``pipeline.inference.rollout``), plus :func:`future_paths`: forward sample paths past the last observed
    day (the paper's rollout forecast; the published forecast is step 9's).
 6. :func:`parameter_track` — β, γ over time (posterior mean and 95 % interval per day).
 7. :func:`nll_table` — the paper's Table 5: mean NLL of the observed state under the flow's state
@@ -22,11 +22,11 @@ Steps, each a function here so it can be called, tested and timed without Prefec
 8. :func:`seeded_smc` — the paper's hybrid: particles drawn from the forward joint estimate seed a
    bootstrap filter over the following observations; 3σ bands.
 9. :func:`weekly_forecast` — the published forecast of weekly cases and I (an ensemble of a
-   flow member and AutoETS, :mod:`pipeline.forecasting`) at the latest Saturday, with the same
+   flow member and AutoETS, :mod:`pipeline.ensemble`) at the latest Saturday, with the same
    method's real-time backtest over every earlier Saturday.
 
-Models come from :mod:`pipeline.presets` (``sir-sf-joint`` × encoder × recipe, one preset per
-direction) and are trained and saved with :func:`pipeline.training.train_and_save`.
+Models come from :mod:`pipeline.training.presets` (``sir-sf-joint`` × encoder × recipe, one preset per
+direction) and are trained and saved with :func:`pipeline.training.trainer.train_and_save`.
 
 Reading of the paper: the context window R = 5 ("five-observation context"); rollouts and the
 joint estimates use the transformer encoder in the paper; here the encoder is a parameter.
@@ -49,11 +49,11 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import CheckpointError, ConfigError, OfflineError
-from pipeline.forecasting.nf_member import GrowthModelConfig
-from pipeline.forecast_hub import Submission
-from pipeline.forecasting.weekly import WeeklyConfig, WeeklyForecast
+from pipeline.ensemble.nf_member import GrowthModelConfig
+from pipeline.outputs.hubverse import Submission
+from pipeline.ensemble.weekly import WeeklyConfig, WeeklyForecast
 from pipeline.progress import ProgressReporter
-from pipeline.scoring import CENTRAL_LEVELS
+from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.systems.waves import WavePrior
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,7 @@ class DataSourceConfig:
 class ForecastConfig:
     """Everything that determines one weekly run (with the data and the seed).
 
-    The models come from one named training preset (:func:`pipeline.presets.get_preset`:
+    The models come from one named training preset (:func:`pipeline.training.presets.get_preset`:
     ``training_preset`` × ``encoder`` × ``recipe``, one per direction) — the single source of the
     dataset, estimator and optimiser settings. ``n_trajectories``, ``horizon_days``,
     ``train_iterations``, ``train_batch_size`` and ``eval_every`` only shrink it (None = the
@@ -144,7 +144,7 @@ class ForecastConfig:
     seed: int = 0
     data: DataSourceConfig = field(default_factory=DataSourceConfig)
     # The published forecast: an ensemble of the flow member (its own model) and AutoETS, with
-    # its real-time backtest over every Saturday origin (pipeline.forecasting.weekly).
+    # its real-time backtest over every Saturday origin (pipeline.ensemble.weekly).
     weekly: WeeklyConfig = field(default_factory=WeeklyConfig)
 
     def __post_init__(self) -> None:
@@ -172,8 +172,8 @@ class ForecastConfig:
         return dataclasses.replace(self.weekly, growth=growth, seed=self.step_seed("weekly"))
 
     def training_preset_for(self, direction: str) -> Any:
-        """The :class:`~pipeline.presets.TrainingPreset` of the ``direction`` model."""
-        from pipeline.presets import get_preset
+        """The :class:`~pipeline.training.presets.TrainingPreset` of the ``direction`` model."""
+        from pipeline.training.presets import get_preset
 
         preset = get_preset(self.training_preset, self.encoder, recipe=self.recipe,
                             direction=direction, seed=self.step_seed(f"train_{direction}"),
@@ -339,7 +339,7 @@ def simulate_training_data(config: ForecastConfig,
                            progress: ProgressReporter | None = None) -> TrainingData:
     """One synthetic ensemble (the preset's dataset, ``horizon_days`` override applied) cut into
     the forward and backward windows of the two presets, each split into train/validation."""
-    from pipeline.datasets import dataset_sha256, train_validation_split, windows_from_sir
+    from pipeline.training.datasets import dataset_sha256, train_validation_split, windows_from_sir
     from pipeline.io import sha256_bytes
     from pipeline.systems.sir import simulate_ensemble
 
@@ -388,7 +388,7 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
                           store_root: Path | None = None,
                           progress: ProgressReporter | None = None) -> TrainedModels:
     """Forward + backward joint estimators, from the cache unless config/data changed."""
-    from pipeline.model_store import ModelStore
+    from pipeline.training.model_store import ModelStore
 
     store = ModelStore(store_root or model_store_root())
 
@@ -406,7 +406,7 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
 
 def _load_models(config: ForecastConfig, entry: Any) -> TrainedModels:
     """The forward/backward pair of a model-store entry, checked against the presets' configs."""
-    from pipeline.checkpoints import load_checkpoint
+    from pipeline.training.checkpoints import load_checkpoint
 
     loaded = {d: load_checkpoint(entry.path / d / "model.pt",
                                  expected_config=config.training_preset_for(d).estimator)
@@ -433,8 +433,8 @@ def cached_variant_models(config: ForecastConfig, data: TrainingData, *,
                           store_root: Path | None = None) -> dict[str, TrainedModels]:
     """The other encoder variants (paper Table 5 columns) already in the model store for the
     same preset, recipe and training data — e.g. trained by ``flows.scale_out``. Never trains."""
-    from pipeline.model_store import ModelStore, model_key
-    from pipeline.presets import ENCODER_CHOICES
+    from pipeline.training.model_store import ModelStore, model_key
+    from pipeline.training.presets import ENCODER_CHOICES
 
     store = ModelStore(store_root or model_store_root())
     out = {}
@@ -452,7 +452,7 @@ def _train_direction(config: ForecastConfig, data: TrainingData, direction: str,
                      progress: ProgressReporter | None) -> float:
     """Train the ``direction`` preset and write it with ``training.train_and_save``."""
     from pipeline.models.estimator import build_estimator
-    from pipeline.training import train_and_save
+    from pipeline.training.trainer import train_and_save
 
     preset = config.training_preset_for(direction)
     train_ds, val_ds = data.splits[direction]
@@ -471,7 +471,7 @@ def _train_direction(config: ForecastConfig, data: TrainingData, direction: str,
 
 
 def _window(times: np.ndarray, values: np.ndarray, rows: slice, target_time: float) -> Any:
-    from pipeline.estimate import ObservationWindow
+    from pipeline.inference.estimate import ObservationWindow
 
     return ObservationWindow(times=times[rows], values=values[rows], target_time=float(target_time))
 
@@ -488,7 +488,7 @@ class LatestEstimates:
 
 def latest_estimates(models: TrainedModels, sir_frame: pd.DataFrame,
                      config: ForecastConfig) -> LatestEstimates:
-    from pipeline.estimate import estimate
+    from pipeline.inference.estimate import estimate
 
     times, values, dates = sir_arrays(sir_frame)
     r = config.window
@@ -518,7 +518,7 @@ def _summary_rows(samples: Tensor, direction: str, date: str) -> list[dict[str, 
 def rollouts(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig,
              progress: ProgressReporter | None = None) -> dict[tuple[str, int], Any]:
     """Rolling rollouts re-anchored every W days (W in ``rollout_windows``), fw and bw."""
-    from pipeline.rollout import RolloutConfig, rolling_rollout
+    from pipeline.inference.rollout import RolloutConfig, rolling_rollout
 
     times, values, _ = sir_arrays(sir_frame)
     out = {}
@@ -543,7 +543,7 @@ class FuturePaths:
 def future_paths(models: TrainedModels, sir_frame: pd.DataFrame,
                  config: ForecastConfig) -> FuturePaths:
     """Forward sample paths for ``forecast_days`` days after the last observed day."""
-    from pipeline.rollout import RolloutConfig, rollout
+    from pipeline.inference.rollout import RolloutConfig, rollout
 
     times, values, dates = sir_arrays(sir_frame)
     r = config.window
@@ -566,7 +566,7 @@ def parameter_track(models: TrainedModels, sir_frame: pd.DataFrame,
     effective reproduction number β·S/γ computed per joint sample (its posterior, not a ratio of
     medians); the report's intervals are the 50 % and 90 % ones.
     """
-    from pipeline.estimate import batch_window_context, sample_conditional
+    from pipeline.inference.estimate import batch_window_context, sample_conditional
 
     times, values, dates = sir_arrays(sir_frame)
     r = config.window
@@ -602,8 +602,8 @@ def nll_table(models: TrainedModels, sir_frame: pd.DataFrame,
     evaluated at the observed state — the paper's "NLL of the estimated conditional density given
     the true state", aggregated across compartments (one joint 3-D density).
     """
-    from pipeline.estimate import batch_window_context, sample_conditional
-    from pipeline.metrics import kde_log_prob, mean_nll
+    from pipeline.inference.estimate import batch_window_context, sample_conditional
+    from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 
     times, values, _ = sir_arrays(sir_frame)
     r = config.window
@@ -636,9 +636,9 @@ def nll_table_variants(models: TrainedModels, variants: dict[str, TrainedModels]
 
 def seeded_smc(models: TrainedModels, sir_frame: pd.DataFrame, config: ForecastConfig) -> Any:
     """NF-seeded SMC over the last ``smc_days`` days: flow draws at the first day seed it."""
-    from pipeline.estimate import sample_conditional, window_context
-    from pipeline.smc import DEFAULT_QUANTILES, SMCConfig, seeded_filter
-    from pipeline.smc_models import SIRParamsModel
+    from pipeline.inference.estimate import sample_conditional, window_context
+    from pipeline.inference.smc import DEFAULT_QUANTILES, SMCConfig, seeded_filter
+    from pipeline.inference.smc_models import SIRParamsModel
 
     times, values, dates = sir_arrays(sir_frame)
     r = config.window
@@ -702,9 +702,9 @@ def weekly_forecast(series: Any, sir: Any, config: ForecastConfig,
                     progress: ProgressReporter | None = None) -> WeeklyForecast:
     """The published forecast (ensemble of the flow member and AutoETS, recalibrated) at the
     latest Saturday, and the same method's real-time forecasts at every earlier Saturday
-    (:mod:`pipeline.forecasting.weekly`). The flow member comes from the model store."""
-    from pipeline.forecasting.backtest import sf_history
-    from pipeline.forecasting.weekly import forecast_weekly
+    (:mod:`pipeline.ensemble.weekly`). The flow member comes from the model store."""
+    from pipeline.ensemble.backtest import sf_history
+    from pipeline.ensemble.weekly import forecast_weekly
 
     return forecast_weekly(sf_history(series, sir), config.weekly_config(), model_store_root(),
                            progress)
@@ -767,7 +767,7 @@ def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
 def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
     """The published forecast in hub format (quantiles and sample paths of I and weekly cases),
     every forecaster's quantiles beside it, and the real-time backtest's scores."""
-    from pipeline.forecasting.backtest import PUBLISHED, hub_frame
+    from pipeline.ensemble.backtest import PUBLISHED, hub_frame
 
     population = weekly.history.population
     frames = [hub_frame(f, population).assign(forecaster=name)
@@ -784,7 +784,7 @@ def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
 def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date) -> Submission:
     """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``,
     validated against the repository's ``hub-config/tasks.json`` when it is there."""
-    from pipeline.forecast_hub import SubmissionConfig, write_model_output
+    from pipeline.outputs.hubverse import SubmissionConfig, write_model_output
 
     return write_model_output(weekly.latest, population=weekly.history.population,
                               run_date=run_date, hub_dir=hub_dir, tasks=_hub_tasks(),
@@ -805,9 +805,9 @@ def _n_paths(weekly: WeeklyForecast) -> int:
 
 
 def _hub_tasks() -> dict[str, Any] | None:
-    from pipeline.forecast_hub import load_tasks_config
+    from pipeline.outputs.hubverse import load_tasks_config
 
-    tasks = Path(__file__).resolve().parents[1] / "hub-config" / "tasks.json"
+    tasks = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"
     return load_tasks_config(tasks) if tasks.is_file() else None
 
 def results_summary(results: ForecastResults) -> dict[str, Any]:

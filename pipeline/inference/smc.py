@@ -7,7 +7,7 @@ The paper used pyro's ``SMCFilter``; this implementation runs the same algorithm
 tests/test_smc_pyro.py) but for F independent filters at once, as one tensor program:
 
 - particles ``(F, N, D)`` in *planar* memory layout (each component a contiguous (F, N) block, see
-  :func:`pipeline.smc_models.planar_empty`) so models work on contiguous columns; normalized
+  :func:`pipeline.inference.smc_models.planar_empty`) so models work on contiguous columns; normalized
   log-weights ``(F, N)``;
 - per step: propagate (model), add the observation log-likelihood, normalize with one
   max/exp/sum per filter — the same exp gives the normalized weights (for ESS and moments) and
@@ -35,9 +35,9 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
-from pipeline.metrics import SIGMA_LEVELS
+from pipeline.evaluation.metrics import SIGMA_LEVELS
 from pipeline.progress import ProgressReporter, SilentProgress
-from pipeline.smc_models import planar_empty
+from pipeline.inference.smc_models import planar_empty
 
 _RESULT_DTYPE = torch.float64
 
@@ -48,7 +48,7 @@ DEFAULT_QUANTILES: tuple[float, ...] = tuple(sorted(
 
 
 class StateSpaceModel(Protocol):
-    """What the filter needs from a model (see :mod:`pipeline.smc_models`)."""
+    """What the filter needs from a model (see :mod:`pipeline.inference.smc_models`)."""
 
     state_names: tuple[str, ...]
     observation_names: tuple[str, ...]

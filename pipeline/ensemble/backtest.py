@@ -6,7 +6,7 @@ For every weekly origin t (oldest first):
    ``autoets`` when they are not members);
 2. the published forecast combines the members' current forecasts with weights and a
    recalibration fitted to **past scores only**: a forecast from origin o at horizon h is scored,
-   and usable, at t only when o + 7h ≤ t (:mod:`pipeline.forecasting.ensemble`);
+   and usable, at t only when o + 7h ≤ t (:mod:`pipeline.ensemble.combine`);
 3. every forecaster is scored per target × horizon against the truth (when observed): WIS and
    its parts, 50 %/90 % coverage, PIT (from quantiles, deterministic).
 
@@ -32,21 +32,21 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
-from pipeline.forecast_hub import HUB_QUANTILE_LEVELS, format_level
-from pipeline.forecasting.autoets import AutoETSMember
-from pipeline.forecasting.baseline import HUB_BASELINE, HubBaseline
-from pipeline.forecasting.calibration import (CalibrationConfig, pit_from_quantiles,
+from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS, format_level
+from pipeline.ensemble.autoets import AutoETSMember
+from pipeline.evaluation.hub_baseline import HUB_BASELINE, HubBaseline
+from pipeline.ensemble.calibration import (CalibrationConfig, pit_from_quantiles,
                                               recalibrate)
-from pipeline.forecasting.ensemble import (PUBLISHED, UNCALIBRATED, EnsembleConfig,
+from pipeline.ensemble.combine import (PUBLISHED, UNCALIBRATED, EnsembleConfig,
                                            InvalidCounts, add_counts, check_compatible,
                                            count_invalid, member_matrix, sample_paths,
                                            skill_weights, vincentize)
-from pipeline.forecasting.members import Member, quantile_forecast_from_weekly_cases
-from pipeline.forecasting.targets import (DAYS_PER_WEEK, HORIZONS_WEEKS, TARGETS, EpiHistory,
+from pipeline.ensemble.members import Member, quantile_forecast_from_weekly_cases
+from pipeline.ensemble.targets import (DAYS_PER_WEEK, HORIZONS_WEEKS, TARGETS, EpiHistory,
                                           QuantileForecast, observed_targets)
 from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.progress import ProgressReporter, SilentProgress
-from pipeline.scoring import interval_coverage, weighted_interval_score
+from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
 
 PIT_BINS = 10
 PUBLISHED_BASIS = "cases"      # the ensemble is built on cases; I = cases / N
@@ -432,7 +432,7 @@ def write_backtest(result: BacktestResult, out_dir: str | Path,
 def sf_history(series: Any, sir: Any) -> EpiHistory:
     """The :class:`EpiHistory` of an ``SFSeries`` and its ``SIRSeries``: the daily counts the
     conversion used (ascertainment-adjusted, rounded, when it was on: ``sir.counts.multiplier``)."""
-    from pipeline.forecasting.targets import history_from_frames
+    from pipeline.ensemble.targets import history_from_frames
 
     raw = series.frame["new_cases"].to_numpy(dtype=np.float64)
     multiplier = sir.counts["multiplier"].to_numpy(dtype=np.float64)
@@ -442,9 +442,9 @@ def sf_history(series: Any, sir: Any) -> EpiHistory:
 
 
 def load_sf_history(source: str = "cache", import_paths: Sequence[str] = ()) -> EpiHistory:
-    """The SF :class:`EpiHistory` the weekly forecast sees: :func:`pipeline.forecast.load_series`
+    """The SF :class:`EpiHistory` the weekly forecast sees: :func:`pipeline.forecast.steps.load_series`
     (``source``: ``live``, ``cache`` or ``import`` of ``import_paths``) and
-    :func:`~pipeline.forecast.series_to_sir`."""
+    :func:`~pipeline.forecast.steps.series_to_sir`."""
     from pipeline import forecast as fc
 
     config = fc.resolve_config("default", data=fc.DataSourceConfig(

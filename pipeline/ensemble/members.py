@@ -1,6 +1,6 @@
 """Ensemble members: the interface every weekly forecaster implements, and the member list.
 
-A member sees only an :class:`~pipeline.forecasting.targets.EpiHistory` (the data up to its
+A member sees only an :class:`~pipeline.ensemble.targets.EpiHistory` (the data up to its
 origin; the backtest passes ``history.up_to(origin)``) and returns quantiles of BOTH targets at
 the requested weekly horizons and levels.
 
@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.forecasting.targets import EpiHistory, QuantileForecast, TargetError
+from pipeline.ensemble.targets import EpiHistory, QuantileForecast, TargetError
 
 
 class Member(Protocol):

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.forecasting.targets import (DAYS_PER_WEEK, EpiHistory, QuantileForecast,
+from pipeline.ensemble.targets import (DAYS_PER_WEEK, EpiHistory, QuantileForecast,
                                           TargetError)
 
 HUB_BASELINE = "hub-baseline"

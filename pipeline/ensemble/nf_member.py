@@ -31,18 +31,18 @@ import torch
 from numpy.typing import NDArray
 
 import pipeline
-from pipeline.checkpoints import load_checkpoint, save_checkpoint
-from pipeline.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDataset,
+from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
+from pipeline.training.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDataset,
                                compute_standardization, dataset_sha256, split_by_trajectory)
 from pipeline.errors import CheckpointError, ConfigError
-from pipeline.model_store import ModelStore
-from pipeline.forecasting.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
+from pipeline.training.model_store import ModelStore
+from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig
 from pipeline.models.estimator import (ConditionalEstimator, EstimatorConfig, build_estimator,
                                        make_estimator_config)
 from pipeline.progress import ProgressReporter
 from pipeline.systems.waves import WaveEnsemble, WavePrior, simulate_waves
-from pipeline.training import TrainConfig, TrainResult, train
+from pipeline.training.trainer import TrainConfig, TrainResult, train
 
 HALF_CASE = 0.5
 LEVEL_SCALE = 10.0
@@ -292,7 +292,7 @@ def default_nf_member(store_root: Path | None = None,
                       progress: ProgressReporter | None = None) -> NFGrowthMember:
     """The product's flow member, from the weekly forecast's model store (trained if absent)."""
     if store_root is None:
-        from pipeline.forecast import model_store_root
+        from pipeline.forecast.steps import model_store_root
 
         store_root = model_store_root()
     stored = train_or_reuse_growth_model(config, store_root, progress=progress)

@@ -18,12 +18,12 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.forecasting.backtest import (PUBLISHED, BacktestConfig, BacktestResult,
+from pipeline.ensemble.backtest import (PUBLISHED, BacktestConfig, BacktestResult,
                                            run_realtime_backtest, summarize)
-from pipeline.forecasting.members import Member
-from pipeline.forecasting.nf_member import GrowthModelConfig, NFGrowthMember, \
+from pipeline.ensemble.members import Member
+from pipeline.ensemble.nf_member import GrowthModelConfig, NFGrowthMember, \
     train_or_reuse_growth_model
-from pipeline.forecasting.targets import EpiHistory, QuantileForecast
+from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 from pipeline.progress import ProgressReporter
 
 SATURDAY = 5
@@ -83,7 +83,7 @@ def build_weekly_members(config: WeeklyConfig, store_root: Path,
     the backtest always scores, not a member — a flat forecast would only pull the average
     towards "no change" (measured on the SF backtest: with it the uncalibrated ensemble's WIS
     was 4 % higher on both targets)."""
-    from pipeline.forecasting.autoets import AutoETSMember
+    from pipeline.ensemble.autoets import AutoETSMember
 
     members: list[Member] = [AutoETSMember()]
     if not config.include_nf:

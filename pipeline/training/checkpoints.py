@@ -167,7 +167,7 @@ def _config_from_payload(path: Path, payload: dict[str, Any]) -> Any:
 
 
 def _stats_from_payload(path: Path, payload: dict[str, Any]) -> Any:
-    from pipeline.datasets import Standardization
+    from pipeline.training.datasets import Standardization
 
     stats = payload["stats"]
     missing = [name for name in _STATS_FIELDS if name not in stats]

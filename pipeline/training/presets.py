@@ -1,9 +1,9 @@
 """Named training presets: the paper's set-ups × encoder × recipe, as typed configs.
 
 A :class:`TrainingPreset` ties together what one training run needs: the dataset
-(:class:`~pipeline.datasets.DatasetConfig`), the model (:class:`EstimatorConfig`), the optimiser
-(:class:`~pipeline.training.TrainConfig`) and the loss weights
-(:class:`~pipeline.kinetic.KineticWeights`). Names are resolved here and only here
+(:class:`~pipeline.training.datasets.DatasetConfig`), the model (:class:`EstimatorConfig`), the optimiser
+(:class:`~pipeline.training.trainer.TrainConfig`) and the loss weights
+(:class:`~pipeline.training.kinetic.KineticWeights`). Names are resolved here and only here
 (:func:`get_preset`); library code passes the typed objects.
 
 Set-ups (paper, section "Training"):
@@ -21,7 +21,7 @@ sir-sf-joint       sir-sf, S,I,R,β,γ           5    10     6      6    10,000 
 
 All: R = 5 observations per window, Adam at constant lr 1e-3 (paper recipe), forward direction
 unless overridden. Context rows: the observed values and ``t_obs - t_target``; the vehicle set-ups
-also get the absolute time ``t_obs`` (4 channels; ``pipeline.datasets`` explains why). (*) Vehicle
+also get the absolute time ``t_obs`` (4 channels; ``pipeline.training.datasets`` explains why). (*) Vehicle
 context noise: the paper's one sentence "adding Gaussian noise with σ = 1.0" is what
 ``pipeline.systems.vehicle`` already uses as the *observation* noise of the positions (the paper
 gives no other observation noise for the vehicle), so the stored contexts already carry it; adding
@@ -66,12 +66,12 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
-from pipeline.datasets import DatasetConfig
+from pipeline.training.datasets import DatasetConfig
 from pipeline.errors import ConfigError
-from pipeline.kinetic import KineticWeights
+from pipeline.training.kinetic import KineticWeights
 from pipeline.models.encoders import EncoderConfig
 from pipeline.models.estimator import EstimatorConfig, make_estimator_config
-from pipeline.training import TrainConfig
+from pipeline.training.trainer import TrainConfig
 
 EncoderChoice = Literal["mlp", "transformer", "transformer-ke", "mamba"]
 Recipe = Literal["paper", "fast"]

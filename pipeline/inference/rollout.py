@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
-from pipeline.estimate import (Estimator, ObservationWindow, assemble_context, check_direction,
+from pipeline.inference.estimate import (Estimator, ObservationWindow, assemble_context, check_direction,
                                context_window_length, draw_noise, noise_dim, target_dim,
                                uses_absolute_time)
 from pipeline.progress import ProgressReporter, SilentProgress

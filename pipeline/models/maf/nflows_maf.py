@@ -27,7 +27,7 @@ from nflows.transforms.permutations import Permutation
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from pipeline.models.flows.base import ConditionalFlow, FlowConfig, reverse_permutation, soft_clip
+from pipeline.models.maf.base import ConditionalFlow, FlowConfig, reverse_permutation, soft_clip
 
 
 class ContextMADE(MADE):

@@ -8,8 +8,8 @@ Our reading: instead of seeding with the *mean* only, we seed the particle filte
 from the joint flow's estimate p(S, I, R, β, γ | o_{n-5..n-1}) at the target time n — the mean
 is then the particle mean, and the flow's uncertainty about β, γ becomes the filter's prior
 (the paper's "mean" seeding is the special case of a point mass). The filter then runs
-forward over the observations from n on (:func:`pipeline.smc.seeded_filter`, SIR dynamics with
-parameters as static state, :class:`pipeline.smc_models.SIRParamsModel`).
+forward over the observations from n on (:func:`pipeline.inference.smc.seeded_filter`, SIR dynamics with
+parameters as static state, :class:`pipeline.inference.smc_models.SIRParamsModel`).
 
 Flow draws are mapped to valid particles before filtering: (S, I, R) projected onto the simplex
 (clamped at 0, renormalised) and β, γ clamped at 0 — a flow has unbounded support, the SIR
@@ -25,19 +25,18 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
-from pipeline.estimate import Estimator, ObservationWindow, sample_conditional, target_dim, \
+from pipeline.inference.estimate import Estimator, ObservationWindow, sample_conditional, target_dim, \
     window_context, context_window_length
 from pipeline.progress import ProgressReporter
-from pipeline.smc import SMCConfig, SMCResult, seeded_filter
-from pipeline.smc_models import DEFAULT_OBS_SIGMA, DEFAULT_PROCESS_SIGMA, SIRParamsModel, \
+from pipeline.inference.smc import SMCConfig, SMCResult, seeded_filter
+from pipeline.inference.smc_models import DEFAULT_OBS_SIGMA, DEFAULT_PROCESS_SIGMA, SIRParamsModel, \
     project_to_simplex
 
-JOINT_NAMES = ("S", "I", "R", "beta", "gamma")
 
 
 @dataclass(frozen=True)
 class HybridConfig:
-    """Particle count, seed, and the filter's SIR model noise (see :mod:`pipeline.smc_models`)."""
+    """Particle count, seed, and the filter's SIR model noise (see :mod:`pipeline.inference.smc_models`)."""
 
     n_particles: int = 1000
     seed: int = 0

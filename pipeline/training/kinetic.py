@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
-from pipeline.models.flows.base import ConditionalFlow, FlowTrajectory
+from pipeline.models.maf.base import ConditionalFlow, FlowTrajectory
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+from pipeline.forecast.steps import *  # noqa: F401,F403  (temporary during the split)
