@@ -44,7 +44,7 @@ def design_variants(history: Any, members: list[Any], config: Any) -> dict[str, 
     import dataclasses
 
     from pipeline.ensemble.backtest import run_realtime_backtest, summarize
-    from pipeline.evaluation.hub_baseline import HubBaseline
+    from pipeline.ensemble.hub_baseline import HubBaseline
     from pipeline.ensemble.calibration import CalibrationConfig
 
     never = CalibrationConfig(shrinkage_pits=float("inf"))
@@ -75,13 +75,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import dataclasses
 
     from pipeline import forecast as fc
-    from pipeline.ensemble.backtest import (backtest_origins, load_sf_history,
+    from pipeline.forecast.sources import import_exports, load_sf_history
+    from pipeline.training.model_store import default_store_root
+    from pipeline.ensemble.backtest import (backtest_origins,
                                                run_realtime_backtest, summarize)
     from pipeline.ensemble.weekly import build_weekly_members
     from pipeline.io import atomic_write_json
 
-    fc.import_exports([args.data], if_empty=True)
-    history = load_sf_history("cache")
+    import_exports([args.data], if_empty=True)
+    history = load_sf_history(fc.DataSourceConfig(kind="cache"))
     weekly = dataclasses.replace(fc.resolve_config("default", seed=args.seed).weekly_config(),
                                  include_nf=not args.no_nf)
     config = weekly.backtest_config(scored_only=True)
@@ -89,7 +91,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         origins = backtest_origins(history, config)
         config = dataclasses.replace(config, first_origin=origins[-6].date())
     t0 = time.perf_counter()
-    members, model_key, reused = build_weekly_members(weekly, fc.model_store_root())
+    members, model_key, reused = build_weekly_members(weekly, default_store_root())
     t_members = time.perf_counter() - t0
     result = run_realtime_backtest(history, members, config)
     summary = summarize(result)

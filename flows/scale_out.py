@@ -16,13 +16,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from typing import Any
+from typing import Any, cast
 
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
-from prefect_dask import DaskTaskRunner
+from prefect.futures import PrefectFuture
+from prefect.task_runners import TaskRunner
+from prefect_dask.task_runners import DaskTaskRunner
 
 from pipeline import forecast as fc
+from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
 
 # The paper's variants (Table 5 rows) as (name, encoder choice of pipeline.training.presets); the
 # "transformer-ke" preset trains the transformer with the kinetic-energy terms.
@@ -36,8 +39,8 @@ def train_variant(config: fc.ForecastConfig, variant: str, retrain: bool) -> dic
     import torch
 
     torch.set_num_threads(1)  # one core per Dask worker; several variants share the machine
-    data = fc.simulate_training_data(config)
-    models = fc.train_or_reuse_models(config, data, retrain=retrain)
+    data = simulate_training_data(config)
+    models = train_or_reuse_models(config, data, retrain=retrain)
     return {"variant": variant, "model_key": models.key, "reused": models.reused,
             "best_val_nll": models.best_val_nll}
 
@@ -57,9 +60,8 @@ def train_variants(preset: str = "default", variants: list[str] | None = None, s
     unknown = [v for v in names if v not in PAPER_VARIANTS]
     if unknown:
         raise ValueError(f"unknown variants {unknown}; known: {sorted(PAPER_VARIANTS)}")
-    base = fc.resolve_config(preset, seed=seed)
-    futures = [train_variant.submit(dataclasses.replace(base, encoder=PAPER_VARIANTS[v]), v,
-                                    retrain) for v in names]
+    futures = [train_variant.submit(fc.resolve_config(preset, seed=seed, encoder=PAPER_VARIANTS[v]),
+                                    v, retrain) for v in names]
     results = [f.result() for f in futures]
     for r in results:
         logger.info("%s: model %s… (%s) best val NLL fw %.3f bw %.3f", r["variant"],
@@ -78,7 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--retrain", action="store_true")
     args = parser.parse_args(argv)
-    runner_flow = train_variants.with_options(task_runner=task_runner(args.address, args.workers))
+    # DaskTaskRunner subclasses the bare TaskRunner (so its future type defaults to
+    # PrefectConcurrentFuture) while Flow.with_options wants the invariant
+    # TaskRunner[PrefectFuture[Any]]; prefect's own annotations can't express the subclass.
+    runner = cast("TaskRunner[PrefectFuture[Any]]", task_runner(args.address, args.workers))
+    runner_flow = train_variants.with_options(task_runner=runner)
     for r in runner_flow(preset=args.preset, variants=args.variants, seed=args.seed,
                          retrain=args.retrain):
         print(r)

@@ -95,7 +95,8 @@ def watch(parent: int, parent_started: float, server: int, server_started: float
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    # __doc__ is None under python -OO
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--parent", type=int, required=True)
     parser.add_argument("--parent-started", type=float, required=True)
     parser.add_argument("--server", type=int, required=True)

@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
 
 
 class ProgressReporter(Protocol):
@@ -25,7 +28,7 @@ def _format_fields(fields: dict[str, float | str]) -> str:
 
 
 class _RichTask:
-    def __init__(self, progress, task_id) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, progress: Progress, task_id: TaskID) -> None:
         self._progress, self._task_id = progress, task_id
 
     def advance(self, steps: int = 1, **fields: float | str) -> None:

@@ -12,7 +12,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from pipeline.cli import app, build_command, package_version
+from flows.cli import app, build_command  # the entry point's module: every command
+from pipeline.cli import package_version
 
 REPO = Path(__file__).resolve().parents[1]
 PYTHON_TYPE_LABELS = re.compile(r"<(int|str|float|bool|path)>|list\[|<int range>|<float range>")
@@ -163,12 +164,12 @@ def test_smc_filter_refuses_non_finite_or_negative_options(cli, tmp_path, option
 @pytest.fixture(scope="module")
 def forecast_store(tmp_path_factory):
     """The weekly forecast's own model pair (tiny preset), in its model store."""
-    from pipeline import forecast as fc
+    from pipeline.forecast import resolve_config
+    from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
 
     root = tmp_path_factory.mktemp("store")
-    config = fc.resolve_config("tiny")
-    models = fc.train_or_reuse_models(config, fc.simulate_training_data(config),
-                                      store_root=root)
+    config = resolve_config("tiny")
+    models = train_or_reuse_models(config, simulate_training_data(config), store_root=root)
     return models.path
 
 

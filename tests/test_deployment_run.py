@@ -93,7 +93,7 @@ def test_serve_and_run_deployment(tmp_path, datasf_dir):
            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
            "PREFECT_RUNNER_POLL_FREQUENCY": "1", "PREFECT_LOGGING_LEVEL": "INFO",
            "FLOWCAST_DATA_DIR": str(data_dir), "PYTHONUNBUFFERED": "1"}
-    from pipeline.forecast.steps import import_exports
+    from pipeline.forecast.sources import import_exports
 
     os.environ["FLOWCAST_DATA_DIR"] = str(data_dir)  # the autouse fixture restores it
     import_exports([str(datasf_dir)])

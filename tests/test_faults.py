@@ -263,17 +263,20 @@ def test_swapped_forward_and_backward_checkpoints_are_refused(tmp_path, monkeypa
     """Both directions share one architecture, so only the recorded direction tells them apart.
     The checkpoints are stand-ins (load_checkpoint stubbed): the check is in the loader."""
     from types import SimpleNamespace
+    from unittest.mock import MagicMock
 
-    import pipeline.training.checkpoints
-    from pipeline.forecast.steps import _load_models, resolve_config
+    import pipeline.forecast.joint_models
+    from pipeline.forecast import resolve_config
+    from pipeline.forecast.joint_models import load_models as _load_models
+    from pipeline.models.estimator import ConditionalEstimator
 
     recorded = {"forward": "backward", "backward": "forward"}  # the two files swapped on disk
 
     def fake_load(path, expected_config=None):
         meta = SimpleNamespace(extra={"direction": recorded[Path(path).parent.name]}, history=[])
-        return SimpleNamespace(estimator=torch.nn.Linear(1, 1), meta=meta)
+        return SimpleNamespace(estimator=MagicMock(spec=ConditionalEstimator), meta=meta)
 
-    monkeypatch.setattr(pipeline.training.checkpoints, "load_checkpoint", fake_load)
+    monkeypatch.setattr(pipeline.forecast.joint_models, "load_checkpoint", fake_load)
     entry = SimpleNamespace(path=tmp_path / "entry", key="k", reused=True)
     with pytest.raises(CheckpointError) as info:
         _load_models(resolve_config("tiny"), entry)

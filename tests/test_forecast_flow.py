@@ -210,3 +210,50 @@ def test_fetch_fails_without_cache_fails_clearly_and_keeps_last_good(good_run, t
     assert attempts == 2 * 3  # (1 + 1 task retry) x (1 + 2 HTTP retries) on the first dataset
     after = {p: p.read_bytes() for p in reports.rglob("*") if p.is_file()}
     assert after == before
+
+
+# ------------------------------------------------- run_forecast without Prefect == the flow
+
+def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_path,
+                                                      monkeypatch):
+    """``run_forecast`` on the flow's config, in a fresh data dir (so it trains its own pair),
+    gives typed results whose tables are byte-identical to the flow's files."""
+    from typing import get_args
+
+    from flows.weekly_forecast import flow_config
+    from pipeline.ensemble.weekly import WeeklyForecast
+    from pipeline.forecast import ForecastResults, run_forecast
+    from pipeline.forecast.publish import write_tables
+    from pipeline.forecast.run import Step
+    from pipeline.inference.rollout import RolloutResult
+    from pipeline.inference.smc import SMCResult
+    from pipeline.models.estimator import ConditionalEstimator
+
+    root, flow_result = good_run
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
+    config = flow_config("tiny", encoder=None, data_source="import",
+                         import_from=[str(datasf_dir)], output_dir=str(root / "reports"),
+                         seed=0, datasf_base_url=None)
+    results = run_forecast(config)
+
+    assert isinstance(results, ForecastResults) and results.config == config
+    assert isinstance(results.models.forward, ConditionalEstimator)
+    assert not results.models.reused and results.models.key == flow_result["model_key"]
+    assert results.reference_date == EXPECTED_REFERENCE_DATE and not results.stale
+    assert set(results.rollouts) == {(d, w) for d in ("forward", "backward") for w in (7, 28)}
+    assert all(isinstance(r, RolloutResult) for r in results.rollouts.values())
+    assert tuple(results.future.samples.shape) == (200, 28, 5)
+    assert isinstance(results.smc.result, SMCResult) and len(results.smc.dates) == 28
+    assert isinstance(results.weekly, WeeklyForecast)
+    assert str(results.weekly.origin.date()) == ORIGIN
+    # every step timed, in the flow's task names, and the flow ran the same steps
+    assert list(results.timings) == list(get_args(Step))
+    assert list(flow_result["step_seconds"]) == list(get_args(Step))
+
+    out = tmp_path / "direct"
+    files = write_tables(results, out)
+    flow_dir = Path(flow_result["output_dir"])
+    compared = [f for f in files if f.endswith(".csv")]
+    assert "hub_forecast.csv" in compared and len(compared) >= 12
+    for name in compared:
+        assert (out / name).read_bytes() == (flow_dir / name).read_bytes(), name

@@ -10,9 +10,10 @@ import pytest
 from scipy.stats import norm
 
 from pipeline.ensemble.backtest import (HUB_COLUMNS, BacktestConfig, backtest_origins,
-                                           run_realtime_backtest, score_forecasts, sf_history,
+                                           run_realtime_backtest, score_forecasts,
                                            summarize, summarize_forecaster)
-from pipeline.evaluation.hub_baseline import HubBaseline
+from pipeline.forecast.sources import sf_history
+from pipeline.ensemble.hub_baseline import HubBaseline
 from pipeline.ensemble.combine import PUBLISHED, UNCALIBRATED, EnsembleConfig, skill_weights
 from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
 from pipeline.ensemble.targets import EpiHistory, observed_targets
@@ -117,7 +118,7 @@ def test_backtest_cli_on_the_real_data_writes_hub_forecasts_scores_and_summary(
     from typer.testing import CliRunner
 
     from pipeline.cli import _register, app
-    from pipeline.forecast.steps import import_exports
+    from pipeline.forecast.sources import import_exports
 
     import_exports([str(datasf_dir)])           # into this test's FLOWCAST_DATA_DIR
     _register()

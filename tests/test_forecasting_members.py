@@ -9,7 +9,7 @@ from scipy.stats import norm
 
 from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
 from pipeline.ensemble.autoets import AutoETSMember, interval_levels
-from pipeline.evaluation.hub_baseline import HubBaseline, HubBaselineConfig, baseline_quantiles
+from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig, baseline_quantiles
 from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
 from pipeline.ensemble.targets import TargetError
 from tests.forecasting_helpers import POPULATION, history_from_cases, random_walk_history

@@ -91,22 +91,23 @@ def test_forecast_models_are_the_training_presets():
     shrinks; the filters and rollouts take their noise from the same (sir-sf) prior."""
     import dataclasses
 
-    from pipeline.forecast.steps import resolve_config
+    from pipeline.forecast import resolve_config
     from pipeline.training.presets import get_preset
 
     default = resolve_config("default")
     for direction in ("forward", "backward"):
-        ours = default.training_preset_for(direction)
+        ours = default.resolved.presets[direction]
         theirs = get_preset("sir-sf-joint", "transformer", recipe="fast", direction=direction,
                             seed=ours.train.seed, dataset_seed=ours.dataset.seed)
         assert ours.estimator == theirs.estimator and ours.kinetic == theirs.kinetic
         assert ours.dataset == theirs.dataset and ours.dataset.direction == direction
         assert ours.train == dataclasses.replace(theirs.train,
-                                                 iterations=default.train_iterations)
-    assert default.window == 5  # the paper's R
-    assert default.prior.name == "sir-sf" and default.prior.obs_sigma == 5e-4
+                                                 iterations=default.training.iterations)
+    assert default.resolved.window == 5  # the paper's R
+    prior = default.resolved.prior
+    assert prior.name == "sir-sf" and prior.obs_sigma == 5e-4
 
-    tiny = resolve_config("tiny").training_preset_for("forward")
+    tiny = resolve_config("tiny").resolved.presets["forward"]
     mlp = get_preset("sir-sf-joint", "mlp", recipe="fast", seed=tiny.train.seed,
                      dataset_seed=tiny.dataset.seed, n_trajectories=16)
     assert tiny.estimator == mlp.estimator and tiny.dataset == mlp.dataset
@@ -115,25 +116,35 @@ def test_forecast_models_are_the_training_presets():
 
 
 def test_forecast_model_key_follows_encoder_recipe_and_seed():
-    from pipeline.forecast.steps import resolve_config
+    import dataclasses
+
+    from pipeline.forecast import resolve_config
 
     base = resolve_config("tiny")
+
+    def training(**changes: object):
+        return dataclasses.replace(base, training=dataclasses.replace(base.training, **changes))
+
     keys = {model_key(c.training_identity(), "data") for c in (
         base, resolve_config("tiny", encoder="transformer"), resolve_config("tiny", seed=1),
-        resolve_config("tiny", recipe="paper"), resolve_config("tiny", train_iterations=31))}
+        training(recipe="paper"), training(iterations=31))}
     assert len(keys) == 5
     # parameters that do not touch training (sample counts, data source) keep the key
-    assert model_key(resolve_config("tiny", n_samples=7, hub_paths=50)
-                     .training_identity(), "data") == model_key(base.training_identity(), "data")
+    other = dataclasses.replace(
+        base, estimates=dataclasses.replace(base.estimates, n_samples=7),
+        rollouts=dataclasses.replace(base.rollouts, future_paths=50))
+    assert model_key(other.training_identity(), "data") == \
+        model_key(base.training_identity(), "data")
 
 
 def test_forecast_config_rejects_unknown_preset_parts():
     from pipeline.errors import ConfigError
-    from pipeline.forecast.steps import resolve_config
+    from pipeline.forecast import ForecastConfig, resolve_config
+    from pipeline.forecast.config import TrainingSettings
 
     with pytest.raises(ConfigError, match="unknown encoder 'lstm'"):
         resolve_config("tiny", encoder="lstm")
     with pytest.raises(ConfigError, match="unknown recipe"):
-        resolve_config("tiny", recipe="slow")
+        ForecastConfig(training=TrainingSettings(recipe="slow"))
     with pytest.raises(ConfigError, match="unknown forecast preset 'huge'"):
         resolve_config("huge")

@@ -466,18 +466,18 @@ def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):
     import requests
     import responses
 
-    from pipeline import forecast as fc
     from pipeline.data.datasf import DATASETS, ClientConfig
     from pipeline.data.series import SFDataConfig, load_sf_series
+    from pipeline.forecast.sources import import_exports, staleness_notes
 
-    fc.import_exports([str(datasf_dir)])
+    import_exports([str(datasf_dir)])
     with responses.RequestsMock(assert_all_requests_are_fired=False) as rsps:
         rsps.add(responses.GET, re.compile(r"https://data\.sfgov\.org/.*"),
                  body=requests.ConnectionError("no route to host (test)"))
         series = load_sf_series(SFDataConfig(client=ClientConfig(
             base_url="https://data.sfgov.org", max_retries=1, backoff_base_s=0.0)))
     banner = checks.data_banner(stale=True, vintage=series.vintage.describe(),
-                                notes=fc.staleness_notes(series),
+                                notes=staleness_notes(series),
                                 last_day=dt.date(2022, 3, 2), today=dt.date(2022, 3, 30),
                                 source="live")
     assert banner.startswith("Stale data: DataSF could not be reached") and banner.count(
@@ -496,31 +496,19 @@ def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):
 
 @pytest.fixture(scope="module")
 def real_results(datasf_dir, tmp_path_factory):
-    """A tiny-preset run on the recorded DataSF exports: the flow's steps, without Prefect."""
+    """A tiny-preset run on the recorded DataSF exports: ``run_forecast``, without Prefect."""
     from pipeline import forecast as fc
 
     root = tmp_path_factory.mktemp("real-run")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
-        config = fc.resolve_config("tiny", data=fc.DataSourceConfig(
-            kind="import", import_paths=(str(datasf_dir),)))
-        series = fc.load_series(config)
-        sir = fc.series_to_sir(series)
-        frame = sir.frame
-        models = fc.train_or_reuse_models(config, fc.simulate_training_data(config))
-        return fc.ForecastResults(
-            config=config, sir_frame=frame, vintage=series.vintage.describe(), stale=False,
-            stale_notes=(), models=models, latest=fc.latest_estimates(models, frame, config),
-            rollouts=fc.rollouts(models, frame, config),
-            future=fc.future_paths(models, frame, config),
-            parameters=fc.parameter_track(models, frame, config),
-            nll=fc.nll_table(models, frame, config), smc=fc.seeded_smc(models, frame, config),
-            weekly=fc.weekly_forecast(series, sir, config))
+        return fc.run_forecast(fc.resolve_config("tiny", data=fc.DataSourceConfig(
+            kind="import", import_paths=(str(datasf_dir),))))
 
 
 @pytest.fixture(scope="module")
 def real_report(real_results, tmp_path_factory):
-    from pipeline.report import build_forecast_report
+    from pipeline.report.weekly import build_forecast_report
 
     out = tmp_path_factory.mktemp("real-report")
     assert build_forecast_report(real_results, out) == ["report.html", "report.pdf"]

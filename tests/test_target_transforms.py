@@ -293,13 +293,13 @@ def test_a_28_day_rollout_stays_valid(sf_joint) -> None:
 
 def test_smc_seed_refuses_invalid_draws_instead_of_clipping_them() -> None:
     from pipeline.errors import ConfigError
-    from pipeline.forecast.steps import _check_valid_seed
+    from pipeline.inference.hybrid import check_valid_draws
 
     good = torch.tensor([[[0.9, 0.05, 0.05, 0.2, 0.1], [0.8, 0.1, 0.1, 0.3, 0.1]]],
                         dtype=torch.float64)
-    _check_valid_seed(good)
+    check_valid_draws(good)
     bad = good.clone()
     bad[0, 1, 1] = -0.01                       # negative I
     bad[0, 0, 3] = -0.2                        # negative beta
     with pytest.raises(ConfigError, match="2 of 2 flow draws seeding the SMC filter"):
-        _check_valid_seed(bad)
+        check_valid_draws(bad)

@@ -40,7 +40,7 @@ def _api_get(api: str, path: str) -> object:
 
 def test_prefect_yaml_deploy_worker_run_and_stale_artifact(tmp_path, datasf_dir):
     from flows.weekly_forecast import ARTIFACT_SUMMARY, STALE_STATE_NAME, STALE_TAG
-    from pipeline.forecast.steps import import_exports
+    from pipeline.forecast.sources import import_exports
 
     port, closed = free_port(), free_port()
     api = f"http://127.0.0.1:{port}/api"

@@ -24,7 +24,8 @@ app = typer.Typer(cls=_FlowcastGroup, no_args_is_help=True, add_completion=False
                   help="flowcast: conditional normalizing flows for epidemic forecasting.")
 
 # Modules that attach commands to ``app`` when imported.
-COMMAND_MODULES = ("forecast", "simulate", "data", "train", "demo", "estimate", "smc",
+# (``flowcast forecast`` runs the Prefect flow, so flows/cli.py attaches it: the entry point.)
+COMMAND_MODULES = ("simulate", "data", "train", "demo", "estimate", "smc",
                    "reproduce", "backtest")
 # Help labels for value types: what a user types, not Python type names (``<int>``, ``<str>``).
 _METAVARS: dict[type, str] = {int: "INTEGER", float: "NUMBER", str: "TEXT"}
@@ -76,7 +77,7 @@ def _plain_metavars(command: Any) -> None:
             option.metavar = ""
         return option
 
-    command.get_help_option = help_option  # type: ignore[method-assign]
+    command.get_help_option = help_option
     for sub in getattr(command, "commands", {}).values():
         _plain_metavars(sub)
 

@@ -10,14 +10,25 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from pipeline.cli import app
 from pipeline.cli.choices import DataSource, value
-from pipeline.errors import FlowcastError
+from pipeline.errors import ConfigError, FlowcastError
+
+if TYPE_CHECKING:
+    from pipeline.forecast.config import DataSourceKind
+
+
+def _source_kind(source: Enum) -> DataSourceKind:
+    kind = value(source)
+    if kind == "live" or kind == "cache" or kind == "import":
+        return kind
+    raise ConfigError(f"unknown data source {kind!r}")  # typer only passes DataSource's values
 
 
 def _date(value: str | None, option: str) -> dt.date | None:
@@ -41,7 +52,7 @@ def backtest_command(
     all_origins: Annotated[bool, typer.Option(
         "--all-origins", help="also origins whose 4-week truth is not observed yet")] = False,
     nf: Annotated[bool, typer.Option("--nf/--no-nf", help="include the NF member")] = True,
-    source: Annotated[DataSource, typer.Option(  # type: ignore[valid-type]
+    source: Annotated[DataSource, typer.Option(
         help="where the SF series comes from")] = DataSource("cache"),
     import_from: Annotated[list[Path] | None, typer.Option(
         "--import", help="DataSF CSV exports to import first (with --source import)")] = None,
@@ -49,20 +60,23 @@ def backtest_command(
 ) -> None:
     """Real-time backtest over weekly origins: published forecasts, scores and a summary."""
     from pipeline import forecast as fc
-    from pipeline.ensemble.backtest import (backtest_origins, load_sf_history,
+    from pipeline.forecast.sources import import_exports, load_sf_history
+    from pipeline.training.model_store import default_store_root
+    from pipeline.ensemble.backtest import (backtest_origins,
                                                run_realtime_backtest, summarize, write_backtest)
     from pipeline.ensemble.weekly import build_weekly_members
     from pipeline.progress import rich_progress
 
     try:
-        history = load_sf_history(value(source), [str(p) for p in import_from or []])
+        history = load_sf_history(fc.DataSourceConfig(
+            kind=_source_kind(source), import_paths=tuple(str(p) for p in import_from or [])))
         weekly = dataclasses.replace(fc.resolve_config("default", seed=seed).weekly_config(),
                                      include_nf=nf)
         config = weekly.backtest_config(scored_only=not all_origins,
                                         first_origin=_date(first, "--from"),
                                         last_origin=_date(last, "--to"))
         n_origins = len(backtest_origins(history, config))
-        members, _, _ = build_weekly_members(weekly, fc.model_store_root())
+        members, _, _ = build_weekly_members(weekly, default_store_root())
         with rich_progress("backtest", n_origins) as progress:
             result = run_realtime_backtest(history, members, config, progress)
         written = write_backtest(result, out)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from enum import Enum
-from typing import overload
+from typing import TYPE_CHECKING, TypeAlias, cast, overload
 
 import typer
 
@@ -16,23 +16,39 @@ from pipeline.systems.sir import SIR_PRIORS
 def choices_enum(name: str, values: tuple[str, ...] | list[str]) -> type[Enum]:
     """A ``str`` Enum whose values (what the user types) are ``values``."""
     members = {v.replace("-", "_").replace("+", "_"): v for v in values}
-    return Enum(name, members, type=str)  # type: ignore[return-value]
+    # Enum's functional API returns a class, but with a non-literal name pyright reads the call
+    # as a member lookup and types it as an Enum instance.
+    return cast("type[Enum]", Enum(name, members, type=str))
 
 
-Direction = choices_enum("Direction", ("forward", "backward"))
-Encoder = choices_enum("Encoder", ENCODER_CHOICES)
-Backend = choices_enum("Backend", BACKENDS)
-Recipe = choices_enum("Recipe", RECIPES)
-TrainPreset = choices_enum("TrainPreset", PRESET_NAMES)
-SIRPriorName = choices_enum("SIRPriorName", tuple(SIR_PRIORS))
-SMCSystem = choices_enum("SMCSystem", ("sir", "sir-params", "vehicle"))
-DataSource = choices_enum("DataSource", ("live", "cache", "import"))
+if TYPE_CHECKING:
+    # Built at run time from tuples of names, so a checker cannot know their members; to it each
+    # is a plain Enum (value() turns a choice into its string). typer reads the real classes.
+    Direction: TypeAlias = Enum
+    Encoder: TypeAlias = Enum
+    Backend: TypeAlias = Enum
+    Recipe: TypeAlias = Enum
+    TrainPreset: TypeAlias = Enum
+    SIRPriorName: TypeAlias = Enum
+    SMCSystem: TypeAlias = Enum
+    DataSource: TypeAlias = Enum
+else:
+    Direction = choices_enum("Direction", ("forward", "backward"))
+    Encoder = choices_enum("Encoder", ENCODER_CHOICES)
+    Backend = choices_enum("Backend", BACKENDS)
+    Recipe = choices_enum("Recipe", RECIPES)
+    TrainPreset = choices_enum("TrainPreset", PRESET_NAMES)
+    SIRPriorName = choices_enum("SIRPriorName", tuple(SIR_PRIORS))
+    SMCSystem = choices_enum("SMCSystem", ("sir", "sir-params", "vehicle"))
+    DataSource = choices_enum("DataSource", ("live", "cache", "import"))
 
 
 @overload
 def value(choice: Enum | str) -> str: ...
 @overload
 def value(choice: None) -> None: ...
+@overload
+def value(choice: Enum | str | None) -> str | None: ...
 def value(choice: Enum | str | None) -> str | None:
     """The plain string of an Enum choice (None stays None)."""
     return str(choice.value) if isinstance(choice, Enum) else choice

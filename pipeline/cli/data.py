@@ -2,14 +2,19 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
 
 import typer
 
 from pipeline.cli import app
 from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
 from pipeline.errors import FlowcastError
+
+if TYPE_CHECKING:
+    from pipeline.data.series import SFDataConfig
+    from pipeline.data.sir_transform import SIRConversionConfig
 
 data_app = typer.Typer(no_args_is_help=True, help="San Francisco COVID-19 data from DataSF.")
 app.add_typer(data_app, name="data")
@@ -19,17 +24,19 @@ TrailingDays = typer.Option(14, "--trailing-days", min=0,
 Offline = typer.Option(False, "--offline", help="Use the cache only; never contact DataSF.")
 
 
-def _fail(exc: Exception) -> None:
+def _fail(exc: Exception) -> NoReturn:
     typer.echo(f"error: {exc}", err=True)
     raise typer.Exit(code=1)
 
 
 def _config(trailing_days: int, *, base_url: str | None = None, app_token: str | None = None,
-            accept_revisions: bool = False):  # type: ignore[no-untyped-def]
+            accept_revisions: bool = False) -> SFDataConfig:
     from pipeline.data.datasf import ClientConfig
     from pipeline.data.series import SFDataConfig
-    overrides = {k: v for k, v in (("base_url", base_url), ("app_token", app_token)) if v}
-    return SFDataConfig(trailing_days=trailing_days, client=ClientConfig(**overrides),
+    client = ClientConfig(base_url=base_url) if base_url else ClientConfig()
+    if app_token:
+        client = replace(client, app_token=app_token)
+    return SFDataConfig(trailing_days=trailing_days, client=client,
                         accept_revisions=accept_revisions)
 
 
@@ -127,7 +134,8 @@ def status_command() -> None:
                        f"{cache.directory(spec) / 'held'}")
 
 
-def _sir_config(population: int, infectious_days: int, ascertainment: bool):  # type: ignore[no-untyped-def]
+def _sir_config(population: int, infectious_days: int,
+                ascertainment: bool) -> SIRConversionConfig:
     from pipeline.data.sir_transform import AscertainmentConfig, SIRConversionConfig
     return SIRConversionConfig(population=population, infectious_period_days=infectious_days,
                                ascertainment=AscertainmentConfig() if ascertainment else None)

@@ -28,11 +28,14 @@ def kinetic(
     """Train an unconditional MAF on two moons with and without the kinetic term; plot every
     layer's output and report path lengths and held-out NLL."""
     from pipeline.demos.kinetic import KineticDemoConfig, run_kinetic_demo
+    from pipeline.errors import ConfigError
+    from pipeline.models.maf.base import BACKENDS
     from pipeline.training.kinetic import KineticWeights
     from pipeline.progress import rich_progress
 
-    config = KineticDemoConfig(iterations=iterations, seed=seed, layers=layers,
-                               backend=backend,  # type: ignore[arg-type]
+    if backend not in BACKENDS:  # the error FlowConfig would raise, before any training
+        raise ConfigError(f"FlowConfig.backend={backend!r}: must be one of {BACKENDS}")
+    config = KineticDemoConfig(iterations=iterations, seed=seed, layers=layers, backend=backend,
                                kinetic=KineticWeights(1.0, path_weight, prior_weight))
     with rich_progress("kinetic demo (2 flows)", total=2 * iterations) as progress:
         result = run_kinetic_demo(config, out, progress)

@@ -7,7 +7,7 @@ observation, increasing in time.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import numpy as np
 import pandas as pd
@@ -19,6 +19,10 @@ from pipeline.cli.choices import value as choice_value
 from pipeline.cli.csv_input import read_timed_csv
 from pipeline.errors import ConfigError, FlowcastError
 
+if TYPE_CHECKING:
+    from pipeline.inference.estimate import ModelInfo
+    from pipeline.inference.rollout import RolloutResult
+    from pipeline.models.estimator import ConditionalEstimator
 
 _CHECKPOINT_HELP = ("model.pt of any flowcast model: `flowcast train`'s, or the weekly "
                     "forecast's (data/models/<key>/forward/model.pt)")
@@ -35,10 +39,12 @@ def read_observation_csv(path: Path, observed: tuple[str, ...]
     return times, values, dates
 
 
-def _load(checkpoint: Path, direction: str | None):  # noqa: ANN202 - (estimator, ModelInfo, str)
+def _load(checkpoint: Path, direction: str | None
+          ) -> tuple[ConditionalEstimator, ModelInfo, str]:
     """The checkpoint's estimator, its ModelInfo, and the direction (default: the model's own)."""
-    from pipeline.training.checkpoints import load_checkpoint
     from pipeline.inference.estimate import ModelInfo
+    from pipeline.models.estimator import ConditionalEstimator
+    from pipeline.training.checkpoints import load_checkpoint
 
     loaded = load_checkpoint(checkpoint)
     info = ModelInfo.from_checkpoint_extra(_with_preset(loaded.meta.extra, checkpoint),
@@ -47,11 +53,13 @@ def _load(checkpoint: Path, direction: str | None):  # noqa: ANN202 - (estimator
     if direction != info.direction:
         raise ConfigError(f"{checkpoint} was trained for {info.direction} estimates; "
                           f"--direction {direction} needs a {direction} model")
-    loaded.estimator.eval()
-    return loaded.estimator, info, direction
+    estimator = loaded.estimator
+    assert isinstance(estimator, ConditionalEstimator)  # load_checkpoint rebuilds only these
+    estimator.eval()
+    return estimator, info, direction
 
 
-def _with_preset(extra: dict, checkpoint: Path) -> dict:
+def _with_preset(extra: dict[str, Any], checkpoint: Path) -> dict[str, Any]:
     """The checkpoint's metadata, with ``extra["preset"]`` recovered for weekly-forecast models
     saved before every trainer recorded it: their model-store entry
     (``<store>/<key>/entry.json``, beside ``<direction>/model.pt``) holds the presets."""
@@ -74,13 +82,14 @@ def _check_out_file(out: Path) -> None:
                           f"(e.g. {out / 'estimate.csv'})")
 
 
-def _time_label(times: np.ndarray, dates: pd.Series | None) -> dict[str, object]:
+def _time_label(times: np.ndarray, dates: pd.Series | None
+                ) -> dict[str, np.ndarray | pd.Index]:
     if dates is None:
         return {"time": times}
     return {"date": (dates.iloc[0] + pd.to_timedelta(times, unit="D")).strftime("%Y-%m-%d")}
 
 
-def _fail(error: FlowcastError) -> None:
+def _fail(error: FlowcastError) -> NoReturn:
     typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code=1) from error
 
@@ -91,7 +100,7 @@ def estimate_command(
     window: Annotated[Path, typer.Option(help="CSV of the context observations (time or date "
                                               "column + the observed columns)")],
     out: Annotated[Path, typer.Option(help="samples CSV; the summary goes to <out>_summary.csv")],
-    direction: Annotated[Direction | None, typer.Option(  # type: ignore[valid-type]
+    direction: Annotated[Direction | None, typer.Option(
         help="default: the model's training direction")] = None,
     target_time: Annotated[float | None, typer.Option(
         callback=finite(),
@@ -106,12 +115,13 @@ def estimate_command(
 
     try:
         _check_out_file(out)
-        estimator, info, direction = _load(checkpoint, choice_value(direction))
+        estimator, info, direction_name = _load(checkpoint, choice_value(direction))
         times, values, dates = read_observation_csv(window, info.observed_names)
         step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
         if target_time is None:
-            target_time = times[-1] + step if direction == "forward" else times[0] - step
-        result = estimate(estimator, ObservationWindow(times, values, target_time), direction,
+            target_time = float(times[-1] + step if direction_name == "forward"
+                                else times[0] - step)
+        result = estimate(estimator, ObservationWindow(times, values, target_time), direction_name,
                           samples, seed, names=info.target_names, window_length=info.window)
         sample_frame = pd.DataFrame(result.samples.double().numpy(), columns=list(result.names))
         sample_frame.insert(0, "sample", np.arange(len(sample_frame)))
@@ -140,7 +150,7 @@ def rollout_command(
         min=1, help="also re-anchor on the observed series every W steps (rolling windows; the "
                     "paper uses 7 and 28) and write bands over the whole series")] = None,
     paths: Annotated[int, typer.Option(min=2, help="sample paths")] = 200,
-    direction: Annotated[Direction | None, typer.Option(  # type: ignore[valid-type]
+    direction: Annotated[Direction | None, typer.Option(
         help="default: the model's training direction")] = None,
     feedback_noise: Annotated[float | None, typer.Option(
         callback=finite(0.0),
@@ -156,7 +166,7 @@ def rollout_command(
     try:
         if out.exists() and not out.is_dir():
             raise ConfigError(f"--out {out} is a file; rollout writes a directory")
-        estimator, info, direction = _load(checkpoint, choice_value(direction))
+        estimator, info, direction_name = _load(checkpoint, choice_value(direction))
         times, values, dates = read_observation_csv(series, info.observed_names)
         if len(times) < info.window:
             raise ConfigError(f"{series}: {len(times)} rows, the model needs at least "
@@ -164,27 +174,28 @@ def rollout_command(
         step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
         sigma = info.obs_sigma if feedback_noise is None else feedback_noise
         config = RolloutConfig(n_paths=paths, feedback_noise_sigma=sigma, seed=seed)
-        if direction == "forward":
+        if direction_name == "forward":
             window = ObservationWindow(times[-info.window:], values[-info.window:],
                                        times[-1] + step)
         else:
             window = ObservationWindow(times[:info.window], values[:info.window], times[0] - step)
-        result = rollout(estimator, window, horizon, step, direction, config,
+        result = rollout(estimator, window, horizon, step, direction_name, config,
                          names=info.target_names, window_length=info.window)
         out.mkdir(parents=True, exist_ok=True)
         _write_rollout(result, dates, out / "summary.csv", out / "paths.csv")
         written = ["summary.csv", "paths.csv"]
         if window_every is not None:
-            rolling = rolling_rollout(estimator, times, values, window_every, direction, config,
-                                      names=info.target_names, window_length=info.window)
+            rolling = rolling_rollout(estimator, times, values, window_every, direction_name,
+                                      config, names=info.target_names, window_length=info.window)
             _write_rollout(rolling, dates, out / "rolling.csv", None)
             written.append("rolling.csv")
     except FlowcastError as error:
         _fail(error)
-    typer.echo(f"{paths} paths x {horizon} steps ({direction}) -> {out}: {', '.join(written)}")
+    typer.echo(f"{paths} paths x {horizon} steps ({direction_name}) -> {out}: "
+               f"{', '.join(written)}")
 
 
-def _write_rollout(result, dates: pd.Series | None, summary_path: Path,  # noqa: ANN001
+def _write_rollout(result: RolloutResult, dates: pd.Series | None, summary_path: Path,
                    paths_path: Path | None) -> None:
     from pipeline.io import atomic_write_text
 

@@ -1,13 +1,12 @@
-"""`flowcast reproduce tables`: the paper's Tables 1–4 (runs bench/paper_tables.py).
+"""`flowcast reproduce tables`: the paper's Tables 1–4 (:mod:`pipeline.paper`).
 
-The benchmark lives in the repository's ``bench/`` folder (not in the installed package), so the
-command must be run from a checkout (it looks for ``bench/paper_tables.py`` under the working
-directory).
+Writes ``paper_tables.{json,md}`` and the figures to ``--out`` (default ``bench/results`` under
+the working directory) and caches the trained models under ``--work`` (default ``bench/work``),
+the layout of ``python -m bench.paper_tables`` in a checkout.
 """
 from __future__ import annotations
 
 import dataclasses
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -29,23 +28,22 @@ def tables_command(
         help="wall-clock cap per vehicle model in seconds (default 360)")] = None,
     jobs: Annotated[int, typer.Option(min=1, help="train missing models this many at a time "
                                                   "first, one thread each")] = 2,
+    out: Annotated[Path, typer.Option(help="results directory (paper_tables.{json,md}, "
+                                           "figures/)")] = Path("bench/results"),
+    work: Annotated[Path, typer.Option(help="trained-model cache (reused by later runs with "
+                                            "the same budgets)")] = Path("bench/work"),
 ) -> None:
-    """Train/load the models and write bench/results/paper_tables.{json,md} + figures."""
-    root = Path.cwd()
-    if not (root / "bench" / "paper_tables.py").is_file():
-        typer.secho(f"error: bench/paper_tables.py not found under {root}; run this from the "
-                    "flowcast repository root", fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=1)
-    sys.path.insert(0, str(root))
-    from bench.paper_tables import BenchConfig, pretrain, run
+    """Train/load the models and write paper_tables.{json,md} + figures (to bench/results)."""
+    from pipeline.paper import BenchConfig, Locations, pretrain, run
 
     cfg = BenchConfig.quick_config() if quick else BenchConfig()
     if train_budget_s is not None:
         cfg = dataclasses.replace(cfg, train_budget_s=train_budget_s)
     if vehicle_train_budget_s is not None:
         cfg = dataclasses.replace(cfg, vehicle_train_budget_s=vehicle_train_budget_s)
+    locations = Locations(results=out.resolve(), work=work.resolve(), root=Path.cwd().resolve())
     if jobs > 1:
-        pretrain(cfg, jobs)
-    result = run(cfg)
+        pretrain(cfg, locations, jobs)
+    result = run(cfg, locations)
     typer.echo(f"{len(result['cells'])} cells, {result['cells_at_or_below_paper']} at or below "
                f"the paper's value; {result['seconds']:.0f} s")

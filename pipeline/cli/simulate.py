@@ -14,9 +14,14 @@ from pipeline.training.datasets import (DEFAULT_VAL_FRACTION, DEFAULT_WINDOW, Da
 from pipeline.errors import FlowcastError
 from pipeline.progress import rich_progress
 
-DatasetName = Enum("DatasetName", {name.replace("-", "_"): name for name in
-                                   ("sir-single", "sir-multi", "sir-sf", "vehicle-full",
-                                    "vehicle-dropout", "vehicle-sparse")}, type=str)
+
+class DatasetName(str, Enum):
+    sir_single = "sir-single"
+    sir_multi = "sir-multi"
+    sir_sf = "sir-sf"
+    vehicle_full = "vehicle-full"
+    vehicle_dropout = "vehicle-dropout"
+    vehicle_sparse = "vehicle-sparse"
 
 
 class Direction(str, Enum):

@@ -118,7 +118,7 @@ def filter_settings(prior_name: str, *, beta: float | None = None, gamma: float 
         prior=prior_name,
         beta=beta if beta is not None else math.sqrt(prior.beta[0] * prior.beta[1]),
         gamma=gamma if gamma is not None else math.sqrt(prior.gamma[0] * prior.gamma[1]),
-        beta_range=tuple(prior.beta), gamma_range=tuple(prior.gamma),
+        beta_range=prior.beta, gamma_range=prior.gamma,
         obs_sigma=obs_sigma if obs_sigma is not None else prior.obs_sigma,
         process_sigma=(process_sigma if process_sigma is not None
                        else PRIOR_PROCESS_SIGMA.get(prior_name, DEFAULT_PROCESS_SIGMA)),
@@ -131,10 +131,10 @@ def filter_command(
                                                "columns (SIR: S,I,R; vehicle: p_x,p_y)")],
     out: Annotated[Path, typer.Option("--out", help="output CSV (means, bands, ESS per step; "
                                                     "the input's dates when it has them)")],
-    system: Annotated[SMCSystem, typer.Option(  # type: ignore[valid-type]
+    system: Annotated[SMCSystem, typer.Option(
         help="sir: fixed beta, gamma; sir-params: beta, gamma estimated too; vehicle")]
     = SMCSystem("sir"),
-    prior: Annotated[SIRPriorName, typer.Option(  # type: ignore[valid-type]
+    prior: Annotated[SIRPriorName, typer.Option(
         help="SIR settings by name: sir-sf for San Francisco data (fitted to it), sir-single / "
              "sir-multi for the paper's synthetic set-ups; the options below override it")]
     = SIRPriorName("sir-single"),

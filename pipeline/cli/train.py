@@ -17,14 +17,12 @@ _PRESET_HELP = ("vehicle, vehicle-sparse, sir-single, sir-multi, sir-joint (pape
 
 @app.command("train")
 def train_command(
-    preset: Annotated[TrainPreset, typer.Argument(help=_PRESET_HELP)],  # type: ignore[valid-type]
-    encoder: Annotated[Encoder, typer.Option(help="context encoder")]  # type: ignore[valid-type]
-    = Encoder("transformer"),
-    backend: Annotated[Backend | None, typer.Option(  # type: ignore[valid-type]
-        help="flow package (default: zuko)")] = None,
-    direction: Annotated[Direction, typer.Option(  # type: ignore[valid-type]
+    preset: Annotated[TrainPreset, typer.Argument(help=_PRESET_HELP)],
+    encoder: Annotated[Encoder, typer.Option(help="context encoder")] = Encoder("transformer"),
+    backend: Annotated[Backend | None, typer.Option(help="flow package (default: zuko)")] = None,
+    direction: Annotated[Direction, typer.Option(
         help="forward: context before the target; backward: after it")] = Direction("forward"),
-    recipe: Annotated[Recipe, typer.Option(  # type: ignore[valid-type]
+    recipe: Annotated[Recipe, typer.Option(
         help="paper (the paper's optimiser settings) or fast (ours)")] = Recipe("fast"),
     iterations: Annotated[int | None, typer.Option(min=1,
                                                    help="override the recipe's iterations")]
@@ -64,12 +62,14 @@ def run_train(preset_name: str, *, encoder: str = "transformer", backend: str | 
               dataset: Path | None = None, threads: int | None = None,
               out: Path = Path("runs"), show_progress: bool = True) -> str:
     """The command's work, callable from tests; returns the summary line."""
-    from pipeline.training.datasets import build_dataset_from_config, load_dataset, train_validation_split
-    from pipeline.models.estimator import build_estimator
+    from pipeline.io import atomic_write_text
+    from pipeline.progress import rich_progress
+    from pipeline.training.datasets import (build_dataset_from_config, load_dataset,
+                                            train_validation_split)
+    from pipeline.training.fit import fit_preset
     from pipeline.training.presets import get_preset
-    from pipeline.progress import SilentProgress, rich_progress
-    from pipeline.training.trainer import train_and_save
 
+    # The seed seeds the initial weights too: fit_preset takes it from preset.train.seed.
     preset = get_preset(preset_name, encoder, recipe=recipe, backend=backend,
                         direction=direction, seed=seed)
     preset = preset.with_overrides(iterations=iterations, batch_size=batch_size, lr=lr,
@@ -82,22 +82,15 @@ def run_train(preset_name: str, *, encoder: str = "transformer", backend: str | 
         typer.echo(f"simulating {preset.dataset.name} ({direction}) ...", err=True)
         data = build_dataset_from_config(preset.dataset)
     train_ds, val_ds = train_validation_split(data, preset.estimator.target_transform)
-    estimator = build_estimator(preset.estimator, train_ds.stats, seed=seed)
     run_dir = out / preset.run_name
     typer.echo(f"training {preset.run_name}: {len(train_ds)} training / {len(val_ds)} "
                f"validation windows -> {run_dir}", err=True)
     extra = {"dataset_file": str(dataset) if dataset else None}
     if show_progress:
         with rich_progress(preset.run_name, preset.train.iterations) as progress:
-            result = train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic,
-                                    run_dir, estimator_config=preset.estimator, extra=extra,
-                                    progress=progress, preset=preset)
+            result = fit_preset(preset, train_ds, val_ds, run_dir, progress=progress, extra=extra)
     else:
-        result = train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic,
-                                run_dir, estimator_config=preset.estimator, extra=extra,
-                                progress=SilentProgress(), preset=preset)
-    from pipeline.io import atomic_write_text
-
+        result = fit_preset(preset, train_ds, val_ds, run_dir, extra=extra)
     atomic_write_text(run_dir / "preset.json",
                       json.dumps(dataclasses.asdict(preset), indent=2, default=str) + "\n")
     return (f"best validation NLL {result.best_val_nll_original:.4f} nats (original units; "

@@ -17,14 +17,20 @@ sigma = 0.027, the flow's context).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import ModuleType
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.data.sir_transform import SIRSeries
 from pipeline.names import COMPARTMENTS
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 @dataclass(frozen=True)
@@ -119,7 +125,7 @@ def compare_with_prior(sir: SIRSeries, prior: PriorEnsembleConfig = PriorEnsembl
         prior_median_peak_infected=float(np.median(states[:, :, 1].max(axis=1))))
 
 
-def _pyplot():  # type: ignore[no-untyped-def]
+def _pyplot():  # noqa: ANN202 - the pyplot module, its type inferred from the import
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -179,7 +185,9 @@ def plot_sir_vs_prior(sir: SIRSeries, prior: PriorEnsembleConfig,
     return _save(fig, path, atomic_open, plt)
 
 
-def _save(fig, path, atomic_open, plt) -> Path:  # type: ignore[no-untyped-def]
+def _save(fig: Figure, path: str | os.PathLike[str],
+          atomic_open: Callable[[Path, str], AbstractContextManager[IO[Any]]],
+          plt: ModuleType) -> Path:
     target = Path(path)
     with atomic_open(target, "wb") as handle:
         fig.savefig(handle, format=target.suffix.lstrip(".") or "png", dpi=120)
@@ -188,4 +196,4 @@ def _save(fig, path, atomic_open, plt) -> Path:  # type: ignore[no-untyped-def]
 
 
 def with_prior(prior: PriorEnsembleConfig, **changes: object) -> PriorEnsembleConfig:
-    return replace(prior, **changes)  # type: ignore[arg-type]
+    return replace(prior, **changes)

@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 import requests
 
-from pipeline.data.cache import CachedPayload, DatasetCache, SourceKind, utc_now
+from pipeline.data.cache import CacheManifest, CachedPayload, DatasetCache, SourceKind, utc_now
 from pipeline.data.datasf import (DATASETS, CASES, ClientConfig, DataSFClient, DatasetSpec,
                                   NetworkError)
 from pipeline.data.payloads import decode_cached as _decode_payload
@@ -171,7 +171,7 @@ def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
                                   notes=notes + validated.report.warnings)
 
 
-def _provenance(manifest, *, from_cache: bool, stale_days: float,  # type: ignore[no-untyped-def]
+def _provenance(manifest: CacheManifest, *, from_cache: bool, stale_days: float,
                 notes: tuple[str, ...]) -> DatasetProvenance:
     return DatasetProvenance(
         dataset_key=manifest.dataset_key, dataset_id=manifest.dataset_id,
@@ -247,7 +247,8 @@ def combine(frames: dict[str, ValidatedFrame], trailing_days: int) -> pd.DataFra
                               f"{trailing_days} days")
     start = trimmed[CASES.key].frame["date"].iloc[0]
     end = min(v.frame["date"].iloc[-1] for v in trimmed.values())
-    dates = pd.date_range(start, end, freq="D", name="date").astype("datetime64[us]")
+    dates = pd.DatetimeIndex(pd.date_range(start, end, freq="D", name="date")
+                             .astype("datetime64[us]"))
     parts = [_daily_on(trimmed[k], dates) for k in trimmed]
     return pd.concat(parts, axis=1).rename_axis("date").reset_index()
 

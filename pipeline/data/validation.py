@@ -183,7 +183,7 @@ def _parse_counts(raw: pd.DataFrame, column: str, spec_field: FieldSpec, source:
     return values.astype(np.int64)
 
 
-def _find_gaps(dates: pd.Series) -> tuple[Gap, ...]:
+def _find_gaps(dates: pd.Series[pd.Timestamp]) -> tuple[Gap, ...]:
     steps = dates.diff().dt.days.to_numpy()
     where = np.flatnonzero(steps > 1)
     day = pd.Timedelta(days=1)
@@ -233,10 +233,13 @@ def validate_frame(raw: pd.DataFrame, spec: DatasetSpec, *, source: str,
         warnings.append(f"{len(gaps)} gap(s) zero-filled: {listed}")
         typed = _zero_fill(typed, spec)
     report_cum = _cumulative_agreement(typed, spec)
-    if report_cum[0]:
+    mismatch_days, max_diff, first_mismatch = report_cum
+    if mismatch_days:
+        # Days can only disagree when there is a cumulative column, and then the first is known.
+        assert spec.cumulative is not None and first_mismatch is not None
         warnings.append(f"cumulative '{spec.cumulative.display}' disagrees with the running sum "
-                        f"of '{spec.counts[0].display}' on {report_cum[0]} day(s), max |diff| "
-                        f"{report_cum[1]}, first {report_cum[2].date()}")
+                        f"of '{spec.counts[0].display}' on {mismatch_days} day(s), max |diff| "
+                        f"{max_diff}, first {first_mismatch.date()}")
     for message in warnings:
         log.warning("%s: %s", source, message)
     report = ValidationReport(

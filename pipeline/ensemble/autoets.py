@@ -10,6 +10,7 @@ on the log scale N is a shift, so this is also AutoETS on log weekly I.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,8 +47,11 @@ def log_quantiles(log_series: NDArray[np.float64], horizons: tuple[int, ...],
     from statsforecast.models import AutoETS
 
     widths = interval_levels(levels)
+    # statsforecast annotates ``level`` as List[int] but takes floats and names the columns after
+    # them as given ("lo-95.0" below), so the widths stay floats.
     fc = AutoETS(season_length=config.season_length).forecast(
-        y=np.asarray(log_series, dtype=np.float64), h=max(horizons), level=widths)
+        y=np.asarray(log_series, dtype=np.float64), h=max(horizons),
+        level=cast("list[int]", widths))
     steps = np.asarray(horizons) - 1
     columns = []
     for a in np.asarray(levels, dtype=np.float64):

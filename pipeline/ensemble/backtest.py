@@ -32,9 +32,8 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
-from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS, format_level
 from pipeline.ensemble.autoets import AutoETSMember
-from pipeline.evaluation.hub_baseline import HUB_BASELINE, HubBaseline
+from pipeline.ensemble.hub_baseline import HUB_BASELINE, HubBaseline
 from pipeline.ensemble.calibration import (CalibrationConfig, pit_from_quantiles,
                                               recalibrate)
 from pipeline.ensemble.combine import (PUBLISHED, UNCALIBRATED, EnsembleConfig,
@@ -42,8 +41,9 @@ from pipeline.ensemble.combine import (PUBLISHED, UNCALIBRATED, EnsembleConfig,
                                            count_invalid, member_matrix, sample_paths,
                                            skill_weights, vincentize)
 from pipeline.ensemble.members import Member, quantile_forecast_from_weekly_cases
-from pipeline.ensemble.targets import (DAYS_PER_WEEK, HORIZONS_WEEKS, TARGETS, EpiHistory,
-                                          QuantileForecast, observed_targets)
+from pipeline.ensemble.targets import (DAYS_PER_WEEK, HORIZONS_WEEKS, HUB_QUANTILE_LEVELS,
+                                       TARGETS, EpiHistory, QuantileForecast, format_level,
+                                       observed_targets)
 from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
@@ -368,8 +368,8 @@ def summarize(result: BacktestResult) -> dict[str, Any]:
         "origins": {"first": str(result.origins[0].date()), "last": str(result.origins[-1].date())},
         "members": list(result.members),
         "published_basis": f"{PUBLISHED_BASIS}; I = cases / N",
-        "mean_weights": {f"h{h}": {m: float(weights.loc[h, m]) for m in weights.columns}
-                         for h in weights.index},
+        "mean_weights": {f"h{h}": {m: float(w) for m, w in row.items()}
+                         for h, row in weights.iterrows()},
         "config": cfg,
         "seconds": {"backtest": round(result.seconds, 2)},
     }
@@ -427,27 +427,3 @@ def write_backtest(result: BacktestResult, out_dir: str | Path,
     atomic_write_json(root / "summary.json", {**summarize(result), **(extra or {})})
     written += [root / "scores.csv", root / "summary.json"]
     return written
-
-
-def sf_history(series: Any, sir: Any) -> EpiHistory:
-    """The :class:`EpiHistory` of an ``SFSeries`` and its ``SIRSeries``: the daily counts the
-    conversion used (ascertainment-adjusted, rounded, when it was on: ``sir.counts.multiplier``)."""
-    from pipeline.ensemble.targets import history_from_frames
-
-    raw = series.frame["new_cases"].to_numpy(dtype=np.float64)
-    multiplier = sir.counts["multiplier"].to_numpy(dtype=np.float64)
-    cases = np.rint(raw * multiplier).astype(np.int64)
-    population = int(sir.provenance.conversion.population)
-    return history_from_frames(sir.frame, cases, population)
-
-
-def load_sf_history(source: str = "cache", import_paths: Sequence[str] = ()) -> EpiHistory:
-    """The SF :class:`EpiHistory` the weekly forecast sees: :func:`pipeline.forecast.steps.load_series`
-    (``source``: ``live``, ``cache`` or ``import`` of ``import_paths``) and
-    :func:`~pipeline.forecast.steps.series_to_sir`."""
-    from pipeline import forecast as fc
-
-    config = fc.resolve_config("default", data=fc.DataSourceConfig(
-        kind=source, import_paths=tuple(str(p) for p in import_paths)))  # type: ignore[arg-type]
-    series = fc.load_series(config)
-    return sf_history(series, fc.series_to_sir(series))

@@ -292,8 +292,8 @@ def default_nf_member(store_root: Path | None = None,
                       progress: ProgressReporter | None = None) -> NFGrowthMember:
     """The product's flow member, from the weekly forecast's model store (trained if absent)."""
     if store_root is None:
-        from pipeline.forecast.steps import model_store_root
+        from pipeline.training.model_store import default_store_root
 
-        store_root = model_store_root()
+        store_root = default_store_root()
     stored = train_or_reuse_growth_model(config, store_root, progress=progress)
     return NFGrowthMember(stored.estimator, config)

@@ -26,6 +26,17 @@ from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
 
+# The COVID-19 Forecast Hub's 23 quantile levels, which every forecast here reports.
+HUB_QUANTILE_LEVELS: tuple[float, ...] = (
+    0.01, 0.025, 0.05, 0.10, 0.15, 0.20, 0.25, 0.30, 0.35, 0.40, 0.45, 0.50,
+    0.55, 0.60, 0.65, 0.70, 0.75, 0.80, 0.85, 0.90, 0.95, 0.975, 0.99,
+)
+
+
+def format_level(level: float) -> str:
+    """A quantile level as hub files write it: ``0.025``, ``0.5``, ``0.1``."""
+    return f"{level:.3f}".rstrip("0").rstrip(".")
+
 TARGETS: tuple[str, ...] = ("I", "cases")
 HORIZONS_WEEKS: tuple[int, ...] = (1, 2, 3, 4)
 DAYS_PER_WEEK = 7
@@ -51,8 +62,9 @@ class EpiHistory:
     population: int
 
     def __post_init__(self) -> None:
-        # nanosecond dates: ``up_to``/``observed_targets`` compare ``asi8`` with Timestamp.value
-        # (ns); pandas 2 reads dates as datetime64[us], which would silently shift every lookup
+        # nanosecond dates: ``up_to``/``observed_targets`` compare the dates as int64 with
+        # Timestamp.value (ns); pandas 2 reads dates as datetime64[us], which would silently
+        # shift every lookup
         object.__setattr__(self, "dates", pd.DatetimeIndex(self.dates).as_unit("ns"))
         n = len(self.dates)
         if n == 0:
@@ -61,7 +73,8 @@ class EpiHistory:
             if len(getattr(self, name)) != n:
                 raise TargetError(f"history column {name} has {len(getattr(self, name))} rows, "
                                   f"dates {n}")
-        if n > 1 and not (np.diff(self.dates.asi8) == pd.Timedelta(days=1).value).all():
+        steps = np.diff(self.dates.to_numpy(dtype=np.int64))
+        if n > 1 and not (steps == pd.Timedelta(days=1).value).all():
             raise TargetError("history dates must be consecutive days")
 
     @property
@@ -73,7 +86,8 @@ class EpiHistory:
 
     def up_to(self, date: pd.Timestamp) -> EpiHistory:
         """The history a forecaster at origin ``date`` would have seen (nothing after it)."""
-        keep = int(np.searchsorted(self.dates.asi8, pd.Timestamp(date).value, side="right"))
+        keep = int(np.searchsorted(self.dates.to_numpy(dtype=np.int64), pd.Timestamp(date).value,
+                                   side="right"))
         if keep == 0:
             raise TargetError(f"no history on or before {pd.Timestamp(date).date()}")
         return EpiHistory(self.dates[:keep], self.cases[:keep], self.S[:keep], self.I[:keep],
@@ -119,7 +133,8 @@ def history_from_frames(sir_frame: pd.DataFrame, cases: NDArray[np.int64] | pd.S
 def observed_targets(history: EpiHistory, origin: pd.Timestamp,
                      horizons: tuple[int, ...] = HORIZONS_WEEKS) -> dict[str, NDArray[np.float64]]:
     """Truth of each target at ``origin`` + 7h, from a (later) history; NaN where not observed."""
-    pos = int(np.searchsorted(history.dates.asi8, pd.Timestamp(origin).value))
+    pos = int(np.searchsorted(history.dates.to_numpy(dtype=np.int64),
+                              pd.Timestamp(origin).value))
     if pos >= len(history) or history.dates[pos] != pd.Timestamp(origin):
         raise TargetError(f"origin {pd.Timestamp(origin).date()} is not a date of the history")
     out = {t: np.full(len(horizons), np.nan) for t in TARGETS}

@@ -40,7 +40,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from pipeline.errors import ConfigError
 
@@ -65,7 +65,7 @@ def _as_points(name: str, values: ArrayLike) -> np.ndarray:
     return array
 
 
-def _kth_positive_distance(tree: cKDTree, points: np.ndarray, k: int) -> np.ndarray:
+def _kth_positive_distance(tree: KDTree, points: np.ndarray, k: int) -> np.ndarray:
     """Distance from each point to its k-th nearest *distinct* neighbour in ``tree``.
 
     ``tree`` must be built on unique points, so at most one of them coincides with a query point;
@@ -99,8 +99,8 @@ def knn_kl_divergence(x: ArrayLike, y: ArrayLike, k: int = 1) -> float:
         raise ConfigError(f"knn_kl_divergence: need at least k+1={k + 1} distinct points in each "
                           f"set, got {len(x_unique)} in x and {len(y_unique)} in y")
     # Within x, the query point itself is always in the tree (distance 0) and is skipped.
-    r_k = cKDTree(x_unique).query(x_unique, k=k + 1)[0].reshape(-1, k + 1)[:, k]
-    s_k = _kth_positive_distance(cKDTree(y_unique), x_unique, k)
+    r_k = KDTree(x_unique).query(x_unique, k=k + 1)[0].reshape(-1, k + 1)[:, k]
+    s_k = _kth_positive_distance(KDTree(y_unique), x_unique, k)
     log_ratio = np.log(s_k) - np.log(r_k)          # per distinct x point
     total = log_ratio[x_inverse.reshape(-1)].sum()  # each copy counts once
     return float(d * total / n + np.log(m / (n - 1)))

@@ -1,1 +1,18 @@
-from pipeline.forecast.steps import *  # noqa: F401,F403  (temporary during the split)
+"""The weekly San Francisco forecast as a typed library (the Prefect flow only wraps it).
+
+- :mod:`~pipeline.forecast.config` — :class:`ForecastConfig` and its sub-configs, the presets;
+- :mod:`~pipeline.forecast.sources` — step 1, the DataSF series and its S/I/R proportions;
+- :mod:`~pipeline.forecast.joint_models` — steps 2–3, training data and the joint estimators;
+- :mod:`~pipeline.forecast.steps` — steps 4–9, estimates, rollouts, β/γ, NLL, SMC, the
+  published forecast;
+- :mod:`~pipeline.forecast.results` — the typed outputs, :class:`ForecastResults`;
+- :mod:`~pipeline.forecast.run` — :func:`run_forecast`, the one composition of the steps;
+- :mod:`~pipeline.forecast.publish` — the run's files, staged and promoted.
+"""
+from pipeline.forecast.config import (FORECAST_PRESETS, DataSourceConfig, ForecastConfig,
+                                      resolve_config)
+from pipeline.forecast.results import ForecastResults
+from pipeline.forecast.run import StepRunner, run_forecast
+
+__all__ = ["FORECAST_PRESETS", "DataSourceConfig", "ForecastConfig", "ForecastResults",
+           "StepRunner", "resolve_config", "run_forecast"]

@@ -11,14 +11,17 @@ is then the particle mean, and the flow's uncertainty about β, γ becomes the f
 forward over the observations from n on (:func:`pipeline.inference.smc.seeded_filter`, SIR dynamics with
 parameters as static state, :class:`pipeline.inference.smc_models.SIRParamsModel`).
 
-Flow draws are mapped to valid particles before filtering: (S, I, R) projected onto the simplex
-(clamped at 0, renormalised) and β, γ clamped at 0 — a flow has unbounded support, the SIR
-dynamics do not accept negative proportions or rates. The fraction of draws that needed a clamp
-is reported.
+Invalid flow draws (``HybridConfig.invalid_draws``): a flow in raw (S, I, R, β, γ) coordinates
+has unbounded support while the SIR dynamics accept no negative proportions or rates, so by
+default (``project``) the draws are mapped to valid particles: (S, I, R) projected onto the simplex
+(clamped at 0, renormalised), β, γ clamped at 0, and the fraction that needed a clamp reported. A
+model whose coordinates guarantee validity (the forecast's ``sir-log-ratio`` target transform)
+runs with ``refuse``: an invalid draw then means a wrong model, and is an error, not a clamp.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -28,7 +31,7 @@ from pipeline.errors import ConfigError
 from pipeline.inference.estimate import Estimator, ObservationWindow, sample_conditional, target_dim, \
     window_context, context_window_length
 from pipeline.progress import ProgressReporter
-from pipeline.inference.smc import SMCConfig, SMCResult, seeded_filter
+from pipeline.inference.smc import DEFAULT_QUANTILES, SMCConfig, SMCResult, seeded_filter
 from pipeline.inference.smc_models import DEFAULT_OBS_SIGMA, DEFAULT_PROCESS_SIGMA, SIRParamsModel, \
     project_to_simplex
 
@@ -44,12 +47,17 @@ class HybridConfig:
     process_sigma: float = DEFAULT_PROCESS_SIGMA
     param_jitter: float = 0.0
     ess_threshold: float = 0.5
+    quantiles: tuple[float, ...] = DEFAULT_QUANTILES  # weighted quantiles recorded per step
+    invalid_draws: Literal["project", "refuse"] = "project"
 
     def __post_init__(self) -> None:
         if self.n_particles < 2:
             raise ConfigError(f"HybridConfig.n_particles={self.n_particles} must be >= 2")
         if self.obs_sigma <= 0:
             raise ConfigError(f"HybridConfig.obs_sigma={self.obs_sigma} must be > 0")
+        if self.invalid_draws not in ("project", "refuse"):
+            raise ConfigError(f"HybridConfig.invalid_draws must be 'project' or 'refuse', got "
+                              f"{self.invalid_draws!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +95,17 @@ def to_valid_particles(draws: Tensor) -> tuple[Tensor, float]:
     return torch.cat([state, params], dim=-1), float(clamped.double().mean())
 
 
+def check_valid_draws(draws: Tensor) -> None:
+    """Refuse joint draws that are not S/I/R states on the simplex with positive rates."""
+    state, rates = draws[..., :3], draws[..., 3:]
+    bad = ((state < 0).any(-1) | ((state.sum(-1) - 1).abs() > 1e-6)
+           | (rates <= 0).any(-1) | ~torch.isfinite(draws).all(-1))
+    if bool(bad.any()):
+        raise ConfigError(f"{int(bad.sum())} of {bad.numel()} flow draws seeding the SMC filter "
+                          "are not valid S/I/R states with positive rates; the joint model must "
+                          "use target_transform='sir-log-ratio' (retrain it)")
+
+
 def nf_seeded_smc(estimator: Estimator, window: ObservationWindow, times: np.ndarray,
                   observations: np.ndarray, config: HybridConfig = HybridConfig(), *,
                   progress: ProgressReporter | None = None) -> HybridResult:
@@ -110,14 +129,18 @@ def nf_seeded_smc(estimator: Estimator, window: ObservationWindow, times: np.nda
     context, mask = window_context(window, "forward",
                                    context_window_length(estimator, window.n_rows))
     draws = sample_conditional(estimator, context, mask, config.n_particles, config.seed)[0]
-    if not bool(torch.isfinite(draws).all()):
-        raise ConfigError("the joint flow produced non-finite draws for the seeding window")
-    particles, clamped = to_valid_particles(draws)
+    if config.invalid_draws == "refuse":
+        check_valid_draws(draws.double())
+        particles, clamped = draws.double(), 0.0
+    else:
+        if not bool(torch.isfinite(draws).all()):
+            raise ConfigError("the joint flow produced non-finite draws for the seeding window")
+        particles, clamped = to_valid_particles(draws)
     model = SIRParamsModel.create(prior_mean=particles[:, :3].mean(0),
                                   obs_sigma=config.obs_sigma, process_sigma=config.process_sigma,
                                   param_jitter=config.param_jitter)
     smc_config = SMCConfig(num_particles=config.n_particles, ess_threshold=config.ess_threshold,
-                           seed=config.seed)
+                           seed=config.seed, quantiles=config.quantiles)
     result = seeded_filter(particles[None], torch.as_tensor(observations)[None], model, smc_config,
                            times=torch.as_tensor(times), progress=progress)
     return HybridResult(times=times, seed_particles=particles, clamped_fraction=clamped,

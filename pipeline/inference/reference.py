@@ -252,13 +252,3 @@ def vehicle_reference(candidates: VehicleCandidates, context_times: Tensor, obse
     return ReferencePosterior(samples=torch.cat([p.samples for p in parts]),
                               ess=torch.cat([p.ess for p in parts]),
                               n_candidates=parts[0].n_candidates, names=("p_x", "p_y"))
-
-
-def reference_summary(reference: ReferencePosterior) -> dict[str, float]:
-    """ESS statistics for reports: min / median / mean over windows."""
-    ess = reference.ess.double()
-    return {"ess_min": float(ess.min()), "ess_median": float(ess.median()),
-            "ess_mean": float(ess.mean()), "n_candidates": float(reference.n_candidates),
-            "n_windows": float(len(ess))}
-
-

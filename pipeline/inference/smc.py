@@ -50,8 +50,12 @@ DEFAULT_QUANTILES: tuple[float, ...] = tuple(sorted(
 class StateSpaceModel(Protocol):
     """What the filter needs from a model (see :mod:`pipeline.inference.smc_models`)."""
 
-    state_names: tuple[str, ...]
-    observation_names: tuple[str, ...]
+    # Read-only, so frozen dataclasses satisfy the protocol.
+    @property
+    def state_names(self) -> tuple[str, ...]: ...
+
+    @property
+    def observation_names(self) -> tuple[str, ...]: ...
 
     def initial(self, num_filters: int, num_particles: int, generator: torch.Generator) -> Tensor:
         """Draws from the prior p(x_0): (F, N, D)."""

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, overload
 
 import torch
 from torch import Tensor
@@ -169,6 +169,10 @@ def _planar_simplex_prior(location: Tensor, prior_std: float, num_particles: int
     return x
 
 
+@overload
+def _per_filter(value: Tensor, name: str, trailing: tuple[int, ...]) -> Tensor: ...
+@overload
+def _per_filter(value: float | Tensor, name: str, trailing: tuple[int, ...]) -> float | Tensor: ...
 def _per_filter(value: float | Tensor, name: str, trailing: tuple[int, ...]) -> float | Tensor:
     """A scalar stays a float; a tensor (F, *trailing) becomes (F, 1, *trailing) to broadcast
     against particles (F, N, ...)."""
@@ -200,6 +204,10 @@ def _column(value: float | Tensor, like: Tensor) -> float | Tensor:
     return value
 
 
+@overload
+def _select(value: Tensor, index: int) -> Tensor: ...
+@overload
+def _select(value: float | Tensor, index: int) -> float | Tensor: ...
 def _select(value: float | Tensor, index: int) -> float | Tensor:
     if isinstance(value, Tensor) and value.ndim >= 2:
         return value[index: index + 1]
@@ -268,8 +276,9 @@ class SIRStateModel:
         (x is not modified). Equals ``deterministic_step`` to rounding when process_sigma = 0."""
         out = planar_empty(x.shape[0], x.shape[1], 3, x.dtype)
         planes = out.transpose(1, 2)                                     # (F, 3, N)
+        s_plane, i_plane, r_plane = planes.unbind(1)
         sir_rk4_columns(x[..., 0], x[..., 1], x[..., 2], _column(self.beta, x),
-                        _column(self.gamma, x), dt, out=tuple(planes.unbind(1)))
+                        _column(self.gamma, x), dt, out=(s_plane, i_plane, r_plane))
         if self.process_sigma > 0.0:
             _add_noise_and_project(planes, self.process_sigma * math.sqrt(dt), generator)
         return out
@@ -314,8 +323,8 @@ class SIRParamsModel:
                 raise ConfigError(f"SIRParamsModel: {name}=({low}, {high}) needs 0 <= low <= high")
         return cls(prior_mean=_per_filter(torch.as_tensor(prior_mean, dtype=torch.float64),
                                           "prior_mean", (3,)),
-                   prior_std=float(prior_std), beta_range=tuple(beta_range),
-                   gamma_range=tuple(gamma_range), obs_sigma=float(obs_sigma),
+                   prior_std=float(prior_std), beta_range=(beta_range[0], beta_range[1]),
+                   gamma_range=(gamma_range[0], gamma_range[1]), obs_sigma=float(obs_sigma),
                    process_sigma=float(process_sigma), param_jitter=float(param_jitter))
 
     def initial(self, num_filters: int, num_particles: int, generator: torch.Generator) -> Tensor:
@@ -335,8 +344,9 @@ class SIRParamsModel:
         out = planar_empty(x.shape[0], x.shape[1], 5, x.dtype)
         planes = out.transpose(1, 2)                                     # (F, 5, N)
         beta, gamma = x[..., 3], x[..., 4]
+        s_plane, i_plane, r_plane = planes[:, :3].unbind(1)
         sir_rk4_columns(x[..., 0], x[..., 1], x[..., 2], beta, gamma, dt,
-                        out=tuple(planes[:, :3].unbind(1)))
+                        out=(s_plane, i_plane, r_plane))
         if self.process_sigma > 0.0:
             _add_noise_and_project(planes[:, :3], self.process_sigma * math.sqrt(dt), generator)
         params = x[..., 3:].transpose(1, 2)                              # (F, 2, N)

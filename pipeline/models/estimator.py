@@ -69,16 +69,18 @@ class EstimatorConfig:
                               f"least one observed value, context_channels="
                               f"{self.context_channels}")
         flow_features = get_target_transform(self.target_transform).flow_features(self.features)
-        if self.flow is None:
-            object.__setattr__(self, "flow", FlowConfig(
-                features=flow_features, context_features=self.encoder.embedding_features))
-        if self.flow.features != flow_features:
-            raise ConfigError(f"EstimatorConfig.flow.features={self.flow.features} differs from "
+        flow = self.flow
+        if flow is None:
+            flow = FlowConfig(features=flow_features,
+                              context_features=self.encoder.embedding_features)
+            object.__setattr__(self, "flow", flow)
+        if flow.features != flow_features:
+            raise ConfigError(f"EstimatorConfig.flow.features={flow.features} differs from "
                               f"the {flow_features} flow coordinates of features={self.features} "
                               f"under target_transform={self.target_transform!r}")
-        if self.flow.context_features != self.encoder.embedding_features:
+        if flow.context_features != self.encoder.embedding_features:
             raise ConfigError(f"EstimatorConfig.flow.context_features="
-                              f"{self.flow.context_features} differs from "
+                              f"{flow.context_features} differs from "
                               f"encoder.embedding_features={self.encoder.embedding_features}")
 
     def to_dict(self) -> dict[str, Any]:
@@ -113,6 +115,12 @@ def _stats_tensors(stats: Any) -> dict[str, Tensor]:
 
 class ConditionalEstimator(nn.Module):
     """Density p(target | context window) in original units (module docstring)."""
+
+    # The standardization buffers (registered in __init__).
+    context_mean: Tensor
+    context_std: Tensor
+    target_mean: Tensor
+    target_std: Tensor
 
     def __init__(self, encoder: nn.Module, flow: ConditionalFlow, stats: Any,
                  config: EstimatorConfig | None = None) -> None:
@@ -174,18 +182,18 @@ class ConditionalEstimator(nn.Module):
         transform's y-dependent part is ``transform.log_abs_det``)."""
         return -torch.log(self.target_std).sum()
 
-    # --- standardization -------------------------------------------------------------------
+    # --- standardization (the arithmetic is ``Standardization``'s, on the buffers) ----------
     def standardize_context(self, context: Tensor, mask: Tensor) -> Tensor:
-        standardized = (context - self.context_mean) / self.context_std
-        return torch.where(mask[..., None], standardized, torch.zeros((), dtype=context.dtype))
+        """Original units (..., R, C) -> standardized; rows where ``mask`` is False are 0."""
+        return self.stats.standardize_context(context, mask)
 
     def standardize_target(self, target: Tensor) -> Tensor:
         """Original units (..., D) -> standardized flow coordinates (..., D_flow)."""
-        return (self.transform.forward(target) - self.target_mean) / self.target_std
+        return self.stats.standardize_target(target)
 
     def unstandardize_target(self, z: Tensor) -> Tensor:
         """Standardized flow coordinates (..., D_flow) -> original units (..., D)."""
-        return self.transform.inverse(z * self.target_std + self.target_mean)
+        return self.stats.unstandardize_target(z)
 
     # --- standardized units (training) -----------------------------------------------------
     def embed(self, context: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -264,6 +272,7 @@ def build_estimator(config: EstimatorConfig, stats: Any, seed: int = 0) -> Condi
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         encoder = build_encoder(config.encoder, config.context_channels, config.window)
+        assert config.flow is not None  # EstimatorConfig.__post_init__ fills it in
         flow = build_flow(config.flow)
     return ConditionalEstimator(encoder, flow, stats, config)
 

@@ -33,7 +33,7 @@ import json
 import logging
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,13 +42,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import FlowcastError
-from pipeline.ensemble.targets import QuantileForecast
+from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, QuantileForecast, format_level
 from pipeline.io import atomic_write_text, sha256_bytes
 
-HUB_QUANTILE_LEVELS: tuple[float, ...] = (
-    0.01, 0.025, 0.05, 0.10, 0.15, 0.20, 0.25, 0.30, 0.35, 0.40, 0.45, 0.50,
-    0.55, 0.60, 0.65, 0.70, 0.75, 0.80, 0.85, 0.90, 0.95, 0.975, 0.99,
-)
 SF_COUNTY_FIPS = "06075"
 _QUANTILE_TOL = 1e-12
 
@@ -57,11 +53,6 @@ log = logging.getLogger(__name__)
 
 class HubFormatError(FlowcastError):
     """A forecast or a hub file that does not meet the hub format (levels, NaN, dates...)."""
-
-
-def format_level(level: float) -> str:
-    """A quantile level as hub files write it: ``0.025``, ``0.5``, ``0.1``."""
-    return f"{level:.3f}".rstrip("0").rstrip(".")
 
 
 def hub_csv_text(frame: pd.DataFrame) -> str:
@@ -517,7 +508,7 @@ def _check_sample_counts(frame: pd.DataFrame, model_task: Mapping[str, Any],
     for key, ids in ids_by_compound.items():
         if not low <= len(ids) <= high:
             raise HubValidationError(f"{source}: {len(ids)} samples for compound task "
-                                     f"{dict(zip(compound, np.atleast_1d(key), strict=True))}; "
+                                     f"{dict(zip(compound, _as_tuple(key), strict=True))}; "
                                      f"the hub asks for {low}..{high}")
     seen: dict[str, Any] = {}
     for key, ids in ids_by_compound.items():
@@ -527,18 +518,22 @@ def _check_sample_counts(frame: pd.DataFrame, model_task: Mapping[str, Any],
                                          f"compound tasks ({seen[sample_id]} and {key})")
             seen[sample_id] = key
     per_task = samples.groupby(_task_id_columns(frame))["output_type_id"].nunique()
-    expected = ids_by_compound.map(len)
+    expected = {k: len(ids) for k, ids in ids_by_compound.items()}
     for task, count in per_task.items():
-        task_map = dict(zip(_task_id_columns(frame), task, strict=True))
+        task_map = dict(zip(_task_id_columns(frame), _as_tuple(task), strict=True))
         key = tuple(task_map[c] for c in compound)
-        want = expected[key if len(key) > 1 else key[0]]
+        want = expected[key[0] if len(key) == 1 else key]
         if count != want:
             raise HubValidationError(f"{source}: sample task {_task_label(frame, task)} has "
                                      f"{count} samples, its compound task has {want}: each "
                                      "sample must cover every target and horizon")
 
 
-def _task_label(frame: pd.DataFrame, task: Any) -> str:
+def _as_tuple(key: Hashable) -> tuple[Hashable, ...]:
+    """A groupby key as a tuple (pandas gives a scalar when grouping by one column)."""
+    return key if isinstance(key, tuple) else (key,)
+
+
+def _task_label(frame: pd.DataFrame, task: Hashable) -> str:
     names = _task_id_columns(frame)
-    values = task if isinstance(task, tuple) else (task,)
-    return ", ".join(f"{n}={v}" for n, v in zip(names, values, strict=True))
+    return ", ".join(f"{n}={v}" for n, v in zip(names, _as_tuple(task), strict=True))

@@ -10,17 +10,10 @@ from pipeline.report.content import (SECTION_TITLES, FigureItem, Provenance, Rep
 from pipeline.report.render import (ReportFiles, render_html, render_pdf, render_reproduction,
                                     write_report, write_reproduction)
 
-
-
-def build_forecast_report(results, out_dir):  # type: ignore[no-untyped-def]
-    """Weekly report of a ``pipeline.forecast.steps.ForecastResults`` (see ``report.weekly``)."""
-    from pipeline.report.weekly import build_forecast_report as build
-
-    return build(results, out_dir)
-
+# The weekly forecast's report is pipeline.report.weekly.build_forecast_report: it reads
+# pipeline.forecast.results, so it is not imported here (the forecast package imports this one).
 
 __all__ = [
-    "build_forecast_report",
     "SECTION_TITLES", "FigureItem", "Provenance", "ReportContent", "ReportError", "ReportFiles",
     "Section", "SectionKey", "TableItem", "nll_table", "paper_vs_ours", "render_html",
     "render_pdf", "render_reproduction", "stale_data_warning", "write_report",

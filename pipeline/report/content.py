@@ -245,11 +245,11 @@ def paper_vs_ours(paper: pd.DataFrame, ours: pd.DataFrame) -> pd.DataFrame:
     if extra:
         raise ReportError(f"our table has columns {extra} that the paper's table lacks")
     ours = ours.reindex(index=paper.index, columns=paper.columns)
-    pieces = {}
+    pieces: dict[tuple[str, str], pd.Series] = {}
     for column in paper.columns:
         label = column if isinstance(column, tuple) else (column,)
         pieces[(" ".join(map(str, label)), "paper")] = paper[column]
         pieces[(" ".join(map(str, label)), "ours")] = ours[column]
     frame = pd.DataFrame(pieces, index=paper.index)
-    frame.columns = pd.MultiIndex.from_tuples(frame.columns)
+    frame.columns = pd.MultiIndex.from_tuples(list(pieces))
     return frame

@@ -18,7 +18,7 @@ from __future__ import annotations
 import datetime as dt
 import io
 from collections.abc import Mapping, Sequence
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import matplotlib
 import matplotlib.dates as mdates
@@ -32,6 +32,9 @@ from numpy.typing import ArrayLike, NDArray
 from pipeline.names import COMPARTMENTS
 from pipeline.report.content import ReportError
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
+
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
 
 DPI = 110
 FULL_WIDTH_IN = 8.5
@@ -48,7 +51,7 @@ COMPARTMENT_NAMES: Mapping[str, str] = {"S": "Susceptible S", "I": "Infectious I
 SERIES_CYCLE = (OKABE_ITO["blue"], OKABE_ITO["vermilion"], OKABE_ITO["green"],
                 OKABE_ITO["purple"], OKABE_ITO["orange"], OKABE_ITO["sky_blue"], "#000000")
 
-_RC = {
+_RC: dict[RcKeyType, Any] = {
     "font.family": "DejaVu Sans",
     "font.size": 10.5,
     "axes.titlesize": 11.5,
@@ -67,7 +70,8 @@ _RC = {
 
 # ----------------------------------------------------------------------------- helpers
 
-def _figure(height_in: float, nrows: int = 1, ncols: int = 1, *, sharex: bool | str = False,
+def _figure(height_in: float, nrows: int = 1, ncols: int = 1, *,
+            sharex: bool | Literal["none", "all", "row", "col"] = False,
             width_in: float = FULL_WIDTH_IN) -> tuple[Figure, NDArray]:
     with matplotlib.rc_context(_RC):
         fig = Figure(figsize=(width_in, height_in), dpi=DPI, layout="constrained")
@@ -155,8 +159,9 @@ def _check_quantiles(dates: NDArray, q: ArrayLike, observed: ArrayLike | None
 
 def _shade(ax: Axes, span: tuple[dt.date, dt.date] | None, label: str | None) -> None:
     if span is not None:
-        ax.axvspan(pd.Timestamp(span[0]), pd.Timestamp(span[1]), color="#999999", alpha=0.15,
-                   linewidth=0, label=label)
+        # matplotlib's stubs say float, but axvspan converts dates through the axis units.
+        start, end = cast(float, pd.Timestamp(span[0])), cast(float, pd.Timestamp(span[1]))
+        ax.axvspan(start, end, color="#999999", alpha=0.15, linewidth=0, label=label)
 
 
 # ----------------------------------------------------------------------------- figures

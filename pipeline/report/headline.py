@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from pipeline.report.content import ReportError
 
 if TYPE_CHECKING:  # the report must not import torch-heavy modules at run time
-    from pipeline.forecast.steps import ForecastResults
+    from pipeline.forecast.results import ForecastResults
     from pipeline.ensemble.weekly import WeeklyForecast
 
 PUBLISHED = "published"

@@ -228,7 +228,9 @@ def _data_only_fetcher() -> Any:
 
     def fetch(url: str, *args: Any, **kwargs: Any) -> Any:  # older WeasyPrint: a function
         _refuse_external(url)
-        return wurls.default_url_fetcher(url, *args, **kwargs)
+        # WeasyPrint < 68 only: the version pyright sees (>= 68) no longer has it.
+        fetcher = wurls.default_url_fetcher  # pyright: ignore[reportAttributeAccessIssue]
+        return fetcher(url, *args, **kwargs)
     return fetch
 
 
@@ -244,7 +246,9 @@ def pdf_bytes(html: str) -> tuple[bytes, int]:
         document = weasyprint.HTML(string=html, url_fetcher=_data_only_fetcher()).render()
     except FatalURLFetchingError as exc:
         raise ReportError(f"{exc}: {exc.__cause__}") from exc
-    return document.write_pdf(), len(document.pages)
+    pdf = document.write_pdf()
+    assert pdf is not None  # write_pdf returns the bytes when given no target
+    return pdf, len(document.pages)
 
 
 def render_pdf(html: str, path: str | os.PathLike[str]) -> int:

@@ -1,8 +1,8 @@
-"""The weekly report from the forecast pipeline's results (``pipeline.forecast.steps.ForecastResults``).
+"""The weekly report of one run's :class:`pipeline.forecast.results.ForecastResults`.
 
-``build_forecast_report(results, out_dir)`` is the hook ``pipeline.forecast.steps.write_report``
-calls. It reads the results by attribute (``pipeline.forecast.steps`` is imported for type checking
-only: it pulls in torch), turns arrays into figures and frames into tables, and writes
+``build_forecast_report(results, out_dir)`` is what :func:`pipeline.forecast.publish.write_report`
+calls. It is annotated against ``ForecastResults`` (imported for type checking only: the forecast
+package imports this module), turns arrays into figures and frames into tables, and writes
 ``report.html`` + ``report.pdf`` with :func:`pipeline.report.render.write_report`.
 
 A decision document: page 1 is the headline (:mod:`pipeline.report.headline`, the published
@@ -25,11 +25,12 @@ import warnings
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
+from torch import Tensor
 
 from pipeline import __version__
 from pipeline.io import sha256_bytes, sha256_file
@@ -42,8 +43,9 @@ from pipeline.report.headline import (PUBLISHED, Headline, compute_headline, fac
 from pipeline.report.render import ReportFiles, write_report
 
 if TYPE_CHECKING:
-    from pipeline.forecast.steps import ForecastResults
+    from pipeline.forecast.results import ForecastResults
     from pipeline.ensemble.weekly import WeeklyForecast
+    from pipeline.inference.smc import SMCResult
 
 log = logging.getLogger(__name__)
 STATES = ("S", "I", "R")
@@ -63,9 +65,9 @@ TARGETS = {"cases": "weekly reported cases", "I": "I (share of the population)"}
 _SHORT_TARGETS = {"cases": "weekly cases", "I": "I (share)"}
 
 
-def _numpy(x: Any) -> NDArray[np.float64]:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().double().numpy()
+def _numpy(x: Tensor | NDArray[np.float64]) -> NDArray[np.float64]:
+    if isinstance(x, Tensor):
+        return x.detach().cpu().double().numpy()
     return np.asarray(x, dtype=np.float64)
 
 
@@ -127,7 +129,8 @@ def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
             rows.append([f"{fmt(q[0.5][k])} ({fmt_range(q[0.05][k], q[0.95][k], fmt)})"
                          for k in (0, len(f.horizons) - 1)])
             index.append((_SHORT_TARGETS[target], _label(name)))
-            horizons = (f.horizons[0], f.horizons[-1])
+    published = forecasts[PUBLISHED]
+    horizons = (published.horizons[0], published.horizons[-1])
     origin = weekly.origin
     columns = [f"{(origin + pd.Timedelta(days=7 * h)).date()} (+{h} wk)" for h in horizons]
     return pd.DataFrame(rows, columns=columns,
@@ -193,7 +196,7 @@ def _summary_tables(weekly: WeeklyForecast) -> tuple[pd.DataFrame, pd.DataFrame]
         cov[(label, "scored")] = [by_target[target][n]["n_scored"] for n in names]
     index = pd.Index([_label(n) for n in names], name="forecaster")
 
-    def frame(d: dict[tuple[str, str], list[Any]]) -> pd.DataFrame:
+    def frame(d: dict[tuple[str, str], list[float | int | None]]) -> pd.DataFrame:
         out = pd.DataFrame(d, index=index)
         out.columns = pd.MultiIndex.from_tuples(list(d))
         return out.astype({c: float for c in d if c[1] != "scored"})
@@ -296,7 +299,7 @@ def estimates_section(results: ForecastResults) -> Section:
                                            direction=direction)
         side = "before" if direction == "forward" else "after"
         items.append(_fig(png, f"{direction.capitalize()} estimates of each day's state from "
-                               f"the {results.config.window} observations {side} it: median, "
+                               f"the {results.config.resolved.window} observations {side} it: median, "
                                "50% and 90% intervals of the flow's samples; dots: observed.",
                           f"{direction} state estimates of S, I, R with 50% and 90% bands"))
     return Section.weekly(SectionKey.STATE_ESTIMATES, items)
@@ -331,15 +334,10 @@ def rollout_section(results: ForecastResults) -> Section:
     return Section.weekly(SectionKey.ROLLOUTS, items, alerts=alerts)
 
 
-def _prior(results: ForecastResults) -> Any:
-    return getattr(results.config, "prior", None)   # the training prior's ranges, when known
-
-
 def parameter_section(results: ForecastResults) -> Section:
     dates, wide = _long_to_arrays(results.parameters, "forward")
-    prior = _prior(results)
-    priors = {"beta": tuple(prior.beta) if prior else None,
-              "gamma": tuple(prior.gamma) if prior else None}
+    prior = results.config.resolved.prior
+    priors: dict[str, tuple[float, float]] = {"beta": prior.beta, "gamma": prior.gamma}
     rt = _q(wide["Rt"]) if "Rt" in wide else None
     png = figures.parameter_figure(dates, _q(wide["beta"]), _q(wide["gamma"]), rt,
                                    beta_prior=priors["beta"], gamma_prior=priors["gamma"])
@@ -347,7 +345,7 @@ def parameter_section(results: ForecastResults) -> Section:
     rows = {names[c]: [wide[c]["q0.5"].iloc[-1],
                        fmt_range(wide[c]["q0.25"].iloc[-1], wide[c]["q0.75"].iloc[-1], _g3),
                        fmt_range(wide[c]["q0.05"].iloc[-1], wide[c]["q0.95"].iloc[-1], _g3),
-                       fmt_range(*priors[c], _g3) if priors.get(c) else "—"]
+                       fmt_range(*priors[c], _g3) if c in priors else "—"]
             for c in names if c in wide}
     table = pd.DataFrame(list(rows.values()), index=pd.Index(list(rows), name="parameter"),
                          columns=["median", "50% interval", "90% interval", "prior range"])
@@ -356,7 +354,7 @@ def parameter_section(results: ForecastResults) -> Section:
         for c, label in (("beta", "β"), ("gamma", "γ"))) if a]
     return Section.weekly(SectionKey.PARAMETERS, [
         _fig(png, "Joint estimates of the transmission rate β, the recovery rate γ and "
-                  f"R_t = β·S/γ (per joint sample) from the {results.config.window} "
+                  f"R_t = β·S/γ (per joint sample) from the {results.config.resolved.window} "
                   "observations before each day: median, 50% and 90% intervals; dotted lines: "
                   "range of the synthetic training prior (for β its starting range: β drifts "
                   "in the prior, and the estimate is the β in effect on the day).",
@@ -369,7 +367,7 @@ def _g3(x: float) -> str:
     return f"{x:.3g}"
 
 
-def _smc_quantiles(res: Any, idx: list[int]) -> NDArray[np.float64]:
+def _smc_quantiles(res: SMCResult, idx: list[int]) -> NDArray[np.float64]:
     """(5, T, 3) weighted quantiles at :data:`LEVELS` of the (first) filter."""
     recorded = np.asarray(res.quantile_levels, dtype=np.float64)
     picks = []
@@ -389,7 +387,7 @@ def smc_section(results: ForecastResults) -> Section:
     q = _smc_quantiles(res, idx)
     dates = pd.DatetimeIndex(results.smc.dates)
     ess = _numpy(res.ess)[0]
-    n = int(getattr(res, "num_particles", 0) or results.config.smc_particles)
+    n = results.config.smc.particles
     png = figures.smc_band_figure(dates, _observed_at(results.sir_frame, dates), q,
                                   ess=ess, n_particles=n,
                                   collapse_fraction=checks.ESS_COLLAPSE_FRACTION)
@@ -411,7 +409,7 @@ def nll_section(results: ForecastResults) -> Section:
     short = {"forward": "fw", "backward": "bw"}
     ours = list(dict.fromkeys(frame["variant"].astype(str)))
     variants = [*_PAPER_VARIANTS, *(v for v in ours if v not in _PAPER_VARIANTS)]
-    values = {(short.get(d, d), str(v)): float(x)
+    values = {(short.get(str(d), str(d)), str(v)): float(x)
               for d, v, x in zip(frame["direction"], frame["variant"], frame["mean_nll"])}
     table = nll_table(values, variants=variants)
     n = int(frame["locations"].max()) if "locations" in frame else None
@@ -469,30 +467,26 @@ def _provenance(results: ForecastResults) -> Provenance:
     csv = results.sir_frame.to_csv(index=False).encode("utf-8")
     checkpoint = ""
     models = results.models
-    path = Path(getattr(models, "path", "") or ".") / "forward" / "model.pt"
+    path = models.path / "forward" / "model.pt"
     if path.is_file():
         checkpoint = sha256_file(path)
     config = results.config
-    cfg = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else dict(config)
+    cfg = config.as_dict()
     weekly = results.weekly
     extra = {"model cache key": str(models.key),
              "model": "reused from the model cache" if models.reused else "trained in this run",
              "forward checkpoint": str(path) if checkpoint else "—"}
-    if weekly is not None:
-        extra["published forecast: flow member"] = (
-            f"{weekly.model_key or '—'} ("
-            f"{'reused from the model cache' if weekly.model_reused else 'trained in this run'})")
-    preset_for = getattr(config, "training_preset_for", None)
-    if preset_for is not None:  # the resolved pipeline.training.presets entries the models come from
-        for direction in ("forward", "backward"):
-            p = preset_for(direction)
-            extra[f"{direction} training preset"] = (
-                f"{p.run_name}: {p.train.iterations} iterations, batch {p.train.batch_size}, "
-                f"lr {p.train.lr:g} ({p.train.schedule}), {p.dataset.name} "
-                f"{p.dataset.n_trajectories or 'all'} trajectories")
+    extra["published forecast: flow member"] = (
+        f"{weekly.model_key or '—'} ("
+        f"{'reused from the model cache' if weekly.model_reused else 'trained in this run'})")
+    for direction, p in config.resolved.presets.items():  # the presets the models come from
+        extra[f"{direction} training preset"] = (
+            f"{p.run_name}: {p.train.iterations} iterations, batch {p.train.batch_size}, "
+            f"lr {p.train.lr:g} ({p.train.schedule}), {p.dataset.name} "
+            f"{p.dataset.n_trajectories or 'all'} trajectories")
     return Provenance(package_version=__version__, versions=_versions(), config=cfg,
                       data_sha256=sha256_bytes(csv), checkpoint_sha256=checkpoint,
-                      seed=getattr(config, "seed", None), extra=extra)
+                      seed=config.seed, extra=extra)
 
 
 # ----------------------------------------------------------------------------- assembly
@@ -500,11 +494,9 @@ def _provenance(results: ForecastResults) -> Provenance:
 def data_banner(results: ForecastResults, today: dt.date | None = None) -> str | None:
     """The report's one data banner (stale or old data), else None."""
     last = pd.to_datetime(results.sir_frame["date"]).max().date()
-    data = getattr(results.config, "data", None)
-    return checks.data_banner(stale=results.stale, vintage=str(results.vintage),
+    return checks.data_banner(stale=results.stale, vintage=results.vintage,
                               notes=results.stale_notes, last_day=last,
-                              today=today or dt.date.today(),
-                              source=getattr(data, "kind", "cache"))
+                              today=today or dt.date.today(), source=results.config.data.kind)
 
 
 def forecast_report_content(results: ForecastResults) -> ReportContent:

@@ -23,8 +23,9 @@ Readings of the paper (see docs/systems.md):
 what the SF series (``pipeline.data.sir_transform``) looks like. The paper's ``sir-multi`` puts
 every epidemic at I0 = 0.01 with infectious periods of 40-200 days and observation noise 0.027;
 the SF series has I <= 0.026 (median 0.0008, so the paper's noise alone is 30x the signal), an
-infectious period fixed at L = 10 days by the conversion (gamma near 0.1), S >= 0.86 and several
-waves. ``sir-sf`` therefore draws gamma ~ U[0.07, 0.14] (L = 7-14 days), beta ~ U[0.03, 0.3]
+infectious period fixed by the conversion (L = 7 days now, gamma near 0.14; the prior was fitted
+when it was 10 days, gamma near 0.1), S >= 0.86 and several waves. ``sir-sf`` therefore draws
+gamma ~ U[0.07, 0.14] (L = 7-14 days, both conversions inside), beta ~ U[0.03, 0.3]
 (daily growth rates -0.11 to +0.23, the 1st-95th percentile range of the series), a log-uniform
 I0 in [1e-5, 5e-3] and an already-removed share R0 ~ U[1e-6, 0.15] (later waves start from a
 partly immune population; the floor, about one person of SF's 874,000, keeps every state strictly

@@ -26,16 +26,25 @@ import hashlib
 import platform
 import types
 import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import torch
 from torch import Tensor, nn
 
 from pipeline.errors import CheckpointError, ConfigError
 from pipeline.io import atomic_open
+
+if TYPE_CHECKING:  # annotations only: the functions below import these where they use them
+    from _typeshed import DataclassInstance
+
+    from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
+    from pipeline.training.datasets import Standardization
+
+_D = TypeVar("_D", bound="DataclassInstance")
 
 FORMAT = "flowcast-checkpoint"
 FORMAT_VERSION = 1
@@ -44,6 +53,9 @@ _STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
 
 @dataclass(frozen=True)
 class CheckpointMeta:
+    """What a checkpoint records besides the model. ``history`` and ``extra`` are the plain data
+    the writer stored (``torch.load`` output: dicts of str, numbers, lists, None)."""
+
     format_version: int
     versions: dict[str, str]
     data_sha256: str
@@ -55,8 +67,8 @@ class CheckpointMeta:
 
 @dataclass
 class LoadedCheckpoint:
-    estimator: nn.Module
-    config: Any
+    estimator: ConditionalEstimator
+    config: EstimatorConfig
     meta: CheckpointMeta
 
 
@@ -81,9 +93,10 @@ def state_sha256(state: dict[str, Tensor]) -> str:
     return digest.hexdigest()
 
 
-def save_checkpoint(path: str | Path, estimator: nn.Module, *, config: Any, stats: Any,
-                    history: list[dict[str, Any]] | None = None, data_sha256: str = "",
-                    extra: dict[str, Any] | None = None) -> Path:
+def save_checkpoint(path: str | Path, estimator: nn.Module, *, config: EstimatorConfig,
+                    stats: Standardization,
+                    history: Sequence[Mapping[str, object]] | None = None,
+                    data_sha256: str = "", extra: Mapping[str, object] | None = None) -> Path:
     """Write ``estimator``'s weights with everything needed to rebuild it (atomic)."""
     if not dataclasses.is_dataclass(config):
         raise ConfigError(f"checkpoint config must be a dataclass (EstimatorConfig), "
@@ -96,8 +109,8 @@ def save_checkpoint(path: str | Path, estimator: nn.Module, *, config: Any, stat
         "config_type": f"{type(config).__module__}.{type(config).__qualname__}",
         "state_dict": state,
         "state_sha256": state_sha256(state),
-        "stats": {**{name: getattr(stats, name).detach().cpu().clone() for name in _STATS_FIELDS},
-                  "target_transform": str(getattr(stats, "target_transform", "identity"))},
+        "stats": {**{name: t.detach().cpu().clone() for name, t in stats.as_dict().items()},
+                  "target_transform": stats.target_transform},
         "versions": package_versions(),
         "data_sha256": data_sha256,
         "history": _plain(list(history or [])),
@@ -110,7 +123,8 @@ def save_checkpoint(path: str | Path, estimator: nn.Module, *, config: Any, stat
     return target
 
 
-def load_checkpoint(path: str | Path, expected_config: Any = None) -> LoadedCheckpoint:
+def load_checkpoint(path: str | Path,
+                    expected_config: EstimatorConfig | None = None) -> LoadedCheckpoint:
     """Read, verify and rebuild an estimator; see the module docstring for what is rejected."""
     target = Path(path)
     payload = _read_payload(target)
@@ -156,7 +170,7 @@ def _read_payload(path: Path) -> dict[str, Any]:
     return payload
 
 
-def _config_from_payload(path: Path, payload: dict[str, Any]) -> Any:
+def _config_from_payload(path: Path, payload: dict[str, Any]) -> EstimatorConfig:
     from pipeline.models.estimator import EstimatorConfig
 
     try:
@@ -166,7 +180,7 @@ def _config_from_payload(path: Path, payload: dict[str, Any]) -> Any:
                               f"EstimatorConfig ({exc})") from exc
 
 
-def _stats_from_payload(path: Path, payload: dict[str, Any]) -> Any:
+def _stats_from_payload(path: Path, payload: dict[str, Any]) -> Standardization:
     from pipeline.training.datasets import Standardization
 
     stats = payload["stats"]
@@ -178,7 +192,8 @@ def _stats_from_payload(path: Path, payload: dict[str, Any]) -> Any:
                            target_transform=str(stats.get("target_transform", "identity")))
 
 
-def _rebuild(path: Path, config: Any, stats: Any, state: dict[str, Tensor]) -> nn.Module:
+def _rebuild(path: Path, config: EstimatorConfig, stats: Standardization,
+             state: dict[str, Tensor]) -> ConditionalEstimator:
     from pipeline.models.estimator import build_estimator
 
     estimator = build_estimator(config, stats)
@@ -191,7 +206,7 @@ def _rebuild(path: Path, config: Any, stats: Any, state: dict[str, Tensor]) -> n
     return estimator
 
 
-def _check_config(path: Path, saved: Any, expected: Any) -> None:
+def _check_config(path: Path, saved: EstimatorConfig, expected: EstimatorConfig) -> None:
     """Name the first field where the saved config differs from the expected one."""
     saved_flat = _flatten(dataclasses.asdict(saved))
     expected_flat = _flatten(dataclasses.asdict(expected))
@@ -203,8 +218,8 @@ def _check_config(path: Path, saved: Any, expected: Any) -> None:
                                   f"asked for {b!r}")
 
 
-def _flatten(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
+def _flatten(data: Mapping[str, object], prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
     for key, value in data.items():
         name = f"{prefix}{key}"
         if isinstance(value, dict):
@@ -217,7 +232,7 @@ def _flatten(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 # ----------------------------------------------------------------------------- plain data
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> object:
     """Only what ``weights_only`` unpickling accepts: dicts, lists, str, numbers, None, tensors."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return _plain(dataclasses.asdict(value))
@@ -233,7 +248,7 @@ def _plain(value: Any) -> Any:
                       f"{value!r}")
 
 
-def dataclass_from_dict(cls: type, data: dict[str, Any]) -> Any:
+def dataclass_from_dict(cls: type[_D], data: Mapping[str, Any]) -> _D:
     """Rebuild a (nested) frozen dataclass from ``dataclasses.asdict`` output (lists → tuples)."""
     if not isinstance(data, dict):
         raise TypeError(f"{cls.__name__}: expected a dict, got {type(data).__name__}")
@@ -246,22 +261,28 @@ def dataclass_from_dict(cls: type, data: dict[str, Any]) -> Any:
     return cls(**kwargs)
 
 
-def _coerce(hint: Any, value: Any) -> Any:
+def _coerce(hint: object, value: object) -> object:
+    """``value`` (plain data) as the annotation ``hint`` wants it: dicts become dataclasses,
+    lists tuples."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         options = [a for a in typing.get_args(hint) if a is not type(None)]
         if value is None:
             return None
         for option in options:
-            if dataclasses.is_dataclass(option) and isinstance(value, dict):
+            if _is_dataclass_type(option) and isinstance(value, dict):
                 return dataclass_from_dict(option, value)
         return _coerce(options[0], value) if len(options) == 1 else _tuplify(value)
-    if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+    if _is_dataclass_type(hint) and isinstance(value, dict):
         return dataclass_from_dict(hint, value)
     if origin is tuple or hint is tuple:
         return _tuplify(value)
     return value
 
 
-def _tuplify(value: Any) -> Any:
+def _is_dataclass_type(hint: object) -> typing.TypeGuard[type[DataclassInstance]]:
+    return isinstance(hint, type) and dataclasses.is_dataclass(hint)
+
+
+def _tuplify(value: object) -> object:
     return tuple(_tuplify(v) for v in value) if isinstance(value, list) else value

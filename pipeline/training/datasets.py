@@ -116,8 +116,9 @@ class DatasetConfig:
 
     def system_config(self) -> sir_system.SIRPrior | vehicle_system.VehicleConfig:
         """The SIR prior or vehicle config this dataset simulates (size override applied)."""
+        base: sir_system.SIRPrior | vehicle_system.VehicleConfig
         if self.system == "sir":
-            base: Any = sir_system.get_prior(self.name)
+            base = sir_system.get_prior(self.name)
         else:
             base = vehicle_system.get_vehicle_config(self.name, self.vehicle_model)
         if self.n_trajectories is not None:
@@ -159,9 +160,10 @@ class Standardization:
         return get_target_transform(self.target_transform)
 
     def standardize_context(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
-        """``x (..., C)``; with ``mask (...)`` given, padding rows stay exactly zero."""
+        """``x (..., C)``; with ``mask (...)`` given, padding rows are exactly zero (whatever
+        they held, NaN included)."""
         z = (x - self.context_mean.to(x)) / self.context_std.to(x)
-        return z if mask is None else z * mask.unsqueeze(-1).to(z.dtype)
+        return z if mask is None else torch.where(mask.unsqueeze(-1).bool(), z, z.new_zeros(()))
 
     def standardize_target(self, y: Tensor) -> Tensor:
         u = self.transform.forward(y)
@@ -403,7 +405,9 @@ def train_validation_split(ds: WindowedDataset, target_transform: str | None = N
 
 # --------------------------------------------------------------------------- assembling
 
-def _assemble(*, system: str, config_name: str, system_config: Any, seed: int, direction: str,
+def _assemble(*, system: str, config_name: str,
+              system_config: sir_system.SIRPrior | vehicle_system.VehicleConfig, seed: int,
+              direction: str,
               target_kind: str, window: int, val_fraction: float, context_features: tuple[str, ...],
               target_features: tuple[str, ...], n_trajectories: int, n_observed_points: int,
               n_observed_values: int, windows: tuple[Tensor, ...]) -> WindowedDataset:
@@ -489,8 +493,9 @@ def build_dataset_from_config(config: DatasetConfig,
     else:
         vehicle_ensemble = vehicle_system.simulate_vehicle(system_config, seed=config.seed,
                                                            progress=reporter)
+        # absolute_time is never None after DatasetConfig.__post_init__
         ds = windows_from_vehicle(vehicle_ensemble, config.direction, config.target,
-                                  config.window, config.val_fraction, config.absolute_time)
+                                  config.window, config.val_fraction, bool(config.absolute_time))
     reporter.advance(1, windows=len(ds))
     return ds
 
@@ -578,11 +583,16 @@ def load_dataset(path: str | os.PathLike[str], *, system: str | None = None,
     return ds
 
 
-def _dataset_from_payload(file: Path, payload: dict[str, Any]) -> WindowedDataset:
-    tensors, stats_raw, meta_raw = (payload.get("tensors"), payload.get("stats"),
-                                    payload.get("meta"))
-    if not all(isinstance(section, dict) for section in (tensors, stats_raw, meta_raw)):
+def _payload_section(file: Path, payload: dict[str, Any], name: str) -> dict[str, Any]:
+    section = payload.get(name)
+    if not isinstance(section, dict):
         raise DatasetError(f"dataset file {file} lacks its 'tensors', 'stats' or 'meta' section")
+    return section
+
+
+def _dataset_from_payload(file: Path, payload: dict[str, Any]) -> WindowedDataset:
+    tensors, stats_raw, meta_raw = (_payload_section(file, payload, name)
+                                    for name in ("tensors", "stats", "meta"))
     for section, names, raw in (("tensors", _TENSOR_FIELDS, tensors),
                                 ("stats", _STATS_FIELDS, stats_raw)):
         for name in names:

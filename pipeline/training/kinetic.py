@@ -24,13 +24,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
 from pipeline.models.maf.base import ConditionalFlow, FlowTrajectory
+
+if TYPE_CHECKING:
+    from pipeline.models.estimator import ConditionalEstimator
 
 
 @dataclass(frozen=True)
@@ -97,7 +100,8 @@ def kinetic_loss_from_trajectory(trajectory: FlowTrajectory,
     return KineticLoss(total, nll, kinetic, prior)
 
 
-def kinetic_loss_terms(model: Any, target: Tensor, context: Tensor, mask: Tensor | None = None,
+def kinetic_loss_terms(model: ConditionalFlow | ConditionalEstimator, target: Tensor,
+                       context: Tensor, mask: Tensor | None = None,
                        weights: KineticWeights = KineticWeights()) -> KineticLoss:
     """The loss and its parts for one batch, in one pass through the flow.
 
@@ -116,7 +120,8 @@ def kinetic_loss_terms(model: Any, target: Tensor, context: Tensor, mask: Tensor
         trajectory, lambda z: flow.base_log_prob(z, flow_context), weights)
 
 
-def kinetic_loss(model: Any, target: Tensor, context: Tensor, mask: Tensor | None = None,
+def kinetic_loss(model: ConditionalFlow | ConditionalEstimator, target: Tensor,
+                 context: Tensor, mask: Tensor | None = None,
                  weights: KineticWeights = KineticWeights()) -> Tensor:
     """The scalar training loss (``kinetic_loss_terms(...).total``); see there for the inputs."""
     return kinetic_loss_terms(model, target, context, mask, weights).total

@@ -221,3 +221,10 @@ def _verified(key: str, path: Path) -> tuple[StoreEntry | None, str]:
                           meta=record.get("meta", {})), ""
     except (OSError, json.JSONDecodeError, KeyError, TypeError, CheckpointError) as exc:
         return None, str(exc)
+
+
+def default_store_root() -> Path:
+    """The model store under the flowcast data folder ($FLOWCAST_DATA_DIR)."""
+    from pipeline.data.cache import data_dir
+
+    return data_dir() / "models"

@@ -64,19 +64,23 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypeGuard
 
-from pipeline.training.datasets import DatasetConfig
 from pipeline.errors import ConfigError
-from pipeline.training.kinetic import KineticWeights
-from pipeline.models.encoders import EncoderConfig
+from pipeline.models.encoders import EncoderConfig, EncoderKind
 from pipeline.models.estimator import EstimatorConfig, make_estimator_config
+from pipeline.training.datasets import DatasetConfig
+from pipeline.training.kinetic import KineticWeights
 from pipeline.training.trainer import TrainConfig
 
 EncoderChoice = Literal["mlp", "transformer", "transformer-ke", "mamba"]
 Recipe = Literal["paper", "fast"]
 ENCODER_CHOICES: tuple[EncoderChoice, ...] = ("mlp", "transformer", "transformer-ke", "mamba")
 RECIPES: tuple[Recipe, ...] = ("paper", "fast")
+# The encoder each choice builds: transformer-ke is the transformer trained with kinetic terms.
+_ENCODER_KIND: dict[EncoderChoice, EncoderKind] = {"mlp": "mlp", "transformer": "transformer",
+                                                   "transformer-ke": "transformer",
+                                                   "mamba": "mamba"}
 DEFAULT_RECIPE: Recipe = "fast"
 
 KE_PATH_LENGTH = 0.01
@@ -138,7 +142,15 @@ class TrainingPreset:
     @property
     def run_name(self) -> str:
         return (f"{self.name}-{self.dataset.direction}-{self.encoder_choice}-"
-                f"{self.estimator.flow.backend}-{self.recipe}")
+                f"{self.backend}-{self.recipe}")
+
+    @property
+    def backend(self) -> str:
+        """The flow package (``zuko`` or ``nflows``)."""
+        flow = self.estimator.flow
+        if flow is None:  # EstimatorConfig.__post_init__ always sets it
+            raise ConfigError(f"preset {self.name!r}: its estimator config has no flow config")
+        return flow.backend
 
     def with_overrides(self, *, iterations: int | None = None, batch_size: int | None = None,
                        lr: float | None = None, seed: int | None = None,
@@ -160,8 +172,7 @@ class TrainingPreset:
 def _encoder_config(choice: EncoderChoice, embedding: int) -> EncoderConfig:
     """The encoder package's default sizes for both recipes: a narrower transformer (d_model 16)
     made steps 25 % cheaper but learned so much slower per step that it lost (docs/training.md)."""
-    kind = "transformer" if choice.startswith("transformer") else choice
-    return EncoderConfig(kind=kind, embedding_features=embedding)
+    return EncoderConfig(kind=_ENCODER_KIND[choice], embedding_features=embedding)
 
 
 def _kinetic(choice: EncoderChoice) -> KineticWeights:
@@ -194,14 +205,12 @@ def get_preset(name: str, encoder: str = "transformer", *, recipe: str = DEFAULT
     """Resolve a preset by name. ``backend`` None = the flow package's default backend."""
     if name not in SETUPS:
         raise ConfigError(f"unknown preset {name!r}; known: {list(PRESET_NAMES)}")
-    if encoder not in ENCODER_CHOICES:
+    if not _is_encoder_choice(encoder):
         raise ConfigError(f"unknown encoder {encoder!r} for preset {name!r}; "
                           f"choose one of {list(ENCODER_CHOICES)}")
-    if recipe not in RECIPES:
+    if not _is_recipe(recipe):
         raise ConfigError(f"unknown recipe {recipe!r}; choose one of {list(RECIPES)}")
     setup = SETUPS[name]
-    choice: EncoderChoice = encoder  # type: ignore[assignment]
-    rec: Recipe = recipe  # type: ignore[assignment]
     dataset = DatasetConfig(name=setup.dataset, direction=direction, target=setup.target,
                             window=setup.window, seed=dataset_seed,
                             n_trajectories=n_trajectories)
@@ -210,15 +219,17 @@ def get_preset(name: str, encoder: str = "transformer", *, recipe: str = DEFAULT
     if backend is not None:
         flow_options["backend"] = backend
     estimator = make_estimator_config(setup.features, setup.context_channels, setup.window,
-                                      _encoder_config(choice, setup.embedding_features),
+                                      _encoder_config(encoder, setup.embedding_features),
                                       absolute_time=bool(dataset.absolute_time),
                                       target_transform=setup.target_transform, **flow_options)
-    return TrainingPreset(name=name, encoder_choice=choice, recipe=rec, dataset=dataset,
-                          estimator=estimator, train=train_config(setup, rec, seed),
-                          kinetic=_kinetic(choice))
+    return TrainingPreset(name=name, encoder_choice=encoder, recipe=recipe, dataset=dataset,
+                          estimator=estimator, train=train_config(setup, recipe, seed),
+                          kinetic=_kinetic(encoder))
 
 
-def all_presets(recipe: str = DEFAULT_RECIPE) -> list[TrainingPreset]:
-    """Every preset × encoder choice (for listing and tests)."""
-    return [get_preset(name, encoder, recipe=recipe) for name in PRESET_NAMES
-            for encoder in ENCODER_CHOICES]
+def _is_encoder_choice(name: str) -> TypeGuard[EncoderChoice]:
+    return name in ENCODER_CHOICES
+
+
+def _is_recipe(name: str) -> TypeGuard[Recipe]:
+    return name in RECIPES

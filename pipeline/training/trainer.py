@@ -38,20 +38,23 @@ import dataclasses
 import io
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from torch import Tensor, nn
 
-from pipeline.training.datasets import Standardization, WindowedDataset
 from pipeline.errors import ConfigError, TrainingDivergedError
-from pipeline.training.kinetic import KineticWeights, kinetic_loss
-from pipeline.models.estimator import EstimatorConfig, add_context_noise
 from pipeline.io import atomic_open, atomic_write_json, atomic_write_text
+from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig, add_context_noise
 from pipeline.progress import ProgressReporter, SilentProgress
+from pipeline.training.datasets import Standardization, WindowedDataset
+from pipeline.training.kinetic import KineticWeights, kinetic_loss
+
+if TYPE_CHECKING:  # presets.py imports this module
+    from pipeline.training.presets import TrainingPreset
 
 Schedule = Literal["constant", "cosine", "onecycle"]
 StopReason = Literal["completed", "target_reached", "time_budget", "plateau"]
@@ -215,7 +218,7 @@ def _subset(tensors: _Tensors, size: int, generator: torch.Generator) -> _Tensor
 # ----------------------------------------------------------------------------- loss
 
 
-def _batch_loss(estimator: nn.Module, target: Tensor, context: Tensor, mask: Tensor,
+def _batch_loss(estimator: ConditionalEstimator, target: Tensor, context: Tensor, mask: Tensor,
                 kinetic: KineticWeights | None) -> Tensor:
     """Mean training loss of a standardized batch: NLL, plus the kinetic terms when enabled."""
     if kinetic is None or kinetic.is_plain_likelihood and kinetic.nll == 1.0:
@@ -224,7 +227,8 @@ def _batch_loss(estimator: nn.Module, target: Tensor, context: Tensor, mask: Ten
 
 
 @torch.no_grad()
-def evaluate_nll(estimator: nn.Module, context: Tensor, mask: Tensor, target: Tensor) -> float:
+def evaluate_nll(estimator: ConditionalEstimator, context: Tensor, mask: Tensor,
+                 target: Tensor) -> float:
     """Mean NLL (standardized units) of standardized (context, mask, target), chunked."""
     was_training = estimator.training
     estimator.eval()
@@ -283,7 +287,7 @@ class _DivergenceWatch:
                 "evaluations in a row; stopped, nothing saved")
 
 
-def train(estimator: nn.Module, train_ds: WindowedDataset, val_ds: WindowedDataset,
+def train(estimator: ConditionalEstimator, train_ds: WindowedDataset, val_ds: WindowedDataset,
           config: TrainConfig,
           kinetic: KineticWeights | None = None,
           progress: ProgressReporter | None = None) -> TrainResult:
@@ -328,9 +332,10 @@ def _with_stats(ds: WindowedDataset, stats: Standardization) -> WindowedDataset:
     return dataclasses.replace(ds, stats=stats)
 
 
-def _run(estimator: nn.Module, train_t: _Tensors, val_t: _Tensors, stats: Standardization,
-         log_target_scale: float, batch_gen: torch.Generator, config: TrainConfig,
-         kinetic: KineticWeights | None, progress: ProgressReporter) -> TrainResult:
+def _run(estimator: ConditionalEstimator, train_t: _Tensors, val_t: _Tensors,
+         stats: Standardization, log_target_scale: float, batch_gen: torch.Generator,
+         config: TrainConfig, kinetic: KineticWeights | None,
+         progress: ProgressReporter) -> TrainResult:
     optimizer = torch.optim.Adam(estimator.parameters(), lr=config.lr)
     n_train = train_t.target.shape[0]
     history: list[EvalRecord] = []
@@ -339,6 +344,7 @@ def _run(estimator: nn.Module, train_t: _Tensors, val_t: _Tensors, stats: Standa
     since_improvement, loss_sum, loss_count = 0, 0.0, 0
     stop_reason: StopReason = "completed"
     estimator.train()
+    # getattr: wrappers exposing only standardized_log_prob (tests) train as relative-time models
     time_channels = 2 if getattr(estimator, "absolute_time", False) else 1
     start = time.perf_counter()
     iteration = 0
@@ -394,7 +400,8 @@ def _grad_norm(estimator: nn.Module, clip: float | None) -> Tensor:
     params = [p for p in estimator.parameters() if p.grad is not None]
     if clip is not None:
         return nn.utils.clip_grad_norm_(params, clip)
-    return torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in params]))
+    return torch.linalg.vector_norm(torch.stack([g.norm() for p in params
+                                                 if (g := p.grad) is not None]))
 
 
 def _stop_reason(config: TrainConfig, best_nll: float, since_improvement: int,
@@ -470,18 +477,19 @@ def plot_loss_curves(history: Sequence[EvalRecord], path: str | Path,
     plt.close(fig)
 
 
-def train_and_save(estimator: nn.Module, train_ds: WindowedDataset, val_ds: WindowedDataset,
-                   config: TrainConfig, kinetic: KineticWeights | None, out_dir: str | Path, *,
-                   estimator_config: EstimatorConfig,
-                   extra: dict[str, Any] | None = None,
+def train_and_save(estimator: ConditionalEstimator, train_ds: WindowedDataset,
+                   val_ds: WindowedDataset, config: TrainConfig, kinetic: KineticWeights | None,
+                   out_dir: str | Path, *, estimator_config: EstimatorConfig,
+                   extra: Mapping[str, object] | None = None,
                    progress: ProgressReporter | None = None,
                    on_trained: Callable[[TrainResult], None] | None = None,
-                   preset: Any = None) -> TrainResult:
+                   preset: TrainingPreset | None = None) -> TrainResult:
     """Train, then (only on success) write ``model.pt``, ``history.csv/json``, ``loss.png``.
 
-    ``preset`` (a :class:`pipeline.training.presets.TrainingPreset`) is recorded as ``extra["preset"]``,
-    which ``flowcast estimate``/``rollout`` read (dataset, direction, window): every flowcast
-    trainer passes it, so every flowcast checkpoint carries the same metadata.
+    ``preset`` is recorded as ``extra["preset"]``, which ``flowcast estimate``/``rollout`` read
+    (dataset, direction, window). Presets are trained through
+    :func:`pipeline.training.fit.fit_preset`, which passes it with the rest of the metadata every
+    flowcast checkpoint carries.
 
     A :class:`TrainingDivergedError` propagates before anything is written, so a diverged run
     never leaves a checkpoint behind (nor replaces a previous good one).

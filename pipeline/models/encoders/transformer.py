@@ -21,6 +21,7 @@ start token), so no NaN arises from a fully masked softmax.
 from __future__ import annotations
 
 import math
+from typing import TypedDict
 
 import torch
 from torch import Tensor, nn
@@ -40,6 +41,16 @@ def sinusoidal_encoding(positions: Tensor, d_model: int) -> Tensor:
     return encoding
 
 
+class _LayerOptions(TypedDict):
+    """The keyword arguments shared by the encoder and decoder layers."""
+
+    d_model: int
+    nhead: int
+    dim_feedforward: int
+    dropout: float
+    batch_first: bool
+
+
 class TransformerEncoder(nn.Module):
     """(B, R, C) window + mask -> (B, E) embedding (see module docstring)."""
 
@@ -50,9 +61,9 @@ class TransformerEncoder(nn.Module):
         self.encoder_input = nn.Linear(channels, config.d_model)
         self.decoder_input = nn.Linear(channels, config.d_model)
         self.start_token = nn.Parameter(torch.zeros(config.d_model))
-        layer_options = dict(d_model=config.d_model, nhead=config.heads,
-                             dim_feedforward=config.feedforward_features,
-                             dropout=config.dropout, batch_first=True)
+        layer_options = _LayerOptions(d_model=config.d_model, nhead=config.heads,
+                                      dim_feedforward=config.feedforward_features,
+                                      dropout=config.dropout, batch_first=True)
         # enable_nested_tensor=False: the nested-tensor fast path drops padded positions and
         # returns zeros there, which would make eval and train outputs differ in layout.
         self.encoder = nn.TransformerEncoder(nn.TransformerEncoderLayer(**layer_options),

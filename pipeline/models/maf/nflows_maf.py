@@ -44,15 +44,16 @@ class ContextMADE(MADE):
 
     def forward(self, inputs: Tensor, context: Tensor | None = None) -> Tensor:
         hidden = self.initial_layer(inputs)
-        context_hidden = None
+        context_term = None
         if self.context_output_layer is not None:
             context_hidden = self.activation(self.context_layer(context))
             hidden = hidden + context_hidden
+            context_term = self.context_output_layer(context_hidden)
         for block in self.blocks:
             hidden = block(hidden, context)
         outputs = self.final_layer(hidden)
-        if context_hidden is not None:
-            outputs = outputs + self.context_output_layer(context_hidden)
+        if context_term is not None:
+            outputs = outputs + context_term
         return outputs
 
 
@@ -125,4 +126,6 @@ class NflowsMAF(ConditionalFlow):
         return self.flow_layers[index](x, context)
 
     def _inverse_layer(self, index: int, z: Tensor, context: Tensor) -> Tensor:
-        return self.flow_layers[index].inverse(z, context)
+        layer = self.flow_layers[index]
+        assert isinstance(layer, NflowsLayer)  # ModuleList items are typed as plain Modules
+        return layer.inverse(z, context)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import cast
 
 import torch
 from torch import Tensor, nn
@@ -29,6 +30,9 @@ from pipeline.models.maf.base import (ConditionalFlow, FlowConfig, LUParameters,
 
 class ZukoLayer(nn.Module):
     """[permutation, LU linear, masked affine autoregressive transform] (data -> base)."""
+
+    order: Tensor  # buffers, registered in __init__
+    inverse_order: Tensor
 
     def __init__(self, config: FlowConfig) -> None:
         super().__init__()
@@ -47,7 +51,9 @@ class ZukoLayer(nn.Module):
     def forward(self, x: Tensor, context: Tensor) -> tuple[Tensor, Tensor]:
         x = x[:, self.order]
         linear = self._linear()
-        x = linear(x) + self.linear.bias
+        # torch.distributions.Transform.__call__ and its inverse are unannotated; pyright infers
+        # ``| None`` from their cache paths, which never return None.
+        x = cast(Tensor, linear(x)) + self.linear.bias
         log_det_linear = torch.log(self.linear.diagonal()).sum().expand(x.shape[0])
         transform = self.autoregressive(context if self.has_context else None)
         x, log_det_affine = transform.call_and_ladj(x)
@@ -56,7 +62,7 @@ class ZukoLayer(nn.Module):
     def inverse(self, z: Tensor, context: Tensor) -> Tensor:
         transform = self.autoregressive(context if self.has_context else None)
         z = transform.inv(z)
-        z = self._linear().inv(z - self.linear.bias)
+        z = cast(Tensor, self._linear().inv(z - self.linear.bias))  # see forward
         return z[:, self.inverse_order]
 
 
@@ -71,4 +77,6 @@ class ZukoMAF(ConditionalFlow):
         return self.flow_layers[index](x, context)
 
     def _inverse_layer(self, index: int, z: Tensor, context: Tensor) -> Tensor:
-        return self.flow_layers[index].inverse(z, context)
+        layer = self.flow_layers[index]
+        assert isinstance(layer, ZukoLayer)  # ModuleList items are typed as plain Modules
+        return layer.inverse(z, context)

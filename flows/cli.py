@@ -1,28 +1,35 @@
-"""`flowcast forecast`: run the weekly SF forecast flow once (Prefect's local ephemeral API, or
-the server at ``PREFECT_API_URL``). ``make forecast`` calls it."""
+"""The ``flowcast`` entry point: the library's commands (:mod:`pipeline.cli`) plus
+``flowcast forecast``, which runs the weekly SF forecast flow once (Prefect's local ephemeral API,
+or the server at ``PREFECT_API_URL``; ``make forecast`` calls it). It lives with the flows
+because it runs one: the library never imports Prefect."""
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated
+from enum import Enum
+from typing import TYPE_CHECKING, Annotated, TypeAlias
 
 import typer
 
-from pipeline.cli import app
+from pipeline.cli import app, build_command
+from pipeline.cli import main as library_main
 from pipeline.cli.choices import DataSource, Encoder, choices_enum, value
-from pipeline.forecast.steps import FORECAST_PRESETS
+from pipeline.forecast.config import FORECAST_PRESETS
 
-ForecastPreset = choices_enum("ForecastPreset", tuple(FORECAST_PRESETS))
+if TYPE_CHECKING:
+    ForecastPreset: TypeAlias = Enum  # built from the preset names at run time (see choices)
+else:
+    ForecastPreset = choices_enum("ForecastPreset", tuple(FORECAST_PRESETS))
 
 
 @app.command("forecast")
 def forecast_command(
-    preset: Annotated[ForecastPreset, typer.Option(  # type: ignore[valid-type]
+    preset: Annotated[ForecastPreset, typer.Option(
         help="default: the product (about 15 min from scratch, 1 min with a cached model); "
              "tiny: a seconds-long smoke run")] = ForecastPreset("default"),
-    encoder: Annotated[Encoder | None, typer.Option(  # type: ignore[valid-type]
+    encoder: Annotated[Encoder | None, typer.Option(
         help="context encoder (default: the preset's)")] = None,
-    data_source: Annotated[DataSource, typer.Option(  # type: ignore[valid-type]
+    data_source: Annotated[DataSource, typer.Option(
         help="live: DataSF with cache fallback; cache: offline; import: the --import-from "
              "exports first")] = DataSource("live"),
     import_from: Annotated[list[Path] | None, typer.Option(
@@ -38,7 +45,7 @@ def forecast_command(
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
     from flows.server_guard import guard_ephemeral_server
-    from flows.weekly_forecast import weekly_forecast
+    from flows.weekly_forecast import weekly_forecast  # imports Prefect: only when run
 
     guard_ephemeral_server()  # a killed run must not orphan Prefect's temporary server
     state = weekly_forecast(preset=value(preset), encoder=value(encoder),
@@ -56,7 +63,15 @@ def forecast_command(
                         fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1)
     result = state.result()
+    assert isinstance(result, dict)  # the flow's outcome (a stale run's Completed state holds it)
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:
         typer.secho("warning: DataSF could not be reached; the forecast used cached data "
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
+
+
+def main() -> None:
+    library_main()
+
+
+__all__ = ["app", "build_command", "main"]

@@ -1,0 +1,262 @@
+"""What determines one weekly run: typed sub-configs, the named presets, and their resolution.
+
+:class:`ForecastConfig` nests one frozen dataclass per concern (data, training, estimates,
+rollouts, SMC, the published forecast, outputs). The training presets and the SIR prior they
+imply are resolved once per config (:attr:`ForecastConfig.resolved`), not at every use.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Literal
+
+from pipeline.ensemble.nf_member import GrowthModelConfig
+from pipeline.ensemble.weekly import WeeklyConfig
+from pipeline.errors import ConfigError
+from pipeline.names import DIRECTIONS, Direction
+from pipeline.systems.sir import SIRPrior
+from pipeline.systems.waves import WavePrior
+from pipeline.training.presets import TrainingPreset, get_preset
+
+DataSourceKind = Literal["live", "cache", "import"]
+SeedStep = Literal["simulate", "train_forward", "train_backward", "latest", "rollout", "future",
+                   "params", "nll", "smc", "weekly", "train_growth"]
+# Per-step seed offsets: changing one step's draws never shifts another's.
+_SEED_OFFSETS: dict[SeedStep, int] = {
+    "simulate": 0, "train_forward": 11, "train_backward": 12, "latest": 21, "rollout": 31,
+    "future": 41, "params": 51, "nll": 61, "smc": 71, "weekly": 91, "train_growth": 92}
+
+
+def _require_positive(owner: str, **values: int | None) -> None:
+    for name, value in values.items():
+        if value is not None and value < 1:
+            raise ConfigError(f"{owner}.{name}={value} must be >= 1")
+
+
+@dataclass(frozen=True)
+class DataSourceConfig:
+    """Where the SF series comes from.
+
+    ``live``: fetch DataSF (HTTP retries with backoff inside the client), falling back to the cache
+    with a staleness note; ``cache``: offline, cache only; ``import``: import the given DataSF CSV
+    exports into the cache (``flowcast data import``), then read it offline.
+    """
+
+    kind: DataSourceKind = "live"
+    import_paths: tuple[str, ...] = ()
+    http_retries: int = 3          # per HTTP request, exponential backoff inside the client
+    http_backoff_s: float = 2.0
+    task_retries: int = 2          # whole-fetch retries by the orchestrator (live only)
+    task_retry_delay_s: float = 10.0
+    base_url: str | None = None    # a DataSF mirror/proxy; None: $FLOWCAST_DATASF_BASE_URL or DataSF
+    fetch_deadline_s: float = 300.0  # per dataset, every page and retry (wall clock)
+    trailing_days: int = 14        # the last days, still under revision, are dropped
+
+    @property
+    def task_timeout_s(self) -> float:
+        """The fetch task's time limit: three datasets' deadlines plus a minute of slack."""
+        return 3 * self.fetch_deadline_s + 60.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("live", "cache", "import"):
+            raise ConfigError(f"data source must be live, cache or import, got {self.kind!r}")
+        if self.kind == "import" and not self.import_paths:
+            raise ConfigError("data source 'import' needs import_paths (DataSF CSV exports)")
+        if self.trailing_days < 0:
+            raise ConfigError(f"DataSourceConfig.trailing_days={self.trailing_days} must be >= 0")
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    """The joint models: one named training preset (:func:`pipeline.training.presets.get_preset`,
+    ``preset`` × ``encoder`` × ``recipe``, one per direction) — the single source of the dataset,
+    estimator and optimiser settings. The optional sizes only shrink it (None = the preset's), so
+    the ``tiny`` forecast is the same model family at toy size."""
+
+    preset: str = "sir-sf-joint"   # the paper's sir-joint prior does not cover SF
+    recipe: str = "fast"
+    encoder: str = "transformer"   # the paper's SF runs use the transformer
+    n_trajectories: int | None = None
+    horizon_days: int | None = None
+    iterations: int | None = None
+    batch_size: int | None = None
+    eval_every: int | None = None
+
+    def __post_init__(self) -> None:
+        _require_positive("TrainingSettings", n_trajectories=self.n_trajectories,
+                          horizon_days=self.horizon_days, iterations=self.iterations,
+                          batch_size=self.batch_size, eval_every=self.eval_every)
+
+
+@dataclass(frozen=True)
+class EstimateSettings:
+    n_samples: int = 500            # draws per estimate
+    parameter_stride_days: int = 2  # β, γ track: one estimate every this many days
+    nll_locations: int = 100        # random SF days scored by the NLL table
+
+    def __post_init__(self) -> None:
+        _require_positive("EstimateSettings", n_samples=self.n_samples,
+                          parameter_stride_days=self.parameter_stride_days,
+                          nll_locations=self.nll_locations)
+
+
+@dataclass(frozen=True)
+class RolloutSettings:
+    windows: tuple[int, ...] = (7, 28)
+    # Rolling rollouts cover the whole history (~740 days x 4 views): sampling the MAF inverse
+    # for anchors x paths rows dominates a cached run, so 64 paths (enough for 2-sigma bands)
+    # keep the weekly run near a minute; the future paths use ``future_paths``.
+    paths: int = 64
+    forecast_days: int = 28         # the paper's rollout forecast past the last observed day
+    future_paths: int = 200
+
+    def __post_init__(self) -> None:
+        if any(w < 1 for w in self.windows):
+            raise ConfigError(f"RolloutSettings.windows={self.windows} must all be >= 1")
+        _require_positive("RolloutSettings", paths=self.paths, forecast_days=self.forecast_days,
+                          future_paths=self.future_paths)
+
+
+@dataclass(frozen=True)
+class SMCSettings:
+    particles: int = 1000
+    days: int = 56                  # observations the seeded filter runs over
+    # SIR process noise of the NF-seeded filter, per sqrt(day): a fifth of the prior's
+    # observation noise, so the filter follows SF's I (median 8e-4) instead of diffusing it; the
+    # paper's 1e-3 was sized for sir-multi's I of ~0.1.
+    process_sigma: float = 1e-4
+
+    def __post_init__(self) -> None:
+        _require_positive("SMCSettings", particles=self.particles, days=self.days)
+        if self.process_sigma < 0:
+            raise ConfigError(f"SMCSettings.process_sigma={self.process_sigma} must be >= 0")
+
+
+@dataclass(frozen=True)
+class OutputSettings:
+    output_dir: str = "reports"     # <output_dir>/<reference-date>/ per run, plus index.html
+    hub_samples: int = 200          # sample paths per target in the hubverse file (at most)
+
+    def __post_init__(self) -> None:
+        _require_positive("OutputSettings", hub_samples=self.hub_samples)
+
+
+@dataclass(frozen=True)
+class ResolvedTraining:
+    """The training presets of both directions and the SIR prior they train on."""
+
+    presets: dict[Direction, TrainingPreset]
+    prior: SIRPrior
+
+    @property
+    def window(self) -> int:
+        """R, the context length (the paper's five observations)."""
+        return int(self.presets["forward"].dataset.window)
+
+
+@dataclass(frozen=True)
+class ForecastConfig:
+    """Everything that determines one weekly run (with the data and the seed)."""
+
+    preset: str = "default"
+    seed: int = 0
+    data: DataSourceConfig = field(default_factory=DataSourceConfig)
+    training: TrainingSettings = field(default_factory=TrainingSettings)
+    estimates: EstimateSettings = field(default_factory=EstimateSettings)
+    rollouts: RolloutSettings = field(default_factory=RolloutSettings)
+    smc: SMCSettings = field(default_factory=SMCSettings)
+    # The published forecast: an ensemble of the flow member (its own model) and AutoETS, with
+    # its real-time backtest over every Saturday origin (pipeline.ensemble.weekly).
+    weekly: WeeklyConfig = field(default_factory=WeeklyConfig)
+    outputs: OutputSettings = field(default_factory=OutputSettings)
+
+    def __post_init__(self) -> None:
+        _ = self.resolved  # an unknown preset, encoder or recipe fails here, early
+
+    def step_seed(self, step: SeedStep) -> int:
+        return self.seed * 1000 + _SEED_OFFSETS[step]
+
+    @cached_property
+    def resolved(self) -> ResolvedTraining:
+        presets: dict[Direction, TrainingPreset] = {d: self._training_preset(d) for d in DIRECTIONS}
+        prior = presets["forward"].dataset.system_config()
+        if not isinstance(prior, SIRPrior):
+            raise ConfigError(f"training preset {self.training.preset!r} does not train on an "
+                              "SIR prior; the SF forecast needs one")
+        if self.training.horizon_days is not None:
+            prior = dataclasses.replace(prior, horizon_days=self.training.horizon_days)
+        return ResolvedTraining(presets=presets, prior=prior)
+
+    def _training_preset(self, direction: Direction) -> TrainingPreset:
+        settings = self.training
+        seed_step: SeedStep = "train_forward" if direction == "forward" else "train_backward"
+        preset = get_preset(settings.preset, settings.encoder, recipe=settings.recipe,
+                            direction=direction, seed=self.step_seed(seed_step),
+                            dataset_seed=self.step_seed("simulate"),
+                            n_trajectories=settings.n_trajectories)
+        preset = preset.with_overrides(iterations=settings.iterations,
+                                       batch_size=settings.batch_size)
+        if settings.eval_every is not None:
+            preset = dataclasses.replace(preset, train=dataclasses.replace(
+                preset.train, eval_every=settings.eval_every))
+        return preset
+
+    def weekly_config(self) -> WeeklyConfig:
+        """``weekly`` with the run's seeds (the flow member's training seed included)."""
+        growth = dataclasses.replace(self.weekly.growth, seed=self.step_seed("train_growth"))
+        return dataclasses.replace(self.weekly, growth=growth, seed=self.step_seed("weekly"))
+
+    def training_identity(self) -> dict[str, object]:
+        """What determines the trained joint models (the model-store key is built from this)."""
+        presets = self.resolved.presets
+        return {"presets": {d: presets[d].to_dict() for d in DIRECTIONS},
+                "horizon_days": self.training.horizon_days}
+
+    def as_dict(self) -> dict[str, object]:
+        return dataclasses.asdict(self)
+
+
+FORECAST_PRESETS: dict[str, ForecastConfig] = {
+    # The product: sir-sf-joint × transformer × fast recipe on the full sir-sf ensemble (2,000
+    # trajectories × 150 days). The recipe's 6,000 iterations per direction (~75–90 ms per
+    # batch-512 transformer step on one core) would take ~18 min for the pair; 2,500 with the
+    # same cosine schedule fit the 15-minute from-scratch budget (docs/orchestration.md).
+    "default": ForecastConfig(preset="default", training=TrainingSettings(iterations=2_500)),
+    # Seconds, for tests and smoke runs: same preset family with the MLP encoder, a small
+    # ensemble, a short horizon, few iterations, samples, particles and backtest origins.
+    "tiny": ForecastConfig(
+        preset="tiny",
+        training=TrainingSettings(encoder="mlp", n_trajectories=16, horizon_days=160,
+                                  iterations=30, batch_size=256, eval_every=10),
+        estimates=EstimateSettings(n_samples=128, parameter_stride_days=7, nll_locations=20),
+        rollouts=RolloutSettings(paths=16, future_paths=200),
+        smc=SMCSettings(particles=200, days=28),
+        weekly=WeeklyConfig(growth=GrowthModelConfig(n_trajectories=120, iterations=30,
+                                                     batch_size=256, prior=WavePrior(days=140)),
+                            n_paths=100),
+        data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,
+                              task_retry_delay_s=0.0)),
+}
+
+
+def resolve_config(preset: str, *, encoder: str | None = None, seed: int | None = None,
+                   data: DataSourceConfig | None = None,
+                   output_dir: str | None = None) -> ForecastConfig:
+    """The named preset with the run-time choices a user makes (None keeps the preset's)."""
+    try:
+        config = FORECAST_PRESETS[preset]
+    except KeyError:
+        raise ConfigError(f"unknown forecast preset {preset!r}; known: "
+                          f"{sorted(FORECAST_PRESETS)}") from None
+    if encoder is not None:
+        config = dataclasses.replace(
+            config, training=dataclasses.replace(config.training, encoder=encoder))
+    if output_dir is not None:
+        config = dataclasses.replace(
+            config, outputs=dataclasses.replace(config.outputs, output_dir=output_dir))
+    if seed is not None:
+        config = dataclasses.replace(config, seed=seed)
+    if data is not None:
+        config = dataclasses.replace(config, data=data)
+    return config

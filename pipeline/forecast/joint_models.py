@@ -1,0 +1,124 @@
+"""Steps 2–3: the synthetic ``sir-sf`` ensemble cut into forward and backward windows whose target
+is the joint (S, I, R, β, γ), and the pair of joint estimators trained on it — or reused from the
+model store (:mod:`pipeline.training.model_store`, key = training config + training-data hash).
+
+The SIR prior is fitted to the SF series (:mod:`pipeline.systems.sir`); the paper's ``sir-multi``
+prior sits far from SF (docs/systems.md).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+from pipeline.errors import CheckpointError
+from pipeline.forecast.config import ForecastConfig
+from pipeline.forecast.results import TrainedModels, TrainingData
+from pipeline.io import sha256_bytes
+from pipeline.models.estimator import ConditionalEstimator
+from pipeline.names import DIRECTIONS, Direction
+from pipeline.progress import ProgressReporter
+from pipeline.systems.sir import simulate_ensemble
+from pipeline.training.checkpoints import LoadedCheckpoint, load_checkpoint
+from pipeline.training.datasets import dataset_sha256, train_validation_split, windows_from_sir
+from pipeline.training.fit import fit_preset
+from pipeline.training.model_store import ModelStore, StoreEntry, default_store_root, model_key
+from pipeline.training.presets import ENCODER_CHOICES
+
+log = logging.getLogger(__name__)
+
+
+def simulate_training_data(config: ForecastConfig,
+                           progress: ProgressReporter | None = None) -> TrainingData:
+    """One synthetic ensemble (the preset's dataset, ``horizon_days`` override applied) cut into
+    the forward and backward windows of the two presets, each split into train/validation."""
+    presets, prior = config.resolved.presets, config.resolved.prior
+    ensemble = simulate_ensemble(prior, prior.n_trajectories, seed=presets["forward"].dataset.seed,
+                                 progress=progress)
+    splits, hashes = {}, []
+    for direction in DIRECTIONS:
+        preset = presets[direction]
+        ds = windows_from_sir(ensemble, direction=direction, target=preset.dataset.target,
+                              window=preset.dataset.window,
+                              val_fraction=preset.dataset.val_fraction)
+        hashes.append(dataset_sha256(ds))
+        # Standardization in the coordinates the model's flow works in (its target transform).
+        splits[direction] = train_validation_split(ds, preset.estimator.target_transform)
+    return TrainingData(splits=splits, data_sha256=sha256_bytes("|".join(hashes).encode()),
+                        n_trajectories=ensemble.n_trajectories)
+
+
+def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain: bool = False,
+                          store_root: Path | None = None,
+                          progress: ProgressReporter | None = None) -> TrainedModels:
+    """Forward + backward joint estimators, from the store unless config or data changed."""
+    store = ModelStore(store_root or default_store_root())
+
+    def build(out_dir: Path) -> dict[str, object]:
+        return {"best_val_nll": {d: _train_direction(config, data, d, out_dir / d, progress)
+                                 for d in DIRECTIONS}}
+
+    entry = store.get_or_build(config.training_identity(), data.data_sha256, build,
+                               retrain=retrain)
+    return load_models(config, entry)
+
+
+def _train_direction(config: ForecastConfig, data: TrainingData, direction: Direction,
+                     out_dir: Path, progress: ProgressReporter | None) -> float:
+    train_ds, val_ds = data.splits[direction]
+    result = fit_preset(config.resolved.presets[direction], train_ds, val_ds, out_dir,
+                        progress=progress, extra={"forecast_preset": config.preset})
+    log.info("trained %s model: best validation NLL %.3f at iteration %d (%s)", direction,
+             result.best_val_nll_original, result.best_iteration, result.stop_reason)
+    return float(result.best_val_nll_original)
+
+
+def load_models(config: ForecastConfig, entry: StoreEntry) -> TrainedModels:
+    """The forward/backward pair of a model-store entry, checked against the presets' configs."""
+    loaded = {d: _load_direction(config, entry, d) for d in DIRECTIONS}
+    return TrainedModels(
+        forward=_estimator(loaded["forward"]), backward=_estimator(loaded["backward"]),
+        key=entry.key, reused=entry.reused, path=entry.path,
+        histories={d: list(loaded[d].meta.history) for d in DIRECTIONS},
+        best_val_nll={d: float(loaded[d].meta.extra.get("best_val_nll_original", float("nan")))
+                      for d in DIRECTIONS},
+        encoder=config.training.encoder)
+
+
+def _load_direction(config: ForecastConfig, entry: StoreEntry,
+                    direction: Direction) -> LoadedCheckpoint:
+    path = entry.path / direction / "model.pt"
+    loaded = load_checkpoint(path, expected_config=config.resolved.presets[direction].estimator)
+    # Both directions share one architecture, so the config check cannot tell a swapped pair
+    # apart; the direction recorded at training time can.
+    recorded = loaded.meta.extra.get("direction")
+    if recorded is not None and recorded != direction:
+        raise CheckpointError(f"{path} is a {recorded} model (checkpoint metadata direction) in "
+                              f"the {direction} slot: forward and backward checkpoints swapped; "
+                              "retrain (--retrain)")
+    if not isinstance(loaded.estimator, ConditionalEstimator):
+        raise CheckpointError(f"{path} does not hold a conditional estimator")
+    loaded.estimator.eval()
+    return loaded
+
+
+def _estimator(loaded: LoadedCheckpoint) -> ConditionalEstimator:
+    assert isinstance(loaded.estimator, ConditionalEstimator)  # checked by _load_direction
+    return loaded.estimator
+
+
+def cached_variant_models(config: ForecastConfig, data: TrainingData, *,
+                          store_root: Path | None = None) -> dict[str, TrainedModels]:
+    """The other encoder variants (paper Table 5 columns) already in the model store for the
+    same preset, recipe and training data — e.g. trained by ``flows.scale_out``. Never trains."""
+    store = ModelStore(store_root or default_store_root())
+    out = {}
+    for encoder in ENCODER_CHOICES:
+        if encoder == config.training.encoder:
+            continue
+        variant = dataclasses.replace(
+            config, training=dataclasses.replace(config.training, encoder=encoder))
+        entry = store.get(model_key(variant.training_identity(), data.data_sha256))
+        if entry is not None:
+            out[encoder] = load_models(variant, entry)
+    return out

@@ -1,0 +1,147 @@
+"""The run's files: CSV tables, the hub CSV, the hubverse submission, ``results.json`` and the
+report, written into a staging folder and promoted to ``<output_dir>/<reference-date>/`` only when
+all of them were written (:mod:`pipeline.outputs.run_folders`), so a failed run never replaces the
+last good report."""
+from __future__ import annotations
+
+import datetime as dt
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.ensemble.backtest import PUBLISHED, hub_frame
+from pipeline.ensemble.weekly import WeeklyForecast
+from pipeline.forecast.results import ForecastResults
+from pipeline.forecast.steps import published_skill
+from pipeline.io import atomic_write_json, atomic_write_text
+from pipeline.outputs.hubverse import (Submission, SubmissionConfig, load_tasks_config,
+                                       write_model_output)
+from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
+from pipeline.report.weekly import build_forecast_report
+from pipeline.report.headline import compute_headline
+
+HUB_TASKS = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"
+
+
+@dataclass(frozen=True)
+class PublishedRun:
+    reference_date: str
+    folder: Path              # <output_dir>/<reference-date>/
+    files: tuple[str, ...]    # relative to ``folder``
+
+    @property
+    def report(self) -> str:
+        return next((f for f in self.files if f.endswith(".html")), self.files[0])
+
+
+def publish(results: ForecastResults) -> PublishedRun:
+    """Write every file of the run into a staging folder, then promote it and update the index."""
+    outputs = RunOutputs(results.config.outputs.output_dir)
+    run_id = new_run_id()
+    with outputs.staged(results.reference_date, run_id) as staging:
+        files = write_tables(results, staging) + write_report(results, staging)
+        record = RunRecord(
+            reference_date=results.reference_date, run_id=run_id,
+            finished_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            data_stale=results.stale, data_vintage=results.data_as_of or "unknown",
+            model_key=results.models.key, seed=results.config.seed,
+            preset=results.config.preset, files=tuple(files),
+            summary={"model_reused": results.models.reused,
+                     "nll": results.nll.to_dict(orient="records"),
+                     "backtest": published_skill(results.weekly),
+                     # reports/index.html shows it (pipeline.outputs.run_folders)
+                     "headline": headline_record(results)})
+        folder = outputs.promote(staging, record)
+    return PublishedRun(results.reference_date, folder, tuple(files))
+
+
+def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
+    """CSV tables + hub CSV + results.json into ``out_dir``; returns the file names written."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tables = {"sir_series.csv": results.sir_frame.assign(
+                  date=pd.to_datetime(results.sir_frame["date"]).dt.strftime("%Y-%m-%d")),
+              "latest_estimates.csv": results.latest.table,
+              "parameter_estimates.csv": results.parameters,
+              "nll_table.csv": results.nll,
+              "smc_bands.csv": results.smc.band_frame(3.0)}
+    for (direction, every), roll in results.rollouts.items():
+        tables[f"rollout_{direction}_{every}d.csv"] = roll.summary_frame()
+    tables.update(weekly_tables(results.weekly))
+    for name, frame in tables.items():
+        atomic_write_text(out_dir / name, frame.to_csv(index=False))
+    atomic_write_json(out_dir / "backtest_summary.json", results.weekly.summary())
+    submission = write_submission(results.weekly, out_dir, submission_run_date(results),
+                                  max_samples=results.config.outputs.hub_samples)
+    atomic_write_json(out_dir / "results.json", results_summary(results))
+    return sorted([*tables, "results.json", "backtest_summary.json",
+                   submission.path.relative_to(out_dir).as_posix()])
+
+
+def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
+    """The published forecast in hub format (quantiles and sample paths of I and weekly cases),
+    every forecaster's quantiles beside it, and the real-time backtest's scores."""
+    population = weekly.history.population
+    frames = [hub_frame(f, population).assign(forecaster=name)
+              for name, f in weekly.member_forecasts().items() if name != PUBLISHED]
+    scores = weekly.backtest.scores.assign(
+        origin_date=lambda f: pd.to_datetime(f["origin_date"]).dt.strftime("%Y-%m-%d"),
+        target_end_date=lambda f: pd.to_datetime(f["target_end_date"]).dt.strftime("%Y-%m-%d"))
+    return {"hub_forecast.csv": hub_frame(weekly.latest, population),
+            "member_forecasts.csv": pd.concat(frames, ignore_index=True),
+            "backtest_scores.csv": scores}
+
+
+def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date, *,
+                     max_samples: int = 200) -> Submission:
+    """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``,
+    validated against the repository's ``hub-config/tasks.json`` when it is there."""
+    paths = weekly.latest.paths
+    n_paths = 0 if paths is None else int(paths.shape[0])
+    return write_model_output(weekly.latest, population=weekly.history.population,
+                              run_date=run_date, hub_dir=hub_dir, tasks=_hub_tasks(),
+                              config=SubmissionConfig(n_samples=min(max_samples, n_paths)))
+
+
+def _hub_tasks() -> dict[str, object] | None:
+    return load_tasks_config(HUB_TASKS) if HUB_TASKS.is_file() else None
+
+
+def submission_run_date(results: ForecastResults) -> dt.date:
+    """The run's date for the hub round: the data's cut-off, the last kept day plus the
+    ``trailing_days`` dropped as still under revision (today, for a live run on fresh data), so a
+    re-run on the same data lands in the same round."""
+    last = pd.Timestamp(results.sir_frame["date"].iloc[-1]).date()
+    return last + dt.timedelta(days=results.config.data.trailing_days)
+
+
+def results_summary(results: ForecastResults) -> dict[str, object]:
+    latest = results.latest.table
+    fw = latest[latest["direction"] == "forward"]
+    forward_next_day = {
+        str(name): {"mean": float(mean), "q0.025": float(low), "q0.975": float(high)}
+        for name, mean, low, high in zip(fw["component"], fw["mean"].to_numpy(np.float64),
+                                         fw["q0.025"].to_numpy(np.float64),
+                                         fw["q0.975"].to_numpy(np.float64), strict=True)}
+    return {"reference_date": results.reference_date,
+            "data_vintage": results.vintage, "data_stale": results.stale,
+            "stale_notes": list(results.stale_notes), "model_key": results.models.key,
+            "model_reused": results.models.reused, "encoder": results.models.encoder,
+            "forward_next_day": forward_next_day,
+            "nll": results.nll.to_dict(orient="records"),
+            "backtest": published_skill(results.weekly),
+            "headline": headline_record(results),
+            "seconds": dict(results.timings),
+            "config": results.config.as_dict()}
+
+
+def headline_record(results: ForecastResults) -> dict[str, object]:
+    """The report's page-1 headline as JSON (``results.json``, the run index)."""
+    return compute_headline(results).to_dict()
+
+
+def write_report(results: ForecastResults, out_dir: Path) -> list[str]:
+    """report.html + report.pdf (:mod:`pipeline.report.weekly`); returns the file names."""
+    return list(build_forecast_report(results, out_dir))

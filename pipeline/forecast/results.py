@@ -1,0 +1,117 @@
+"""The typed outputs of the forecast steps, and :class:`ForecastResults`, the run as a whole.
+
+The report (:mod:`pipeline.report.weekly`), the run's files (:mod:`pipeline.forecast.publish`) and
+the Prefect flow read these types and nothing else.
+"""
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from torch import Tensor
+
+from pipeline.ensemble.weekly import WeeklyForecast
+from pipeline.forecast.config import ForecastConfig
+from pipeline.inference.estimate import Estimator
+from pipeline.inference.rollout import RolloutResult
+from pipeline.inference.smc import SMCResult
+from pipeline.names import JOINT_NAMES, Direction
+from pipeline.training.datasets import WindowedDataset
+
+
+@dataclass(frozen=True)
+class SIRArrays:
+    """An S/I/R frame as arrays: ``times`` in days since the first date (T,), ``values`` (T, 3)."""
+
+    times: np.ndarray
+    values: np.ndarray
+    dates: pd.DatetimeIndex
+
+
+@dataclass(frozen=True)
+class TrainingData:
+    """Forward and backward (train, validation) windowed datasets and their combined hash."""
+
+    splits: dict[Direction, tuple[WindowedDataset, WindowedDataset]]
+    data_sha256: str
+    n_trajectories: int
+
+
+@dataclass(frozen=True)
+class TrainedModels:
+    forward: Estimator
+    backward: Estimator
+    key: str
+    reused: bool
+    path: Path
+    histories: dict[Direction, list[dict[str, float]]]
+    best_val_nll: dict[Direction, float]
+    encoder: str
+
+    def by_direction(self, direction: Direction) -> Estimator:
+        return self.forward if direction == "forward" else self.backward
+
+
+@dataclass(frozen=True)
+class LatestEstimates:
+    """Summaries of the latest forward (next day) and backward (day before the window) estimates."""
+
+    table: pd.DataFrame  # direction, date, component, mean, std, q0.025, q0.5, q0.975
+    samples: dict[Direction, Tensor]  # (n, len(names)) joint draws (the report's R_t)
+    dates: dict[Direction, str]
+    names: tuple[str, ...] = JOINT_NAMES
+
+
+@dataclass(frozen=True)
+class FuturePaths:
+    dates: pd.DatetimeIndex
+    samples: Tensor          # (P, H, 5): S, I, R, beta, gamma
+    reference_date: dt.date
+
+
+@dataclass(frozen=True)
+class SMCRun:
+    """The NF-seeded filter over the last days: its result and the days it ran over."""
+
+    result: SMCResult
+    dates: pd.DatetimeIndex
+
+    def band_frame(self, n_sigma: float = 3.0) -> pd.DataFrame:
+        lower, upper = self.result.sigma_band(n_sigma)
+        frames = [pd.DataFrame({
+            "date": self.dates.strftime("%Y-%m-%d"), "component": name,
+            "mean": self.result.mean[0, :, d].numpy(),
+            f"lower_{n_sigma:g}sigma": lower[0, :, d].numpy(),
+            f"upper_{n_sigma:g}sigma": upper[0, :, d].numpy()})
+            for d, name in enumerate(self.result.state_names)]
+        return pd.concat(frames, ignore_index=True)
+
+
+Rollouts = dict[tuple[Direction, int], RolloutResult]
+
+
+@dataclass(frozen=True)
+class ForecastResults:
+    config: ForecastConfig
+    sir_frame: pd.DataFrame
+    vintage: str
+    stale: bool
+    stale_notes: tuple[str, ...]
+    models: TrainedModels
+    latest: LatestEstimates
+    rollouts: Rollouts
+    future: FuturePaths
+    parameters: pd.DataFrame
+    nll: pd.DataFrame
+    smc: SMCRun
+    weekly: WeeklyForecast                  # the published forecast and its real-time backtest
+    data_as_of: str | None = None           # DataSF's own "data as of" stamp, when it gave one
+    # seconds per step, in the order run (the e2e benchmark reads them)
+    timings: dict[str, float] = field(default_factory=dict, compare=False)
+
+    @property
+    def reference_date(self) -> str:
+        return str(self.future.reference_date)

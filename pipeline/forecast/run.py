@@ -1,0 +1,111 @@
+"""``run_forecast(config) -> ForecastResults``: the weekly forecast's one composition of its steps.
+
+The Prefect flow (``flows/weekly_forecast.py``) and the tests run this function; the flow only
+passes a :class:`StepRunner` that turns each step into a Prefect task, so it cannot drift from
+what the tests check. A step's name is its task's name, and every step's seconds are recorded
+(``ForecastResults.timings``, ``results.json``'s ``seconds``: what ``bench/e2e.py`` reports).
+``bench/backtest.py`` calls the steps it needs (the data source and the ensemble) directly.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Literal, ParamSpec, TypeVar
+
+import pandas as pd
+import requests
+
+from pipeline.forecast.config import ForecastConfig
+from pipeline.forecast.joint_models import (cached_variant_models, simulate_training_data,
+                                            train_or_reuse_models)
+from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels, TrainingData
+from pipeline.forecast.sources import (data_is_stale, load_series, series_to_sir, sir_arrays,
+                                       staleness_notes)
+from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_variants,
+                                     parameter_track, published_skill, rollouts, seeded_smc,
+                                     weekly_forecast)
+from pipeline.progress import ProgressReporter, SilentProgress
+
+Step = Literal["fetch-datasf", "convert-to-sir", "simulate-training-data",
+               "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
+               "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast"]
+P = ParamSpec("P")
+R = TypeVar("R")
+# A step's progress reporter, by step (training and the weekly forecast report progress).
+ProgressFactory = Callable[[Step], ProgressReporter]
+
+log = logging.getLogger(__name__)
+
+
+class StepRunner:
+    """Runs one step and records its wall time; subclasses change how a step is invoked."""
+
+    def __init__(self, logger: logging.Logger | logging.LoggerAdapter[logging.Logger] = log
+                 ) -> None:
+        self.logger = logger
+        self.timings: dict[str, float] = {}
+
+    def __call__(self, step: Step, fn: Callable[P, R], *args: P.args, **kwargs: P.kwargs) -> R:
+        started = time.monotonic()
+        result = self.invoke(step, fn, *args, **kwargs)
+        self.timings[step] = time.monotonic() - started
+        self.logger.info("%s (%.1f s)", step, self.timings[step])
+        return result
+
+    def invoke(self, step: Step, fn: Callable[P, R], *args: P.args, **kwargs: P.kwargs) -> R:
+        return fn(*args, **kwargs)
+
+
+def _silent(step: Step) -> ProgressReporter:
+    return SilentProgress()
+
+
+def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
+                 retrain: bool = False, runner: StepRunner | None = None,
+                 session: requests.Session | None = None) -> ForecastResults:
+    """Fetch DataSF → S/I/R → synthetic ensemble → (cached) joint estimators → estimates,
+    rollouts, β/γ, NLL, NF-seeded SMC, and the published forecast with its backtest."""
+    run = runner or StepRunner()
+    series = run("fetch-datasf", load_series, config.data, session=session)
+    stale = data_is_stale(series, config.data.kind)
+    notes = staleness_notes(series)
+    run.logger.info("DataSF series: %s", series.vintage.describe())
+    for note in notes:
+        (run.logger.warning if stale else run.logger.info)("%s", note)
+    sir = run("convert-to-sir", series_to_sir, series)
+    arrays = sir_arrays(sir.frame)
+    data = run("simulate-training-data", simulate_training_data, config)
+    models = run("train-or-reuse-models", train_or_reuse_models, config, data, retrain=retrain,
+                 progress=progress("train-or-reuse-models"))
+    _log_models(run, models)
+    latest = run("latest-estimates", latest_estimates, models, arrays, config)
+    rolled = run("rollouts", rollouts, models, arrays, config)
+    future = run("future-paths", future_paths, models, arrays, config)
+    parameters = run("beta-gamma-estimates", parameter_track, models, arrays, config)
+    nll = run("nll-table", nll_with_cached_variants, models, data, arrays, config)
+    smc = run("nf-seeded-smc", seeded_smc, models, arrays, config)
+    run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles", len(smc.dates),
+                    float(smc.result.ess.min()), config.smc.particles)
+    weekly = run("weekly-forecast", weekly_forecast, series, sir, config,
+                 progress=progress("weekly-forecast"))
+    run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
+                    weekly.origin.date(), published_skill(weekly))
+    return ForecastResults(
+        config=config, sir_frame=sir.frame, vintage=series.vintage.describe(), stale=stale,
+        stale_notes=tuple(notes) if stale else (), models=models, latest=latest,
+        rollouts=rolled, future=future, parameters=parameters, nll=nll, smc=smc, weekly=weekly,
+        data_as_of=series.vintage.data_as_of, timings=dict(run.timings))
+
+
+def nll_with_cached_variants(models: TrainedModels, data: TrainingData, sir: SIRArrays,
+                             config: ForecastConfig) -> pd.DataFrame:
+    """NLL of this run's models plus any other encoder variant already in the model store (e.g.
+    trained by ``flows.scale_out``), so the report's Table 5 fills up without retraining."""
+    return nll_table_variants(models, cached_variant_models(config, data), sir, config)
+
+
+def _log_models(run: StepRunner, models: TrainedModels) -> None:
+    run.logger.info("%s forward/backward models %s… (%s encoder; best val NLL fw %.3f, bw %.3f)",
+                    "reused" if models.reused else "trained", models.key[:12], models.encoder,
+                    models.best_val_nll["forward"], models.best_val_nll["backward"])

@@ -1,0 +1,115 @@
+"""Step 1: the SF series from DataSF (live with cache fallback, cache only, or imported CSV
+exports), trimmed of the days still under revision, and its S/I/R proportions."""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import requests
+
+from pipeline.data.csv_import import ImportSummary, detect_dataset, import_csv_exports
+from pipeline.data.datasf import ClientConfig
+from pipeline.data.payloads import read_csv_bytes
+from pipeline.data.series import SFDataConfig, SFSeries, load_sf_series
+from pipeline.data.sir_transform import SIRSeries, to_sir
+from pipeline.ensemble.targets import EpiHistory, history_from_frames
+from pipeline.errors import ConfigError, FlowcastError, OfflineError
+from pipeline.forecast.config import DataSourceConfig, DataSourceKind
+from pipeline.forecast.results import SIRArrays
+from pipeline.names import COMPARTMENTS
+
+log = logging.getLogger(__name__)
+
+
+def import_exports(paths: Sequence[str], *, if_empty: bool = False) -> list[ImportSummary]:
+    """``flowcast data import`` as a function: validate and cache DataSF CSV exports."""
+    return import_csv_exports(_expand_import_paths(paths), if_empty=if_empty)
+
+
+def _expand_import_paths(paths: Sequence[str]) -> list[Path]:
+    """Files as given; a directory contributes its cases/deaths/tests exports (by column match)."""
+    out: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if path.is_file():
+            out.append(path)
+        elif path.is_dir():
+            out.extend(_exports_in(path))
+        else:
+            raise ConfigError(f"import path {path} does not exist")
+    if not out:
+        raise ConfigError(f"no DataSF CSV exports found in {list(paths)}")
+    return out
+
+
+def _exports_in(folder: Path) -> list[Path]:
+    found: dict[str, Path] = {}
+    for candidate in sorted(folder.rglob("*.csv")):
+        try:
+            head = read_csv_bytes(candidate.read_bytes()[:4096].rsplit(b"\n", 1)[0],
+                                  source=str(candidate))
+            key = detect_dataset(list(head.columns), source=str(candidate)).key
+        except (FlowcastError, ValueError, UnicodeDecodeError):  # not an export we know: skip
+            continue
+        found.setdefault(key, candidate)
+    return list(found.values())
+
+
+def load_series(source: DataSourceConfig, *,
+                session: requests.Session | None = None) -> SFSeries:
+    """The SF series per ``source``; see :class:`DataSourceConfig`."""
+    client = ClientConfig(max_retries=source.http_retries, backoff_base_s=source.http_backoff_s,
+                          fetch_deadline_s=source.fetch_deadline_s)
+    if source.base_url:
+        client = dataclasses.replace(client, base_url=source.base_url)
+    data_config = SFDataConfig(trailing_days=source.trailing_days, client=client)
+    if source.kind == "import":
+        summaries = import_exports(source.import_paths)
+        log.info("imported %s", ", ".join(f"{s.dataset_key} ({s.row_count} rows)"
+                                          for s in summaries))
+    try:
+        return load_sf_series(data_config, offline=source.kind != "live", session=session)
+    except OfflineError as exc:
+        raise OfflineError(f"{exc} No usable DataSF data, so no forecast was made; the last good "
+                           "report is unchanged. Import the exports with `flowcast data import "
+                           "FILE...` (or run with data source 'import').") from exc
+
+
+def data_is_stale(series: SFSeries, source: DataSourceKind) -> bool:
+    """True when a live fetch was asked for but the cache had to be used."""
+    return source == "live" and any(p.from_cache for p in series.provenance.datasets)
+
+
+def staleness_notes(series: SFSeries) -> list[str]:
+    return [f"{p.dataset_key}: {note}" for p in series.provenance.datasets for note in p.notes]
+
+
+def series_to_sir(series: SFSeries) -> SIRSeries:
+    """S, I, R proportions with the default conversion (see :mod:`pipeline.data.sir_transform`)."""
+    return to_sir(series)
+
+
+def sir_arrays(sir_frame: pd.DataFrame) -> SIRArrays:
+    dates = pd.DatetimeIndex(pd.to_datetime(sir_frame["date"]))
+    times = ((dates - dates[0]) / pd.Timedelta(days=1)).to_numpy(dtype=np.float64, copy=True)
+    values = sir_frame[list(COMPARTMENTS)].to_numpy(dtype=np.float64, copy=True)  # writable
+    return SIRArrays(times=times, values=values, dates=dates)
+
+
+def sf_history(series: SFSeries, sir: SIRSeries) -> EpiHistory:
+    """The weekly forecast's :class:`EpiHistory`: the daily counts the S/I/R conversion used
+    (ascertainment-adjusted, rounded, when it was on: ``sir.counts.multiplier``)."""
+    raw = series.frame["new_cases"].to_numpy(dtype=np.float64)
+    multiplier = sir.counts["multiplier"].to_numpy(dtype=np.float64)
+    cases = np.rint(raw * multiplier).astype(np.int64)
+    return history_from_frames(sir.frame, cases, int(sir.provenance.conversion.population))
+
+
+def load_sf_history(source: DataSourceConfig) -> EpiHistory:
+    """The SF history the weekly forecast sees, from ``source`` (live, cache or import)."""
+    series = load_series(source)
+    return sf_history(series, series_to_sir(series))
