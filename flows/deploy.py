@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
 
 from prefect.schedules import Cron, Schedule
 
@@ -43,16 +42,16 @@ def weekly_schedule() -> Schedule:
     return Cron(CRON, timezone=TIMEZONE)
 
 
-def deployment_parameters(args: argparse.Namespace) -> dict[str, Any]:
+def deployment_parameters(args: argparse.Namespace) -> dict[str, object]:
     """The default parameters stored on the deployment (a triggered run may override any)."""
-    params: dict[str, Any] = {"preset": args.preset, "data_source": args.data_source,
+    params: dict[str, object] = {"preset": args.preset, "data_source": args.data_source,
                               "output_dir": args.output_dir, "seed": args.seed}
     if args.encoder:
         params["encoder"] = args.encoder
     return params
 
 
-def serve(parameters: dict[str, Any], *, limit: int = 1) -> None:
+def serve(parameters: dict[str, object], *, limit: int = 1) -> None:
     """Register the deployment and run it until stopped (``limit`` concurrent runs: weekly
     runs share one model cache and one output folder, so they should not overlap)."""
     weekly_forecast.serve(

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from typing import Any, cast
+from typing import Any, TypedDict, cast
 
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
@@ -25,6 +25,7 @@ from prefect.task_runners import TaskRunner
 from prefect_dask.task_runners import DaskTaskRunner
 
 from pipeline import forecast as fc
+from pipeline.names import Direction
 from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
 
 # The paper's variants (Table 5 rows) as (name, encoder choice of pipeline.training.presets); the
@@ -34,8 +35,15 @@ PAPER_VARIANTS: dict[str, str] = {"transformer": "transformer",
                                   "mlp": "mlp"}
 
 
+class VariantResult(TypedDict):
+    variant: str
+    model_key: str
+    reused: bool
+    best_val_nll: dict[Direction, float]
+
+
 @task(name="train-variant", cache_policy=NO_CACHE, persist_result=False)
-def train_variant(config: fc.ForecastConfig, variant: str, retrain: bool) -> dict[str, Any]:
+def train_variant(config: fc.ForecastConfig, variant: str, retrain: bool) -> VariantResult:
     import torch
 
     torch.set_num_threads(1)  # one core per Dask worker; several variants share the machine
@@ -54,7 +62,7 @@ def task_runner(address: str | None, n_workers: int) -> DaskTaskRunner:
 
 @flow(name="train_variants")
 def train_variants(preset: str = "default", variants: list[str] | None = None, seed: int = 0,
-                   retrain: bool = False) -> list[dict[str, Any]]:
+                   retrain: bool = False) -> list[VariantResult]:
     logger = get_run_logger()
     names = variants or list(PAPER_VARIANTS)
     unknown = [v for v in names if v not in PAPER_VARIANTS]

@@ -8,7 +8,7 @@ import torch
 
 from pipeline.training.checkpoints import (FORMAT_VERSION, dataclass_from_dict, load_checkpoint,
                                   save_checkpoint)
-from pipeline.training.datasets import Standardization
+from pipeline.models.standardization import Standardization
 from pipeline.errors import CheckpointError
 from pipeline.models.encoders import EncoderConfig
 from pipeline.models.estimator import EstimatorConfig, build_estimator, make_estimator_config

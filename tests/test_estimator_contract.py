@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pipeline.training.checkpoints import dataclass_from_dict
-from pipeline.training.datasets import Standardization
+from pipeline.models.standardization import Standardization
 from pipeline.errors import ConfigError
 from pipeline.training.kinetic import KineticWeights, kinetic_loss
 from pipeline.models import (EncoderConfig, EstimatorConfig,

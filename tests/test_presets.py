@@ -14,7 +14,7 @@ from pipeline.training.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, ge
 
 
 def _unit_stats(channels: int, features: int, target_transform: str = "identity"):
-    from pipeline.training.datasets import Standardization
+    from pipeline.models.standardization import Standardization
 
     return Standardization(torch.zeros(channels), torch.ones(channels), torch.zeros(features),
                            torch.ones(features), target_transform=target_transform)

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
-from pipeline.training.datasets import (Standardization, compute_standardization, train_validation_split,
-                               windows_from_sir)
+from pipeline.models.standardization import Standardization, compute_standardization
+from pipeline.training.datasets import train_validation_split, windows_from_sir
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.inference.estimate import ObservationWindow, sample_conditional
 from pipeline.models.encoders import EncoderConfig

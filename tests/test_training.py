@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from pipeline.training.datasets import DatasetMeta, WindowedDataset, compute_standardization
+from pipeline.models.standardization import compute_standardization
+from pipeline.training.datasets import DatasetMeta, WindowedDataset
 from pipeline.errors import TrainingDivergedError
 from pipeline.training.kinetic import KineticWeights
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig

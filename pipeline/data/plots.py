@@ -19,7 +19,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from contextlib import AbstractContextManager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
 from typing import IO, TYPE_CHECKING, Any
@@ -193,7 +193,3 @@ def _save(fig: Figure, path: str | os.PathLike[str],
         fig.savefig(handle, format=target.suffix.lstrip(".") or "png", dpi=120)
     plt.close(fig)
     return target
-
-
-def with_prior(prior: PriorEnsembleConfig, **changes: object) -> PriorEnsembleConfig:
-    return replace(prior, **changes)

@@ -59,6 +59,11 @@ def _window_at(sir: SIRArrays, target: int, direction: Direction, r: int,
     return ObservationWindow(times=sir.times[rows], values=sir.values[rows], target_time=time)
 
 
+def _last_window(sir: SIRArrays, r: int, target_time: float) -> ObservationWindow:
+    """The latest R observations, for a target time after (forward) or before (backward) them."""
+    return ObservationWindow(times=sir.times[-r:], values=sir.values[-r:], target_time=target_time)
+
+
 def _draws_at(models: TrainedModels, sir: SIRArrays, targets: np.ndarray, direction: Direction,
               config: ForecastConfig, seed: int) -> Tensor:
     """(len(targets), n_samples, 5) joint draws at the given day indices, one flow call."""
@@ -71,17 +76,15 @@ def _draws_at(models: TrainedModels, sir: SIRArrays, targets: np.ndarray, direct
 
 def latest_estimates(models: TrainedModels, sir: SIRArrays,
                      config: ForecastConfig) -> LatestEstimates:
-    r, n = config.resolved.window, len(sir.times)
-    last = slice(n - r, n)
+    r = config.resolved.window
     targets: dict[Direction, float] = {"forward": float(sir.times[-1]) + 1.0,
                                        "backward": float(sir.times[-r]) - 1.0}
     rows: list[dict[str, object]] = []
     samples: dict[Direction, Tensor] = {}
     dates: dict[Direction, str] = {}
     for direction in DIRECTIONS:
-        window = ObservationWindow(times=sir.times[last], values=sir.values[last],
-                                   target_time=targets[direction])
-        est = estimate(models.by_direction(direction), window, direction,
+        est = estimate(models.by_direction(direction),
+                       _last_window(sir, r, targets[direction]), direction,
                        n_samples=config.estimates.n_samples, seed=config.step_seed("latest"),
                        names=JOINT_NAMES, window_length=r)
         dates[direction] = str((sir.dates[0] + pd.Timedelta(days=targets[direction])).date())
@@ -117,8 +120,7 @@ def rollouts(models: TrainedModels, sir: SIRArrays, config: ForecastConfig,
 def future_paths(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) -> FuturePaths:
     """Forward sample paths for ``rollouts.forecast_days`` days after the last observed day."""
     r, days = config.resolved.window, config.rollouts.forecast_days
-    window = ObservationWindow(times=sir.times[-r:], values=sir.values[-r:],
-                               target_time=float(sir.times[-1]) + 1.0)
+    window = _last_window(sir, r, float(sir.times[-1]) + 1.0)
     settings = RolloutConfig(n_paths=config.rollouts.future_paths,
                              feedback_noise_sigma=config.resolved.prior.obs_sigma,
                              seed=config.step_seed("future"))

@@ -47,6 +47,7 @@ from pipeline.errors import ConfigError
 from pipeline.systems.sir import DTYPE, SIRPrior, observation_log_likelihood, \
     sample_initial_states, sample_parameters, simulate_sir
 from pipeline.systems.vehicle import VehicleConfig, simulate_vehicle
+from pipeline.names import COMPARTMENTS
 
 DEFAULT_DRAWS = 1000
 _CHUNK = 16
@@ -196,7 +197,7 @@ def sir_reference(candidates: SIRCandidates, offsets: Tensor, observed: Tensor, 
         frac = (position - left.to(DTYPE))[:, None]
         samples.append((1 - frac) * states[traj, left] + frac * states[traj, left + 1])
     return ReferencePosterior(samples=torch.stack(samples), ess=torch.stack(ess),
-                              n_candidates=int(states.shape[0] * n_grid), names=("S", "I", "R"))
+                              n_candidates=int(states.shape[0] * n_grid), names=COMPARTMENTS)
 
 
 # ----------------------------------------------------------------------------------- vehicle

@@ -38,6 +38,7 @@ from pipeline.errors import ConfigError
 from pipeline.systems.sir import SIR_PRIORS, rk4_step
 from pipeline.systems.vehicle import (OBSERVED_NAMES, STATE_NAMES, VehicleConfig,
                                       get_vehicle_config, vehicle_step)
+from pipeline.names import COMPARTMENTS
 
 DEFAULT_OBS_SIGMA = 0.027          # the paper's SIR observation noise
 DEFAULT_PROCESS_SIGMA = 1e-3       # SIR process noise τ per √day (see the module docstring)
@@ -233,8 +234,8 @@ class SIRStateModel:
     prior_std: float = DEFAULT_OBS_SIGMA
     obs_sigma: float = DEFAULT_OBS_SIGMA
     process_sigma: float = DEFAULT_PROCESS_SIGMA
-    state_names: tuple[str, ...] = ("S", "I", "R")
-    observation_names: tuple[str, ...] = ("S", "I", "R")
+    state_names: tuple[str, ...] = COMPARTMENTS
+    observation_names: tuple[str, ...] = COMPARTMENTS
 
     @classmethod
     def create(cls, beta: float | Tensor, gamma: float | Tensor, prior_mean: Any,
@@ -307,7 +308,7 @@ class SIRParamsModel:
     process_sigma: float = DEFAULT_PROCESS_SIGMA
     param_jitter: float = 0.0
     state_names: tuple[str, ...] = ("S", "I", "R", "beta", "gamma")
-    observation_names: tuple[str, ...] = ("S", "I", "R")
+    observation_names: tuple[str, ...] = COMPARTMENTS
 
     @classmethod
     def create(cls, prior_mean: Any, prior_std: float = DEFAULT_OBS_SIGMA,

@@ -172,7 +172,7 @@ class ConditionalEstimator(nn.Module):
     @property
     def stats(self) -> Any:
         """The standardization as a ``pipeline.training.datasets.Standardization`` (buffers' values)."""
-        from pipeline.training.datasets import Standardization
+        from pipeline.models.standardization import Standardization
         return Standardization(self.context_mean, self.context_std, self.target_mean,
                                self.target_std, target_transform=self.target_transform)
 

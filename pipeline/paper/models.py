@@ -13,6 +13,7 @@ from pipeline.inference.estimate import assemble_context, draw_noise, uses_absol
 from pipeline.models.estimator import ConditionalEstimator
 from pipeline.paper.config import ENCODERS, BenchConfig, Locations
 from pipeline.training.presets import TrainingPreset
+from pipeline.names import DIRECTIONS
 
 
 class RequiredModel(NamedTuple):
@@ -27,9 +28,9 @@ class RequiredModel(NamedTuple):
 def required_models() -> list[RequiredModel]:
     """Every model the tables need, in run order."""
     models = [RequiredModel("vehicle", "transformer", "forward", "vehicle-full")]
-    models += [RequiredModel("vehicle", e, d) for d in ("forward", "backward") for e in ENCODERS]
+    models += [RequiredModel("vehicle", e, d) for d in DIRECTIONS for e in ENCODERS]
     models += [RequiredModel(p, e, d) for p in ("sir-single", "sir-multi")
-               for d in ("forward", "backward") for e in ENCODERS]
+               for d in DIRECTIONS for e in ENCODERS]
     return models
 
 

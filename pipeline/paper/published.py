@@ -7,6 +7,7 @@ vehicle with dropout, the three encoders, forward and backward; Tables 3/4: SIR 
 from __future__ import annotations
 
 from pipeline.paper.config import ENCODER_LABEL, ENCODERS
+from pipeline.names import COMPARTMENTS
 
 Cells = dict[tuple[str, str], float]
 
@@ -28,7 +29,7 @@ _T3 = {"fw": (2.245, 2.211, 2.304, 2.243, 2.375, 2.467, 2.192, 2.209, 2.264),
        "bw": (2.110, 1.984, 2.232, 2.143, 2.098, 2.320, 2.053, 1.975, 2.157)}
 _T4 = {"fw": (2.847, 2.456, 2.642, 2.816, 2.440, 2.616, 2.729, 2.478, 2.418),
        "bw": (2.838, 2.097, 2.828, 2.634, 2.138, 2.765, 2.765, 2.051, 2.662)}
-SIR_COLUMNS: list[str] = [f"{ENCODER_LABEL[e]} / {c}" for e in ENCODERS for c in ("S", "I", "R")]
+SIR_COLUMNS: list[str] = [f"{ENCODER_LABEL[e]} / {c}" for e in ENCODERS for c in COMPARTMENTS]
 PAPER_T3: Cells = {(row, col): v for row, vals in _T3.items()
                    for col, v in zip(SIR_COLUMNS, vals, strict=True)}
 PAPER_T4: Cells = {(row, col): v for row, vals in _T4.items()

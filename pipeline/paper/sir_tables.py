@@ -12,6 +12,7 @@ from pipeline.inference.reference import (SIRReferenceConfig, simulate_sir_candi
 from pipeline.paper.cells import Cell, make_cell, mean_kl, usable_windows
 from pipeline.paper.config import DIR_LABEL, ENCODER_LABEL, ENCODERS, BenchConfig, Locations
 from pipeline.paper.models import RequiredModel, model_samples, trained_estimator
+from pipeline.names import DIRECTIONS
 
 
 def sir_windows(prior_name: str, direction: str, n: int,
@@ -46,7 +47,7 @@ def sir_cells(cfg: BenchConfig, locations: Locations) -> tuple[list[Cell], dict[
         table_cfg = dataclasses.replace(ref_cfg, substeps=16) if prior.parameters_fixed else ref_cfg
         cand_a = simulate_sir_candidates(prior, table_cfg, seed=11)
         cand_b = simulate_sir_candidates(prior, table_cfg, seed=22)
-        for direction in ("forward", "backward"):
+        for direction in DIRECTIONS:
             values, times, target = sir_windows(prior_name, direction, cfg.n_sir_locations,
                                                 seed=7000 + (direction == "backward"))
             offsets = times - target[:, None]

@@ -19,6 +19,7 @@ from pipeline.paper.config import (DIR_LABEL, ENCODER_LABEL, ENCODERS, LOCATION_
                                    Locations)
 from pipeline.paper.models import RequiredModel, model_samples, trained_estimator
 from pipeline.systems.vehicle import VehicleConfig
+from pipeline.names import DIRECTIONS
 
 # (values (B, R, 2), context times (B, R), target times (B,))
 Windows = tuple[Tensor, Tensor, Tensor]
@@ -127,7 +128,7 @@ def vehicle_cells(cfg: BenchConfig, locations: Locations,
     drop = get_vehicle_config("vehicle-dropout")
     cand_a = simulate_vehicle_candidates(drop, cfg.vehicle_candidates, seed=303)
     cand_b = simulate_vehicle_candidates(drop, cfg.vehicle_candidates, seed=404)
-    for direction in ("forward", "backward"):
+    for direction in DIRECTIONS:
         windows = {loc: vehicle_windows(drop, direction, VEHICLE_DROPOUT_TARGETS[direction][loc],
                                         cfg.n_vehicle_windows, seed=6000 + LOCATIONS.index(loc))
                    for loc in LOCATIONS}

@@ -41,6 +41,7 @@ from pipeline.report.headline import (PUBLISHED, Headline, compute_headline, fac
                                       fmt_count, fmt_range, fmt_share, forecast_frame,
                                       published_weekly, skill_frame)
 from pipeline.report.render import ReportFiles, write_report
+from pipeline.names import COMPARTMENTS, DIRECTIONS
 
 if TYPE_CHECKING:
     from pipeline.forecast.results import ForecastResults
@@ -48,7 +49,7 @@ if TYPE_CHECKING:
     from pipeline.inference.smc import SMCResult
 
 log = logging.getLogger(__name__)
-STATES = ("S", "I", "R")
+STATES = COMPARTMENTS
 LEVELS = figures.LEVELS
 Q_COLUMNS = tuple(f"q{level:g}" for level in LEVELS)
 _VERSIONED = ("torch", "numpy", "pandas", "scipy", "nflows", "zuko", "pyro-ppl", "prefect",
@@ -292,7 +293,7 @@ def _q(wide: pd.DataFrame) -> NDArray[np.float64]:
 
 def estimates_section(results: ForecastResults) -> Section:
     items = []
-    for direction in ("forward", "backward"):
+    for direction in DIRECTIONS:
         dates, wide = _long_to_arrays(results.parameters, direction)
         q = np.stack([_q(wide[c]) for c in STATES], axis=-1).transpose(1, 0, 2)   # (5, T, 3)
         png = figures.estimate_band_figure(dates, _observed_at(results.sir_frame, dates), q,

@@ -42,7 +42,7 @@ if TYPE_CHECKING:  # annotations only: the functions below import these where th
     from _typeshed import DataclassInstance
 
     from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
-    from pipeline.training.datasets import Standardization
+    from pipeline.models.standardization import Standardization
 
 _D = TypeVar("_D", bound="DataclassInstance")
 
@@ -181,7 +181,7 @@ def _config_from_payload(path: Path, payload: dict[str, Any]) -> EstimatorConfig
 
 
 def _stats_from_payload(path: Path, payload: dict[str, Any]) -> Standardization:
-    from pipeline.training.datasets import Standardization
+    from pipeline.models.standardization import Standardization
 
     stats = payload["stats"]
     missing = [name for name in _STATS_FIELDS if name not in stats]

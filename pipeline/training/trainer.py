@@ -50,7 +50,8 @@ from pipeline.errors import ConfigError, TrainingDivergedError
 from pipeline.io import atomic_open, atomic_write_json, atomic_write_text
 from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig, add_context_noise
 from pipeline.progress import ProgressReporter, SilentProgress
-from pipeline.training.datasets import Standardization, WindowedDataset
+from pipeline.models.standardization import Standardization
+from pipeline.training.datasets import WindowedDataset
 from pipeline.training.kinetic import KineticWeights, kinetic_loss
 
 if TYPE_CHECKING:  # presets.py imports this module
