@@ -13,11 +13,13 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
+from torch import Tensor
 
 from pipeline.report.content import ReportError
 
@@ -52,7 +54,7 @@ def fmt_rt(x: float) -> str:
     return f"{x:.2f}"
 
 
-def fmt_range(lo: float, hi: float, fmt: Any = fmt_count) -> str:
+def fmt_range(lo: float, hi: float, fmt: Callable[[float], str] = fmt_count) -> str:
     return f"{fmt(lo)}–{fmt(hi)}"
 
 
@@ -144,15 +146,15 @@ class Headline:
         """P(next week's cases > this week's): the first horizon's."""
         return self.horizons[0].p_growing
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         """JSON-able (dates as ISO strings)."""
-        def clean(x: Any) -> Any:
+        def clean(x: object) -> object:
             if isinstance(x, dict):
                 return {k: clean(v) for k, v in x.items()}
             if isinstance(x, (list, tuple)):
                 return [clean(v) for v in x]
             return x.isoformat() if isinstance(x, dt.date) else x
-        return clean(asdict(self)) | {"infectious_now_people": self.infectious_now_people,
+        return {k: clean(v) for k, v in asdict(self).items()} | {"infectious_now_people": self.infectious_now_people,
                                       "text": self.one_line()}
 
     def sentence(self) -> str:
@@ -197,9 +199,9 @@ def _fmt_ratio(x: float | None, digits: int = 2) -> str:
 
 # ----------------------------------------------------------------------------- computing
 
-def _numpy(x: Any) -> NDArray[np.float64]:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().double().numpy()
+def as_numpy(x: Tensor | NDArray[np.float64]) -> NDArray[np.float64]:
+    if isinstance(x, Tensor):
+        return x.detach().cpu().double().numpy()
     return np.asarray(x, dtype=np.float64)
 
 
@@ -241,9 +243,9 @@ def _skill(weekly: WeeklyForecast) -> tuple[Skill, ...]:
     return tuple(out)
 
 
-def rt_samples(samples: Any, names: Sequence[str]) -> tuple[NDArray[np.float64], int]:
+def rt_samples(samples: Tensor | NDArray[np.float64], names: Sequence[str]) -> tuple[NDArray[np.float64], int]:
     """(R_t = β·S/γ per joint sample with γ > 0, number of samples left out)."""
-    x = _numpy(samples)
+    x = as_numpy(samples)
     missing = [n for n in ("S", "beta", "gamma") if n not in names]
     if missing:
         raise ReportError(f"the latest forward estimate lacks {missing} (has {list(names)})")

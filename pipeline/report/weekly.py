@@ -37,7 +37,7 @@ from pipeline.io import sha256_bytes, sha256_file
 from pipeline.report import checks, figures
 from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
                                      SectionKey, TableItem, nll_table)
-from pipeline.report.headline import (PUBLISHED, Headline, compute_headline, facts_frame,
+from pipeline.report.headline import (PUBLISHED, Headline, as_numpy, compute_headline, facts_frame,
                                       fmt_count, fmt_range, fmt_share, forecast_frame,
                                       published_weekly, skill_frame)
 from pipeline.report.render import ReportFiles, write_report
@@ -64,12 +64,6 @@ FORECASTERS = {  # the published forecast first, the reference last
 }
 TARGETS = {"cases": "weekly reported cases", "I": "I (share of the population)"}
 _SHORT_TARGETS = {"cases": "weekly cases", "I": "I (share)"}
-
-
-def _numpy(x: Tensor | NDArray[np.float64]) -> NDArray[np.float64]:
-    if isinstance(x, Tensor):
-        return x.detach().cpu().double().numpy()
-    return np.asarray(x, dtype=np.float64)
 
 
 def _observed_at(sir: pd.DataFrame, dates: pd.DatetimeIndex) -> NDArray[np.float64]:
@@ -319,7 +313,7 @@ def rollout_section(results: ForecastResults) -> Section:
         # NaN where nothing was predicted (before the first window): the band leaves a gap
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)   # "All-NaN slice": those days
-            q = np.nanquantile(_numpy(roll.samples)[..., idx], LEVELS, axis=0)    # (5, T, 3)
+            q = np.nanquantile(as_numpy(roll.samples)[..., idx], LEVELS, axis=0)    # (5, T, 3)
         png = figures.rollout_figure(dates, _observed_at(sir, dates), q,
                                      window_days=int(every), direction=direction)
         alert = checks.rollout_overshoot(f"{direction} {every}-day rollout",
@@ -378,7 +372,7 @@ def _smc_quantiles(res: SMCResult, idx: list[int]) -> NDArray[np.float64]:
             raise ReportError(f"the SMC run did not record the {level} quantile (recorded "
                               f"{recorded.tolist()}); SMCConfig.quantiles must include "
                               f"{list(LEVELS)}")
-        picks.append(_numpy(res.quantiles[0, :, hits[0]])[:, idx])
+        picks.append(as_numpy(res.quantiles[0, :, hits[0]])[:, idx])
     return np.stack(picks)
 
 
@@ -387,7 +381,7 @@ def smc_section(results: ForecastResults) -> Section:
     idx = _indices(res.state_names, STATES, "the SMC result")
     q = _smc_quantiles(res, idx)
     dates = pd.DatetimeIndex(results.smc.dates)
-    ess = _numpy(res.ess)[0]
+    ess = as_numpy(res.ess)[0]
     n = results.config.smc.particles
     png = figures.smc_band_figure(dates, _observed_at(results.sir_frame, dates), q,
                                   ess=ess, n_particles=n,
