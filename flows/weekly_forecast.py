@@ -60,7 +60,6 @@ STALE_TAG = "stale-data"
 STALE_EVENT = "flowcast.forecast.stale-data"
 
 
-
 class _LoggerProgress:
     """ProgressReporter that logs every ``every`` steps (flows have no terminal bar)."""
 
