@@ -33,9 +33,11 @@ from torch import Tensor, nn
 from pipeline.errors import ConfigError
 from pipeline.models.encoders import EncoderConfig, build_encoder, check_window
 from pipeline.models.maf import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
+from pipeline.models.standardization import STATS_FIELDS, Standardization
 from pipeline.models.target_transforms import IDENTITY, TargetTransform, get_target_transform
 
-STATS_FIELDS = ("context_mean", "context_std", "target_mean", "target_std")
+# A fitted Standardization, or its four tensors by name (as a checkpoint stores them).
+StatsLike = Standardization | Mapping[str, Tensor]
 
 
 @dataclass(frozen=True)
@@ -101,7 +103,7 @@ def make_estimator_config(features: int, context_channels: int, window: int,
                            target_transform)
 
 
-def _stats_tensors(stats: Any) -> dict[str, Tensor]:
+def _stats_tensors(stats: StatsLike) -> dict[str, Tensor]:
     """The four standardization tensors from a ``Standardization``, a mapping, or any object
     with those attributes."""
     getter = stats.__getitem__ if isinstance(stats, Mapping) else lambda k: getattr(stats, k)
@@ -122,7 +124,7 @@ class ConditionalEstimator(nn.Module):
     target_mean: Tensor
     target_std: Tensor
 
-    def __init__(self, encoder: nn.Module, flow: ConditionalFlow, stats: Any,
+    def __init__(self, encoder: nn.Module, flow: ConditionalFlow, stats: StatsLike,
                  config: EstimatorConfig | None = None) -> None:
         super().__init__()
         self.encoder, self.flow, self.config = encoder, flow, config
@@ -170,9 +172,8 @@ class ConditionalEstimator(nn.Module):
         return bool(self.config.absolute_time) if self.config is not None else False
 
     @property
-    def stats(self) -> Any:
-        """The standardization as a ``pipeline.training.datasets.Standardization`` (buffers' values)."""
-        from pipeline.models.standardization import Standardization
+    def stats(self) -> Standardization:
+        """The standardization (the buffers' values)."""
         return Standardization(self.context_mean, self.context_std, self.target_mean,
                                self.target_std, target_transform=self.target_transform)
 
@@ -250,7 +251,7 @@ class ConditionalEstimator(nn.Module):
         return self.log_prob(target, context, mask)
 
 
-def _transform_name(stats: Any, config: EstimatorConfig | None) -> str:
+def _transform_name(stats: StatsLike, config: EstimatorConfig | None) -> str:
     """The target transform of an estimator: the config's; a ``Standardization`` that records
     another one was fitted in other coordinates and is refused."""
     fitted = getattr(stats, "target_transform", None)
@@ -266,7 +267,8 @@ def _full_mask(context: Tensor) -> Tensor:
     return torch.ones(context.shape[:2], dtype=torch.bool, device=context.device)
 
 
-def build_estimator(config: EstimatorConfig, stats: Any, seed: int = 0) -> ConditionalEstimator:
+def build_estimator(config: EstimatorConfig, stats: StatsLike,
+                    seed: int = 0) -> ConditionalEstimator:
     """A freshly initialised estimator; the same ``seed`` gives the same weights. The global
     RNG is used inside ``fork_rng``, so the caller's RNG state is left untouched."""
     with torch.random.fork_rng(devices=[]):
