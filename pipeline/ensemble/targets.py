@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.data.cdph import CountySeries, county_sir
 from pipeline.errors import FlowcastError
 
 # The COVID-19 Forecast Hub's 23 quantile levels, which every forecast here reports.
@@ -128,6 +129,12 @@ def history_from_frames(sir_frame: pd.DataFrame, cases: NDArray[np.int64] | pd.S
                       case_counts, sir_frame["S"].to_numpy(np.float64),
                       sir_frame["I"].to_numpy(np.float64), sir_frame["R"].to_numpy(np.float64),
                       int(population))
+
+
+def history_from_county(series: CountySeries) -> EpiHistory:
+    """A California county's :class:`EpiHistory` (CDPH episode-date cases, its own population)."""
+    s, i, r = county_sir(series)
+    return EpiHistory(series.dates, series.cases, s, i, r, series.population)
 
 
 def observed_targets(history: EpiHistory, origin: pd.Timestamp,
