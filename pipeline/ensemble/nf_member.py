@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 import numpy as np
@@ -130,19 +131,22 @@ def growth_targets(week_sums: NDArray[np.float64], susceptible: NDArray[np.float
     return (logits[:, 1:] - logits[:, :1]).astype(np.float32)
 
 
-def decode_paths(z: NDArray[np.float64], last_week_cases: float, s_before: float, s_origin: float,
-                 population: int) -> NDArray[np.float64]:
-    """Weekly S, I, R sample paths ``(n, 4, 3)`` from targets ``z (n, 4)``; I = C_h / N (the
-    reporting window is one week), S_h = S_{h−1} − C_h / N, R = 1 − S − I."""
-    base = _logit(reported_share(np.asarray(last_week_cases), np.asarray(s_before), population))
-    n = z.shape[0]
-    susceptible = np.full(n, s_origin)
-    paths = np.empty((n, z.shape[1], 3))
-    for h in range(z.shape[1]):                   # four sequential weeks, vectorized over paths
-        share = 1.0 / (1.0 + np.exp(-(z[:, h] + base)))
+def decode_paths(z: NDArray[np.float64], last_week_cases: float | NDArray[np.float64],
+                 s_before: float | NDArray[np.float64], s_origin: float | NDArray[np.float64],
+                 population: int | NDArray[np.int64]) -> NDArray[np.float64]:
+    """Weekly S, I, R sample paths ``(..., n, 4, 3)`` from targets ``z (..., n, 4)``; I = C_h / N
+    (the reporting window is one week), S_h = S_{h−1} − C_h / N, R = 1 − S − I. The other
+    arguments are scalars or ``(..., 1)`` arrays (one value per history of a batch)."""
+    base = _logit(reported_share(np.asarray(last_week_cases, dtype=np.float64),
+                                 np.asarray(s_before, dtype=np.float64), population))
+    susceptible = np.broadcast_to(np.asarray(s_origin, dtype=np.float64), z.shape[:-1]).copy()
+    paths = np.empty(z.shape + (3,))
+    for h in range(z.shape[-1]):                  # four sequential weeks, vectorized over paths
+        share = 1.0 / (1.0 + np.exp(-(z[..., h] + base)))
         infectious = susceptible * share
         susceptible = susceptible - infectious
-        paths[:, h] = np.stack([susceptible, infectious, 1.0 - susceptible - infectious], axis=1)
+        paths[..., h, :] = np.stack([susceptible, infectious, 1.0 - susceptible - infectious],
+                                    axis=-1)
     return paths
 
 
@@ -261,19 +265,41 @@ class NFGrowthMember:
 
     def sample_paths(self, history: EpiHistory, seed: int) -> NDArray[np.float64]:
         """Weekly S, I, R paths ``(n_samples, 4, 3)`` at origin + 7h, h = 1..4."""
+        return self.sample_paths_batch([history], seed)[0]
+
+    def sample_paths_batch(self, histories: Sequence[EpiHistory], seed: int,
+                           chunk: int = 512) -> NDArray[np.float64]:
+        """Paths ``(B, n_samples, 4, 3)`` of B histories (e.g. every county × origin of a
+        backtest) through the flow in few calls. Each history's draws depend only on its own
+        data and its position in the batch, never on another history's data."""
         needed = self.config.context_days + DAYS_PER_WEEK
-        if len(history) < needed:
-            raise TargetError(f"{self.name}: needs {needed} days of history, got {len(history)}")
-        week_sums = trailing_week_sums(history.cases[-needed:])[None]
-        origin = np.array([needed - 1])
-        context = torch.from_numpy(context_features(week_sums, origin, self.config.context_days))
+        short = [h for h in histories if len(h) < needed]
+        if short:
+            raise TargetError(f"{self.name}: needs {needed} days of history, got "
+                              f"{len(short[0])} (origin {short[0].origin.date()})")
+        cases = np.stack([h.cases[-needed:] for h in histories])
+        week_sums = trailing_week_sums(cases)
+        origins = np.full(len(histories), needed - 1)
+        context = torch.from_numpy(context_features(week_sums, origins, self.config.context_days))
         mask = torch.ones(context.shape[:2], dtype=torch.bool)
         generator = torch.Generator().manual_seed(seed)
         with torch.no_grad():
-            z = self.estimator.sample(self.n_samples, context, mask, generator)[0].double().numpy()
-        s_before = float(history.S[-1 - DAYS_PER_WEEK])
-        return decode_paths(z, float(week_sums[0, -1]), s_before, float(history.S[-1]),
-                            history.population)
+            z = torch.cat([self.estimator.sample(self.n_samples, context[i:i + chunk],
+                                                 mask[i:i + chunk], generator)
+                           for i in range(0, len(histories), chunk)]).double().numpy()
+        s_before = np.array([h.S[-1 - DAYS_PER_WEEK] for h in histories])[:, None]
+        s_origin = np.array([h.S[-1] for h in histories])[:, None]
+        population = np.array([h.population for h in histories], dtype=np.int64)[:, None]
+        return decode_paths(z, week_sums[:, -1:], s_before, s_origin, population)
+
+    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
+        """Weekly case quantiles ``(B, H, Q)`` of B histories in one pass through the flow."""
+        paths = self.sample_paths_batch(histories, seed)
+        index = [h - 1 for h in horizons]
+        population = np.array([h.population for h in histories], dtype=np.float64)
+        cases = paths[:, :, index, 1] * population[:, None, None]              # (B, n, H)
+        return np.moveaxis(np.quantile(cases, levels, axis=1), 0, -1)
 
     def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
                  levels: NDArray[np.float64], seed: int) -> QuantileForecast:

@@ -1,0 +1,219 @@
+"""The flow member fine-tuned on real series known by the origin (``nf-real``).
+
+The flow member (:mod:`pipeline.ensemble.nf_member`) learns growth only from the synthetic
+multi-wave prior. Real epidemics have habits the prior does not: how long a wave keeps growing,
+how plateaus hold, how fast a decline flattens. This member starts from the same trained flow
+and, at every refit date r (every ``refit_every_weeks`` weeks), is fine-tuned on the real
+windows of every place of the panel whose four target weeks had ended ``revision_days`` before
+r (their counts had settled; the days just before r were still filling in), mixed with as many
+synthetic windows from the prior (so the fine-tuned flow keeps the prior's coverage of
+situations the real data have not shown yet). A forecast at origin o uses the model of the
+latest refit date ≤ o: nothing after the origin enters it.
+
+Windows: the same scale-free contexts and valid-by-construction targets as the synthetic ones
+(:func:`pipeline.ensemble.nf_member.context_features`, :func:`~.growth_targets`), one per day of
+each place, in the synthetic model's standardization (the fine-tuned flow is the same model).
+Validation: a seeded fifth of the places, for the best-state choice of the trainer.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from numpy.typing import NDArray
+
+from pipeline.ensemble.nf_member import (CHECKPOINT_NAME, N_WEEKS, GrowthModelConfig,
+                                         NFGrowthMember, context_features, estimator_config,
+                                         growth_targets, trailing_week_sums)
+from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, TargetError
+from pipeline.errors import CheckpointError, ConfigError
+from pipeline.models.estimator import ConditionalEstimator
+from pipeline.progress import ProgressReporter, SilentProgress
+from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
+from pipeline.training.datasets import WindowedDataset, dataset_sha256, validation_trajectories
+from pipeline.training.model_store import ModelStore
+from pipeline.training.trainer import TrainConfig, train
+
+NF_REAL = "nf-real"
+
+
+@dataclass(frozen=True)
+class FineTuneConfig:
+    """Refit schedule and optimiser of the fine-tuning (module docstring)."""
+
+    refit_every_weeks: int = 4
+    revision_days: int = 14
+    iterations: int = 300
+    batch_size: int = 512
+    lr: float = 5e-4
+    synthetic_share: float = 0.5
+    val_fraction: float = 0.2
+    min_windows: int = 500
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if (self.refit_every_weeks < 1 or self.revision_days < 0 or self.iterations < 1
+                or not 0 <= self.synthetic_share < 1 or not 0 < self.val_fraction < 1):
+            raise ConfigError(f"invalid FineTuneConfig {self}")
+
+    def identity(self) -> dict[str, object]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+
+def real_windows(histories: Sequence[EpiHistory], cutoff: pd.Timestamp,
+                 config: GrowthModelConfig) -> tuple[NDArray[np.float32], NDArray[np.float32],
+                                                     NDArray[np.int64]]:
+    """(context (W, R, 3), target (W, 4), place index (W,)) of every daily window whose last
+    target week ends on or before ``cutoff``."""
+    contexts, targets, places = [], [], []
+    for index, history in enumerate(histories):
+        end = int(np.searchsorted(history.dates.to_numpy(dtype=np.int64), cutoff.value,
+                                  side="right")) - 1
+        last_origin = end - N_WEEKS * DAYS_PER_WEEK
+        if last_origin < config.first_origin:
+            continue
+        origins = np.arange(config.first_origin, last_origin + 1)
+        sums = np.repeat(trailing_week_sums(history.cases)[None], origins.size, axis=0)
+        context = context_features(sums, origins, config.context_days)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            target = growth_targets(sums, np.repeat(history.S[None], origins.size, axis=0),
+                                    origins, history.population)
+        finite = np.isfinite(target).all(axis=1) & np.isfinite(context).all(axis=(1, 2))
+        contexts.append(context[finite])
+        targets.append(target[finite])
+        places.append(np.full(int(finite.sum()), index, dtype=np.int64))
+    if not contexts:
+        return (np.empty((0, config.context_days, 3), np.float32), np.empty((0, N_WEEKS),
+                np.float32), np.empty(0, np.int64))
+    return np.concatenate(contexts), np.concatenate(targets), np.concatenate(places)
+
+
+def refit_dates(origins: Sequence[pd.Timestamp], every_weeks: int) -> list[pd.Timestamp]:
+    """Every ``every_weeks``-th origin, from the first: the days the member is refitted."""
+    return list(origins[::every_weeks])
+
+
+def _dataset(context: NDArray[np.float32], target: NDArray[np.float32],
+             trajectory: NDArray[np.int64], like: WindowedDataset) -> WindowedDataset:
+    """Windows in the synthetic dataset's standardization and metadata."""
+    context_t = torch.from_numpy(np.ascontiguousarray(context))
+    draft = WindowedDataset(context_t, torch.ones(context_t.shape[:2], dtype=torch.bool),
+                            torch.from_numpy(np.ascontiguousarray(target)),
+                            torch.from_numpy(trajectory),
+                            torch.zeros(len(trajectory), dtype=torch.float64), like.stats,
+                            dataclasses.replace(like.meta, config_name="real-windows"))
+    return dataclasses.replace(draft, meta=dataclasses.replace(
+        draft.meta, data_sha256=dataset_sha256(draft)))
+
+
+def training_windows(real: tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.int64]],
+                     synthetic: WindowedDataset, config: FineTuneConfig
+                     ) -> tuple[WindowedDataset, WindowedDataset]:
+    """(train, validation): real windows (validation: a seeded share of the places) mixed with
+    synthetic ones in the ratio ``synthetic_share``."""
+    context, target, place = real
+    held = validation_trajectories(torch.from_numpy(place), config.val_fraction,
+                                   config.seed).numpy()
+    is_val = np.isin(place, held)
+    n_synth = int(round((~is_val).sum() * config.synthetic_share / (1 - config.synthetic_share)))
+    rng = np.random.default_rng(config.seed)
+    pick = rng.choice(len(synthetic), size=min(n_synth, len(synthetic)), replace=False)
+    synth_context = synthetic.context[torch.from_numpy(pick)].numpy()
+    synth_target = synthetic.target[torch.from_numpy(pick)].numpy()
+    offset = int(place.max()) + 1
+    train_ds = _dataset(np.concatenate([context[~is_val], synth_context]),
+                        np.concatenate([target[~is_val], synth_target]),
+                        np.concatenate([place[~is_val], offset + np.arange(len(pick))]),
+                        synthetic)
+    return train_ds, _dataset(context[is_val], target[is_val], place[is_val], synthetic)
+
+
+def finetune(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: WindowedDataset,
+             config: FineTuneConfig) -> ConditionalEstimator:
+    """A copy of ``base`` trained ``config.iterations`` more steps (best validation state)."""
+    model = copy.deepcopy(base)
+    model.train()
+    train(model, train_ds, val_ds,
+          TrainConfig(iterations=config.iterations, batch_size=config.batch_size, lr=config.lr,
+                      schedule="cosine", eval_every=max(1, config.iterations // 10),
+                      seed=config.seed + 11))
+    model.eval()
+    return model
+
+
+@dataclass(frozen=True, eq=False)
+class FineTunedGrowthMember:
+    """``models[r]``: the flow fine-tuned at refit date r; a cell at origin o is forecast by the
+    model of the latest r ≤ o (the synthetic flow before the first refit)."""
+
+    base: NFGrowthMember
+    models: Mapping[pd.Timestamp, ConditionalEstimator]
+    name: str = NF_REAL
+
+    def model_for(self, origin: pd.Timestamp) -> NFGrowthMember:
+        dates = [r for r in self.models if r <= origin]
+        if not dates:
+            return self.base
+        return dataclasses.replace(self.base, estimator=self.models[max(dates)])
+
+    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
+        """Weekly case quantiles ``(B, H, Q)``, each cell through its origin's model."""
+        out = np.empty((len(histories), len(horizons), len(levels)))
+        chosen = [self.model_for(h.origin) for h in histories]
+        for member in {id(m): m for m in chosen}.values():
+            index = [i for i, m in enumerate(chosen) if m is member]
+            out[index] = member.forecast_batch([histories[i] for i in index], horizons, levels,
+                                               seed)
+        return out
+
+
+def fit_finetuned_member(base: NFGrowthMember, synthetic: WindowedDataset,
+                         histories: Sequence[EpiHistory], dates: Sequence[pd.Timestamp],
+                         config: FineTuneConfig, store_root: Path | None = None,
+                         progress: ProgressReporter | None = None) -> FineTunedGrowthMember:
+    """Fine-tune at each refit date on ``histories`` as they stood then (module docstring);
+    with ``store_root`` every model is kept in the model store (key: the configs and the
+    windows' hash), so a rerun on the same data trains nothing."""
+    progress = progress or SilentProgress()
+    models: dict[pd.Timestamp, ConditionalEstimator] = {}
+    for date in dates:
+        cutoff = date - pd.Timedelta(days=config.revision_days)
+        real = real_windows([h.up_to(date) for h in histories if h.dates[0] <= date], cutoff,
+                            base.config)
+        if len(real[2]) < config.min_windows or len(np.unique(real[2])) < 2:
+            continue
+        train_ds, val_ds = training_windows(real, synthetic, config)
+        if store_root is None:
+            models[date] = finetune(base.estimator, train_ds, val_ds, config)
+        else:
+            models[date] = _stored_finetune(base, train_ds, val_ds, config, store_root)
+        progress.advance(1, refit=str(date.date()), windows=float(len(real[2])))
+    return FineTunedGrowthMember(base, models)
+
+
+def _stored_finetune(base: NFGrowthMember, train_ds: WindowedDataset, val_ds: WindowedDataset,
+                     config: FineTuneConfig, store_root: Path) -> ConditionalEstimator:
+    def build(out_dir: Path) -> dict[str, object]:
+        model = finetune(base.estimator, train_ds, val_ds, config)
+        save_checkpoint(out_dir / CHECKPOINT_NAME, model, config=estimator_config(base.config),
+                        stats=model.stats, data_sha256=train_ds.meta.data_sha256,
+                        extra={"kind": NF_REAL})
+        return {}
+
+    key = {NF_REAL: config.identity(), "nf-growth": base.config.identity(),
+           "validation_sha256": val_ds.meta.data_sha256}
+    entry = ModelStore(store_root).get_or_build(key, train_ds.meta.data_sha256, build)
+    loaded = load_checkpoint(entry.path / CHECKPOINT_NAME,
+                             expected_config=estimator_config(base.config))
+    if not isinstance(loaded.estimator, ConditionalEstimator):
+        raise CheckpointError(f"{entry.path} does not hold a conditional estimator")
+    loaded.estimator.eval()
+    return loaded.estimator

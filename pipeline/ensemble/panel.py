@@ -1,0 +1,126 @@
+"""A panel: many places' histories on one calendar, their weekly origins, and forecast arrays.
+
+The cross-county backtest forecasts every place (county) at every weekly origin. Instead of one
+forecaster call per cell, forecasts and truths are arrays over the panel:
+
+* ``truth[target]``: ``(C, O, H)`` — place × origin × horizon, NaN where not observed;
+* a forecaster's quantiles ``(C, O, H, Q)`` of a target at the hub levels.
+
+Members that can (the flow member) forecast all C × O cells in one batch; the others are called
+cell by cell on ``history.up_to(origin)`` — the real-time discipline is the same either way: a
+cell sees its own place's data up to its origin and nothing else.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.ensemble.backtest import origin_seed
+from pipeline.ensemble.members import Member
+from pipeline.ensemble.targets import (DAYS_PER_WEEK, TARGETS, EpiHistory, TargetError,
+                                       observed_targets)
+from pipeline.progress import ProgressReporter, SilentProgress
+
+SATURDAY = 5
+
+
+@runtime_checkable
+class BatchMember(Protocol):
+    """A member that forecasts many histories at once: weekly case quantiles ``(B, H, Q)``."""
+
+    @property
+    def name(self) -> str: ...
+
+    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]: ...
+
+
+@dataclass(frozen=True, eq=False)
+class Panel:
+    """Places' daily histories on one calendar (same first and last date)."""
+
+    histories: Mapping[str, EpiHistory]
+
+    def __post_init__(self) -> None:
+        if not self.histories:
+            raise TargetError("a panel needs at least one place")
+        spans = {(h.dates[0], h.dates[-1]) for h in self.histories.values()}
+        if len(spans) != 1:
+            raise TargetError(f"panel histories cover different days: {sorted(spans)[:3]}")
+
+    @property
+    def places(self) -> tuple[str, ...]:
+        return tuple(self.histories)
+
+    @property
+    def dates(self) -> pd.DatetimeIndex:
+        return next(iter(self.histories.values())).dates
+
+    @property
+    def populations(self) -> NDArray[np.float64]:
+        return np.array([h.population for h in self.histories.values()], dtype=np.float64)
+
+    def up_to(self, date: pd.Timestamp) -> Panel:
+        return Panel({p: h.up_to(date) for p, h in self.histories.items()})
+
+
+def weekly_origins(dates: pd.DatetimeIndex, *, min_history_weeks: int = 8,
+                   horizon_weeks: int = 4, scored_only: bool = True,
+                   weekday: int = SATURDAY) -> list[pd.Timestamp]:
+    """Every ``weekday`` with ``min_history_weeks`` of data before it (and, ``scored_only``,
+    ``horizon_weeks`` of truth after it), oldest first."""
+    first = dates[0] + pd.Timedelta(days=DAYS_PER_WEEK * min_history_weeks - 1)
+    last = dates[-1] - pd.Timedelta(days=DAYS_PER_WEEK * horizon_weeks if scored_only else 0)
+    first = first + pd.Timedelta(days=(weekday - first.weekday()) % 7)
+    origins = list(pd.date_range(first, last, freq="7D"))
+    if not origins:
+        raise TargetError(f"no weekly origins in {dates[0].date()} … {dates[-1].date()}")
+    return origins
+
+
+def truth_arrays(panel: Panel, origins: Sequence[pd.Timestamp],
+                 horizons: tuple[int, ...]) -> dict[str, NDArray[np.float64]]:
+    """``truth[target] (C, O, H)`` from the panel's full histories."""
+    out = {t: np.full((len(panel.places), len(origins), len(horizons)), np.nan) for t in TARGETS}
+    for c, history in enumerate(panel.histories.values()):
+        for o, origin in enumerate(origins):
+            observed = observed_targets(history, origin, horizons)
+            for t in TARGETS:
+                out[t][c, o] = observed[t]
+    return out
+
+
+def cell_histories(panel: Panel, origins: Sequence[pd.Timestamp]) -> list[EpiHistory]:
+    """``history.up_to(origin)`` of every cell, place-major (index c·O + o)."""
+    return [h.up_to(o) for h in panel.histories.values() for o in origins]
+
+
+def member_forecast_arrays(member: Member | BatchMember, cells: Sequence[EpiHistory],
+                           shape: tuple[int, int], horizons: tuple[int, ...],
+                           levels: NDArray[np.float64], seed: int,
+                           progress: ProgressReporter | None = None
+                           ) -> dict[str, NDArray[np.float64]]:
+    """A member's quantiles ``{target: (C, O, H, Q)}`` for every cell (place-major ``cells``).
+
+    Batch members forecast weekly cases (I = cases / N); other members are called per cell and
+    give both targets (the hub baseline forecasts I on its own series)."""
+    progress = progress or SilentProgress()
+    n_c, n_o = shape
+    if isinstance(member, BatchMember):
+        cases = member.forecast_batch(cells, horizons, levels, seed)
+        progress.advance(len(cells), member=member.name)
+        population = np.array([h.population for h in cells], dtype=np.float64)
+        values = {"cases": cases, "I": cases / population[:, None, None]}
+    else:
+        forecasts = []
+        for history in cells:
+            forecasts.append(member.forecast(history, horizons, levels,
+                                             origin_seed(seed, history.origin)))
+            progress.advance(1, member=member.name)
+        values = {t: np.stack([f.values[t] for f in forecasts]) for t in TARGETS}
+    return {t: v.reshape(n_c, n_o, len(horizons), len(levels)) for t, v in values.items()}
