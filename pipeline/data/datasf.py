@@ -28,6 +28,12 @@ fault-injection probe broke the previous client (issue 15):
   session headers across redirects), and is not sent over plain http to a remote host;
 * the final URL (after redirects) is returned, and recorded in the cache manifest.
 
+And because the probe of issue 22 broke those: a connection that cannot be made at all
+(refused, unknown host, no route) raises :class:`UnreachableError` at once, never retried; a
+request past its deadline has its sockets shut so its worker thread ends with it; paging stops
+at the first repeated page and when the pages pass ``max_fetch_bytes``; every page is decoded at
+the boundary of :mod:`pipeline.data.decoding` (any decoder exception -> one named rejection).
+
 A 4xx other than 429 is not retried: it means the request itself is wrong (bad dataset id, bad
 query), so the error names status, URL and body. Base URL and token come from the environment
 (``FLOWCAST_DATASF_BASE_URL``, ``FLOWCAST_DATASF_APP_TOKEN``) unless given in
