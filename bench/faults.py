@@ -9,10 +9,21 @@ mid-body (``ChunkedEncodingError``), a bad gzip body (``ContentDecodingError``),
 trickles a byte at a time, a ``Retry-After`` longer than the client waits, and a redirect to
 plain http on another host. Everything goes through the real ``requests`` stack.
 
+Issue 22 added: a body of 200,000 nested ``[`` and a 5,000-digit integer (decoder exceptions
+other than ``JSONDecodeError``), 99,999,999 new cases on a day of the open revision window and a
+spike far above the series' own history (plausibility), a server that drips its *headers* (no
+request thread may be left running), a body over the size limit, a server that ignores
+``$offset``, connection refused and an unresolvable host (no retries: seconds, not a backoff
+schedule), and a cache lock held by a stuck run; and, through the command line (one named error,
+no traceback, cache untouched): a base URL without a scheme in the environment, ``--out`` naming
+a directory for ``smc filter``, ``data sir`` and ``simulate`` and an existing file for
+``data plot``, and ``final_url`` in ``data sir``'s provenance file.
+
 For each case the cache is first filled by a good fetch; then the fault is served and
 :func:`pipeline.data.series.load_dataset` must (a) still return the cached data, (b) say why in a
-note that names the problem, and (c) leave every cache file byte-identical. "bytes of good cache
-lost" sums the sizes of cache files that changed or vanished (must be 0).
+note that names the problem, (c) leave every cache file byte-identical and (d) leave no request
+thread running. "bytes of good cache lost" sums the sizes of cache files that changed or vanished
+(must be 0).
 
 Run: ``python -m bench.faults`` -> ``bench/results/faults.json``. Also the harness of
 ``tests/test_faults.py``.
@@ -30,7 +41,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
@@ -45,6 +56,7 @@ DATASF = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "datas
 TOKEN = "secret-app-token"
 TRICKLE_MAX_BYTES = 40       # bounded: a trickling handler stops after this many bytes
 TRICKLE_DELAY_S = 0.1
+HEADER_DRIP_MAX_BYTES = 80   # bounded too: 8 s of header bytes, far past the request deadline
 
 Rows = list[dict[str, str]]
 
@@ -225,6 +237,59 @@ def trickle(rows: Rows) -> Responder:
     return respond
 
 
+def header_drip(h: _Handler) -> None:
+    """A status line, then one header byte every TRICKLE_DELAY_S: the header phase never ends
+    (requests bounds each socket read, not the whole header)."""
+    h.wfile.write(b"HTTP/1.1 200 OK\r\nX-Drip: ")
+    for _ in range(HEADER_DRIP_MAX_BYTES):
+        h.wfile.write(b"x")
+        h.wfile.flush()
+        time.sleep(TRICKLE_DELAY_S)
+    h.close_connection = True
+
+
+def raw_body(body: bytes) -> Responder:
+    return lambda h: h.send_body(200, body)
+
+
+def ignores_offset(rows: Rows) -> Responder:
+    """Every page is the first page, whatever ``$offset`` says."""
+    def respond(h: _Handler) -> None:
+        limit = int(parse_qs(urlsplit(h.path).query).get("$limit", ["1000"])[0])
+        h.send_body(200, json.dumps(rows[:limit]).encode())
+    return respond
+
+
+def closed_port_url() -> str:
+    """A loopback URL nobody listens on (the port was just free): connection refused."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    return f"http://127.0.0.1:{port}"
+
+
+@contextlib.contextmanager
+def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z") -> Iterator[None]:
+    """The dataset's cache lock held, as by a stuck run (flock on its own open file, which
+    conflicts with any other open of it, in this process too)."""
+    import fcntl
+
+    path = data_dir / "datasf" / ".locks" / f"{dataset_id}.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the flock
+
+
+def live_request_threads() -> list[threading.Thread]:
+    from pipeline.data.datasf import REQUEST_THREAD_NAME
+
+    return [t for t in threading.enumerate() if t.name == REQUEST_THREAD_NAME and t.is_alive()]
+
+
 def redirect(location: str) -> Responder:
     return lambda h: h.send_body(302, b"", headers={"Location": location})
 
@@ -262,12 +327,20 @@ def revised_settled_days(rows: Rows) -> Rows:
 
 @dataclass(frozen=True)
 class Fault:
-    """One failure served after a good fetch: what the server does and the note expected."""
+    """One failure served after a good fetch: what the server does and the note expected.
+
+    ``config`` overrides the client's settings, ``series`` the loader's; ``base_url`` points the
+    faulted fetch elsewhere (a closed port, an unknown host); ``hold_lock`` holds the cache lock
+    meanwhile; ``max_seconds`` bounds how long the fallback may take."""
 
     name: str
     responder: Callable[[Rows, FakeDataSF], Responder]
     expect: str
     config: dict[str, float] = field(default_factory=dict)
+    series: dict[str, float] = field(default_factory=dict)
+    base_url: Callable[[], str] | None = None
+    hold_lock: bool = False
+    max_seconds: float | None = None
 
 
 def faults() -> list[Fault]:
@@ -302,6 +375,34 @@ def faults() -> list[Fault]:
         Fault("redirect-to-http-other-host",
               lambda rows, other: redirect(f"{other.url}/resource/gyr2-k29z.json"),
               "refused, only redirects to the same https host"),
+        # -- issue 22
+        Fault("json-nested-200000-deep", lambda rows, _: raw_body(b"[" * 200_000),
+              "nested too deeply to decode (RecursionError"),
+        Fault("json-5000-digit-integer",
+              lambda rows, _: raw_body(b'[{"new_cases": ' + b"9" * 5000 + b"}]"),
+              "Exceeds the limit (4300 digits) for integer string conversion"),
+        Fault("99999999-cases-in-open-window",
+              s(lambda r: with_value(r, "new_cases", "99999999", index=len(r) - 10)),
+              "implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 10% of the "
+              "population 873,965 in one day"),
+        Fault("spike-far-above-history",
+              s(lambda r: with_value(r, "new_cases", "60000", index=len(r) - 5)),
+              "implausible count 60,000 in 'new_cases' on 2022-03-12: more than 20× the "
+              "plausible bracket of the previous 28 day(s)"),
+        Fault("header-drip", lambda rows, _: header_drip, "within the request deadline",
+              {"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
+        Fault("body-over-size-limit", lambda rows, _: lambda h: h.send_rows(rows),
+              "body larger than 20000 bytes; refused", {"max_body_bytes": 20_000}),
+        Fault("server-ignores-offset", lambda rows, _: ignores_offset(rows),
+              "the page at $offset=100 repeats the page at $offset=0", {"page_size": 100}),
+        Fault("connection-refused", lambda rows, _: status(500), "Connection refused",
+              base_url=closed_port_url, max_seconds=1.5),
+        Fault("unknown-host", lambda rows, _: status(500), "Failed to resolve "
+              "'flowcast-fault.invalid'", base_url=lambda: "http://flowcast-fault.invalid",
+              max_seconds=3.0),
+        Fault("cache-lock-held-by-stuck-run", lambda rows, _: lambda h: h.send_rows(rows),
+              "fetched but not stored, cache kept", series={"lock_timeout_s": 0.5},
+              hold_lock=True, max_seconds=3.0),
     ]
 
 
@@ -348,27 +449,138 @@ def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
         load_dataset(CASES, good)
         before = cache_bytes(data_dir)
         server.respond(fault.responder(rows, other))
-        config = SFDataConfig(datasets=("cases",), data_dir=data_dir,
-                              client=client_config(server, **fault.config))
+        client = client_config(server, **fault.config)
+        if fault.base_url is not None:
+            client = replace(client, base_url=fault.base_url())
+        config = SFDataConfig(datasets=("cases",), data_dir=data_dir, client=client,
+                              **fault.series)  # type: ignore[arg-type]
         started = time.monotonic()
         try:
-            validated, provenance = load_dataset(CASES, config)
+            with held_cache_lock(data_dir) if fault.hold_lock else contextlib.nullcontext():
+                validated, provenance = load_dataset(CASES, config)
         except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
             return CaseResult(fault.name, False, time.monotonic() - started,
                               bytes_lost(before, cache_bytes(data_dir)),
                               f"raised {type(exc).__name__}: {exc}")
         seconds = time.monotonic() - started
-        note = " | ".join(provenance.notes)
+        threads = live_request_threads()
+        note = " | ".join(provenance.notes) + (
+            f" | {len(threads)} request thread(s) still running" if threads else "")
         lost = bytes_lost(before, cache_bytes(data_dir))
         passed = (provenance.from_cache and fault.expect in note and lost == 0
-                  and len(validated.frame) == 744 and not other.seen)
+                  and len(validated.frame) == 744 and not other.seen and not threads
+                  and (fault.max_seconds is None or seconds <= fault.max_seconds))
         return CaseResult(fault.name, passed, seconds, lost, note)
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+def fill_cache_from_api(data_dir: Path) -> None:
+    """All three datasets fetched from a fake DataSF (so manifests carry a final_url)."""
+    from pipeline.data.datasf import DATASETS
+    from pipeline.data.series import SFDataConfig, load_sf_series
+
+    by_id = {spec.dataset_id: api_rows(key) for key, spec in DATASETS.items()}
+    with FakeDataSF() as server:
+        server.respond(lambda h: h.send_rows(by_id[h.path.split("/")[2].split(".")[0]]))
+        load_sf_series(SFDataConfig(data_dir=data_dir, client=client_config(server)))
+
+
+@dataclass(frozen=True)
+class CommandFault:
+    """A command run against a filled cache: it must end in one named error line (no
+    traceback) or succeed as ``check`` says, and leave the cache untouched."""
+
+    name: str
+    args: Callable[[Path], list[str]]     # the scratch directory -> command-line arguments
+    expect: str                           # in the output
+    succeeds: bool = False
+    check: Callable[[Path], bool] = lambda tmp: True
+    env: dict[str, str] = field(default_factory=dict)
+
+
+def _provenance_has_final_url(tmp: Path) -> bool:
+    provenance = json.loads((tmp / "sir.csv.provenance.json").read_text())
+    urls = [d.get("final_url") for d in provenance["datasets"]]
+    return len(urls) == 3 and all(u and u.startswith("http://127.0.0.1:") for u in urls)
+
+
+def command_faults() -> list[CommandFault]:
+    def existing_dir(tmp: Path) -> Path:
+        (tmp / "outdir").mkdir(exist_ok=True)
+        return tmp / "outdir"
+
+    def observations(tmp: Path) -> Path:
+        path = tmp / "obs.csv"
+        path.write_text("time,S,I,R\n0,0.99,0.01,0\n1,0.98,0.015,0.005\n")
+        return path
+
+    def existing_file(tmp: Path) -> Path:
+        path = tmp / "figures.png"
+        path.write_bytes(b"not a directory")
+        return path
+
+    return [
+        CommandFault("base-url-without-scheme", lambda tmp: ["data", "fetch"],
+                     "error: DataSF base URL must be http(s)://host[/path], got "
+                     "'data.sfgov.org' (--base-url / $FLOWCAST_DATASF_BASE_URL); did you mean "
+                     "'https://data.sfgov.org'?", env={"FLOWCAST_DATASF_BASE_URL":
+                                                       "data.sfgov.org"}),
+        CommandFault("smc-filter-out-is-a-directory",
+                     lambda tmp: ["smc", "filter", "--observations", str(observations(tmp)),
+                                  "--out", str(existing_dir(tmp))],
+                     "is a directory; --out names the file to write"),
+        CommandFault("data-sir-out-is-a-directory",
+                     lambda tmp: ["data", "sir", "--offline", "--out", str(existing_dir(tmp))],
+                     "is a directory; --out names the file to write"),
+        CommandFault("simulate-out-is-a-directory",
+                     lambda tmp: ["simulate", "sir-single", "--out", str(existing_dir(tmp))],
+                     "is a directory; --out names the file to write"),
+        CommandFault("data-plot-out-is-an-existing-file",
+                     lambda tmp: ["data", "plot", "--offline", "--out", str(existing_file(tmp))],
+                     "is a file; --out names a directory"),
+        CommandFault("data-sir-provenance-has-final-url",
+                     lambda tmp: ["data", "sir", "--offline", "--out", str(tmp / "sir.csv")],
+                     "wrote", succeeds=True, check=_provenance_has_final_url,
+                     env={"FLOWCAST_DATASF_BASE_URL": "data.sfgov.org"}),
+    ]
+
+
+def run_command_fault(fault: CommandFault, tmp: Path) -> CaseResult:
+    """The command through typer's runner (in process), FLOWCAST_DATA_DIR = a filled cache."""
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app, build_command
+
+    build_command()  # registers every command module
+    data_dir = tmp / "data"
+    if not data_dir.exists():
+        fill_cache_from_api(data_dir)
+    before = cache_bytes(data_dir)
+    started = time.monotonic()
+    result = CliRunner().invoke(app, fault.args(tmp), prog_name="flowcast",
+                                env={"FLOWCAST_DATA_DIR": str(data_dir), "COLUMNS": "200",
+                                     "NO_COLOR": "1", **fault.env})
+    seconds = time.monotonic() - started
+    lost = bytes_lost(before, cache_bytes(data_dir))
+    output = " ".join(result.output.split())  # rich wraps long lines
+    clean_exit = result.exception is None or isinstance(result.exception, SystemExit)
+    ok = (result.exit_code == 0) == fault.succeeds and fault.check(tmp)
+    passed = clean_exit and ok and " ".join(fault.expect.split()) in output and lost == 0
+    note = output[-300:] if clean_exit else f"raised {result.exception!r}"
+    return CaseResult(fault.name, passed, seconds, lost, note)
 
 
 @contextlib.contextmanager
 def _scratch() -> Iterator[Path]:
     with tempfile.TemporaryDirectory(prefix="flowcast-faults-") as tmp:
         yield Path(tmp)
+
+
+def _print(result: CaseResult) -> None:
+    print(f"{'PASS' if result.passed else 'FAIL'} {result.name:34s} {result.seconds:5.2f} s "
+          f"lost {result.bytes_lost} B — {result.note[:150]}")
 
 
 def main() -> int:
@@ -381,8 +593,12 @@ def main() -> int:
         with _scratch() as tmp:
             result = run_fault(fault, rows, tmp / "data")
         results.append(result)
-        print(f"{'PASS' if result.passed else 'FAIL'} {result.name:30s} {result.seconds:5.2f} s "
-              f"lost {result.bytes_lost} B — {result.note[:150]}")
+        _print(result)
+    with _scratch() as tmp:  # one filled cache for every command case
+        for command in command_faults():
+            result = run_command_fault(command, tmp)
+            results.append(result)
+            _print(result)
     summary = {
         "cases_tried": len(results),
         "cases_passed": sum(r.passed for r in results),

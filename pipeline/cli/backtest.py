@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from pipeline.cli import app
+from pipeline.cli.output_paths import output_dir
 from pipeline.cli.choices import DataSource, value
 from pipeline.errors import ConfigError, FlowcastError
 
@@ -68,6 +69,7 @@ def backtest_command(
     from pipeline.progress import rich_progress
 
     try:
+        output_dir(out)
         history = load_sf_history(fc.DataSourceConfig(
             kind=_source_kind(source), import_paths=tuple(str(p) for p in import_from or [])))
         weekly = dataclasses.replace(fc.resolve_config("default", seed=seed).weekly_config(),

@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING, NoReturn
 import typer
 
 from pipeline.cli import app
-from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
+from pipeline.cli.output_paths import output_dir, output_file
+from pipeline.data.datasf import SF_POPULATION_2020_CENSUS
 from pipeline.errors import FlowcastError
 
 if TYPE_CHECKING:
@@ -30,9 +31,12 @@ def _fail(exc: Exception) -> NoReturn:
 
 
 def _config(trailing_days: int, *, base_url: str | None = None, app_token: str | None = None,
-            accept_revisions: bool = False) -> SFDataConfig:
-    from pipeline.data.datasf import ClientConfig
+            accept_revisions: bool = False, offline: bool = False) -> SFDataConfig:
+    from pipeline.data.datasf import DEFAULT_BASE_URL, ClientConfig
     from pipeline.data.series import SFDataConfig
+    if offline:
+        # Never contacted: a bad $FLOWCAST_DATASF_BASE_URL must not stop a cache-only command.
+        base_url = base_url or DEFAULT_BASE_URL
     client = ClientConfig(base_url=base_url) if base_url else ClientConfig()
     if app_token:
         client = replace(client, app_token=app_token)
@@ -157,7 +161,8 @@ def sir_command(out: Path = typer.Option(..., "--out", help="CSV to write (date,
     from pipeline.data.sir_transform import to_sir
     from pipeline.io import atomic_write_json, atomic_write_text
     try:
-        sir = to_sir(load_sf_series(_config(trailing_days), offline=offline),
+        output_file(out, example="sf_sir.csv")
+        sir = to_sir(load_sf_series(_config(trailing_days, offline=offline), offline=offline),
                      _sir_config(population, infectious_days, ascertainment))
     except FlowcastError as exc:
         _fail(exc)
@@ -184,7 +189,8 @@ def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output
     from pipeline.data.sir_transform import to_sir
     from pipeline.io import atomic_write_json
     try:
-        sir = to_sir(load_sf_series(_config(trailing_days), offline=offline),
+        output_dir(out)
+        sir = to_sir(load_sf_series(_config(trailing_days, offline=offline), offline=offline),
                      _sir_config(population, infectious_days, ascertainment))
     except FlowcastError as exc:
         _fail(exc)

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from pipeline.cli import app
+from pipeline.cli.output_paths import output_dir
 
 demo = typer.Typer(no_args_is_help=True, help="Small demonstrations of the methods.")
 app.add_typer(demo, name="demo")
@@ -35,6 +36,11 @@ def kinetic(
 
     if backend not in BACKENDS:  # the error FlowConfig would raise, before any training
         raise ConfigError(f"FlowConfig.backend={backend!r}: must be one of {BACKENDS}")
+    try:
+        output_dir(out)
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=1) from None
     config = KineticDemoConfig(iterations=iterations, seed=seed, layers=layers, backend=backend,
                                kinetic=KineticWeights(1.0, path_weight, prior_weight))
     with rich_progress("kinetic demo (2 flows)", total=2 * iterations) as progress:

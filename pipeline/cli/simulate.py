@@ -9,6 +9,7 @@ import typer
 from rich.console import Console
 
 from pipeline.cli import app
+from pipeline.cli.output_paths import output_file
 from pipeline.training.datasets import (DEFAULT_VAL_FRACTION, DEFAULT_WINDOW, DatasetConfig,
                                build_dataset_from_config, describe, progress_total, save_dataset)
 from pipeline.errors import FlowcastError
@@ -73,7 +74,8 @@ def simulate(
             name=config.value, direction=direction.value, target=target.value, window=window,
             seed=seed, vehicle_model=vehicle_model.value, val_fraction=val_fraction,
             n_trajectories=n_trajectories)
-        path = out if out is not None else default_output(dataset_config)
+        path = output_file(out if out is not None else default_output(dataset_config),
+                           example=default_output(dataset_config).name)
         started = time.perf_counter()
         with rich_progress(f"simulate {dataset_config.name}",
                            progress_total(dataset_config)) as reporter:

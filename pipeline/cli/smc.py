@@ -25,6 +25,7 @@ import typer
 from pipeline.cli import app
 from pipeline.cli.choices import SIRPriorName, SMCSystem, finite, value
 from pipeline.cli.csv_input import read_timed_csv
+from pipeline.cli.output_paths import output_file
 from pipeline.errors import ConfigError, FlowcastError
 from pipeline.io import atomic_write_text
 from pipeline.progress import rich_progress
@@ -158,6 +159,7 @@ def filter_command(
 ) -> None:
     """Filter one observed series with the bootstrap particle filter and write the summaries."""
     try:
+        output_file(out, example="filtered.csv")
         system_name = str(value(system))
         observed = _OBSERVED[system_name]
         times, values, dates = read_timed_csv(observations, observed)

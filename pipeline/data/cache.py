@@ -42,8 +42,8 @@ from typing import Literal
 
 from pipeline.data.datasf import DatasetSpec
 from pipeline.errors import DataSourceError
-from pipeline.io import (atomic_write_bytes, atomic_write_json, file_lock, sha256_bytes,
-                         sha256_file, sweep_stale)
+from pipeline.io import (LOCK_TIMEOUT_S, atomic_write_bytes, atomic_write_json, file_lock,
+                         sha256_bytes, sha256_file, sweep_stale)
 
 log = logging.getLogger(__name__)
 
@@ -222,13 +222,18 @@ class DatasetCache:
               source: str, row_count: int, first_date: str, last_date: str,
               data_as_of: str | None, final_cumulative: int | None,
               fetched_at: datetime | None = None, final_url: str | None = None,
-              check: CommitCheck | None = None) -> CacheManifest:
-        """Commit an already *validated* payload (see module doc); ``check`` may refuse it."""
+              check: CommitCheck | None = None,
+              lock_timeout_s: float = LOCK_TIMEOUT_S) -> CacheManifest:
+        """Commit an already *validated* payload (see module doc); ``check`` may refuse it.
+
+        After ``lock_timeout_s`` without the lock, :class:`pipeline.io.LockTimeoutError`; nothing
+        is written, and readers (which take no lock) still see the committed copy."""
         digest = sha256_bytes(payload)
         payload_name = f"payload-{digest[:16]}.{suffix}"
         directory = self.directory(spec)
         directory.mkdir(parents=True, exist_ok=True)
-        with file_lock(self.lock_path(spec), what=f"DataSF cache {directory}"):
+        with file_lock(self.lock_path(spec), what=f"DataSF cache {directory}",
+                       timeout_s=lock_timeout_s):
             live, damage = self.load_or_damage(spec)
             if damage:
                 log.warning("replacing damaged cache: %s", damage)

@@ -28,6 +28,12 @@ fault-injection probe broke the previous client (issue 15):
   session headers across redirects), and is not sent over plain http to a remote host;
 * the final URL (after redirects) is returned, and recorded in the cache manifest.
 
+And because the probe of issue 22 broke those: a connection that cannot be made at all
+(refused, unknown host, no route) raises :class:`UnreachableError` at once, never retried; a
+request past its deadline has its sockets shut so its worker thread ends with it; paging stops
+at the first repeated page and when the pages pass ``max_fetch_bytes``; every page is decoded at
+the boundary of :mod:`pipeline.data.decoding` (any decoder exception -> one named rejection).
+
 A 4xx other than 429 is not retried: it means the request itself is wrong (bad dataset id, bad
 query), so the error names status, URL and body. Base URL and token come from the environment
 (``FLOWCAST_DATASF_BASE_URL``, ``FLOWCAST_DATASF_APP_TOKEN``) unless given in
@@ -36,21 +42,30 @@ query), so the error names status, URL and body. Base URL and token come from th
 """
 from __future__ import annotations
 
+import contextlib
 import email.utils
+import hashlib
 import ipaddress
 import json
 import logging
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from typing import Any
 from urllib.parse import urljoin, urlsplit, urlunsplit
 
 import requests
+import requests.adapters
+import urllib3.connection
+import urllib3.connectionpool
 import urllib3.exceptions
 
+from pipeline.data.decoding import MAX_PAYLOAD_BYTES, decode_json_records
+from pipeline.data.plausibility import PlausibilityRule
 from pipeline.errors import DataSourceError
 
 log = logging.getLogger(__name__)
@@ -58,6 +73,11 @@ log = logging.getLogger(__name__)
 APP_TOKEN_ENV = "FLOWCAST_DATASF_APP_TOKEN"
 BASE_URL_ENV = "FLOWCAST_DATASF_BASE_URL"
 DEFAULT_BASE_URL = "https://data.sfgov.org"
+
+# San Francisco's population (2020 Census): the scale of every DataSF count (S/I/R conversion,
+# plausibility of a day's count).
+SF_POPULATION_2020_CENSUS = 873_965
+SF_PLAUSIBILITY = PlausibilityRule(population=SF_POPULATION_2020_CENSUS)
 
 # Date formats seen in DataSF payloads: API floating timestamps, CSV-export US timestamps,
 # and the slash-ISO form of the tests export.
@@ -175,7 +195,8 @@ class ClientConfig:
 
     base_url: str = field(default_factory=default_base_url)
     page_size: int = 1000
-    timeout_s: float = 30.0            # connect, and each socket read
+    timeout_s: float = 30.0            # each socket read (and connect, capped below)
+    connect_timeout_s: float = 10.0    # a connect: DataSF answers one in well under a second
     request_deadline_s: float = 120.0  # one request, headers and body, wall clock
     fetch_deadline_s: float = 300.0    # one dataset: every page and retry, wall clock
     max_retries: int = 4
@@ -183,7 +204,8 @@ class ClientConfig:
     backoff_max_s: float = 30.0
     retry_after_max_s: float = 120.0   # a longer Retry-After gives up at once (cache fallback)
     max_redirects: int = 5
-    max_body_bytes: int = 64 << 20     # a daily series is < 1 MB; this only stops a runaway body
+    max_body_bytes: int = MAX_PAYLOAD_BYTES  # one body; a daily series is < 1 MB
+    max_fetch_bytes: int = MAX_PAYLOAD_BYTES  # all pages of one dataset together (bounds memory)
     app_token_env: str = APP_TOKEN_ENV
     app_token: str | None = field(default=None, repr=False)
     max_pages: int = 1000  # a daily series has < 2,000 rows; this only stops a runaway loop
@@ -191,8 +213,10 @@ class ClientConfig:
     def __post_init__(self) -> None:
         parts = urlsplit(self.base_url)
         if parts.scheme not in ("http", "https") or not parts.hostname:
+            hint = (f"; did you mean 'https://{self.base_url.strip().lstrip('/')}'?"
+                    if "://" not in self.base_url and self.base_url.strip() else "")
             raise DataSourceError(f"DataSF base URL must be http(s)://host[/path], got "
-                                  f"{self.base_url!r} (--base-url / ${BASE_URL_ENV})")
+                                  f"{self.base_url!r} (--base-url / ${BASE_URL_ENV}){hint}")
 
     def token(self) -> str | None:
         token = self.app_token if self.app_token is not None else os.environ.get(
@@ -227,6 +251,11 @@ class NetworkError(DataSourceError):
     """DataSF could not be reached (connection, timeout, 429/5xx after every retry)."""
 
 
+class UnreachableError(NetworkError):
+    """No connection could be made at all (refused, unknown host, no route, connect timeout):
+    not retried, since seconds later the answer is the same; the run uses the cache at once."""
+
+
 class HTTPStatusError(DataSourceError):
     """DataSF answered with a status that retrying cannot fix (a 4xx other than 429)."""
 
@@ -237,6 +266,91 @@ class HTTPStatusError(DataSourceError):
 
 class RedirectRefusedError(DataSourceError):
     """DataSF redirected somewhere the client does not follow (another host, or http)."""
+
+
+REQUEST_THREAD_NAME = "datasf-request"
+_WORKER_GRACE_S = 2.0  # a cancelled worker's last read returns at once; this only bounds a join
+
+
+class _RequestWatch:
+    """The sockets one request's worker opened or reused, so the caller can shut them when the
+    request deadline passes (a socket opened after that is shut as soon as it is registered)."""
+
+    def __init__(self) -> None:
+        self.cancelled = threading.Event()
+        self._lock = threading.Lock()
+        self._sockets: list[socket.socket] = []
+
+    def add(self, sock: socket.socket | None) -> None:
+        if sock is None:
+            return
+        with self._lock:
+            self._sockets.append(sock)
+            if self.cancelled.is_set():
+                _shut(sock)
+
+    def cancel(self) -> None:
+        with self._lock:
+            self.cancelled.set()
+            for sock in self._sockets:
+                _shut(sock)
+
+
+def _shut(sock: socket.socket) -> None:
+    # socket.socket's own shutdown, also for an SSLSocket: it acts on the descriptor, so the
+    # worker's blocked read returns, and leaves the TLS state to the worker that owns it.
+    with contextlib.suppress(OSError):
+        socket.socket.shutdown(sock, socket.SHUT_RDWR)
+
+
+_current_watch = threading.local()  # .watch: the _RequestWatch of this worker thread
+
+
+def _register_socket(sock: socket.socket | None) -> None:
+    watch = getattr(_current_watch, "watch", None)
+    if watch is not None:
+        watch.add(sock)
+
+
+class _WatchedHTTPConnection(urllib3.connection.HTTPConnection):
+    def connect(self) -> None:
+        super().connect()
+        _register_socket(self.sock)
+
+
+class _WatchedHTTPSConnection(urllib3.connection.HTTPSConnection):
+    def connect(self) -> None:
+        super().connect()
+        _register_socket(self.sock)
+
+
+# (The ignores: urllib3 declares ConnectionCls as a Protocol type its own classes do not match
+# to pyright's letter either; ours only add a line to connect.)
+class _WatchedHTTPPool(urllib3.connectionpool.HTTPConnectionPool):
+    ConnectionCls = _WatchedHTTPConnection  # pyright: ignore[reportAssignmentType]
+
+    def _get_conn(self, timeout: float | None = None) -> Any:
+        conn = super()._get_conn(timeout)
+        _register_socket(getattr(conn, "sock", None))  # a reused keep-alive connection
+        return conn
+
+
+class _WatchedHTTPSPool(urllib3.connectionpool.HTTPSConnectionPool):
+    ConnectionCls = _WatchedHTTPSConnection  # pyright: ignore[reportAssignmentType]
+
+    def _get_conn(self, timeout: float | None = None) -> Any:
+        conn = super()._get_conn(timeout)
+        _register_socket(getattr(conn, "sock", None))
+        return conn
+
+
+class _WatchedAdapter(requests.adapters.HTTPAdapter):
+    """requests' adapter with connection pools whose sockets a :class:`_RequestWatch` sees."""
+
+    def init_poolmanager(self, *args: Any, **kwargs: Any) -> None:
+        super().init_poolmanager(*args, **kwargs)
+        self.poolmanager.pool_classes_by_scheme = {"http": _WatchedHTTPPool,
+                                                   "https": _WatchedHTTPSPool}
 
 
 class _TransportProblem(Exception):
@@ -327,10 +441,17 @@ class DataSFClient:
     clock: Callable[[], float] = time.monotonic
 
     def __post_init__(self) -> None:
+        self._owns_session = self.session is None
         if self.session is None:
             self.session = requests.Session()
         # Never a session default: requests would carry it along redirects it follows itself.
         self.session.headers.pop("X-App-Token", None)
+        # Requests to the base URL's origin (redirects never leave it) go through sockets the
+        # request deadline can shut (see _get_once).
+        origin = urlsplit(self.config.base_url)
+        prefix = f"{origin.scheme}://{origin.netloc}/".lower()
+        if not isinstance(self.session.adapters.get(prefix), _WatchedAdapter):
+            self.session.mount(prefix, _WatchedAdapter())
 
     def backoff_delay(self, attempt: int) -> float:
         """Delay before retry ``attempt`` (1-based): base * 2**(attempt-1), capped."""
@@ -342,6 +463,14 @@ class DataSFClient:
         The order field is the date's API name; if DataSF answers the first page with HTTP 400
         (no such column: a later schema renamed it), each alias is tried in turn.
         """
+        try:
+            return self._fetch_orders(spec)
+        finally:
+            if self._owns_session:
+                assert self.session is not None
+                self.session.close()  # no idle keep-alive socket outlives the fetch either
+
+    def _fetch_orders(self, spec: DatasetSpec) -> FetchResult:
         orders = list(dict.fromkeys((spec.date.api, *(a.lower() for a in spec.date.aliases))))
         for order in orders:
             try:
@@ -358,14 +487,16 @@ class DataSFClient:
         deadline = self.clock() + self.config.fetch_deadline_s
         rows: list[dict[str, object]] = []
         final_url = ""
+        pages = _PageLedger(url, self.config.page_size, self.config.max_fetch_bytes)
         for page in range(self.config.max_pages):
             params = {"$limit": str(self.config.page_size),
                       "$offset": str(page * self.config.page_size),
                       "$order": f"{order} ASC"}
             try:
-                batch, answered_from = self._get_page(url, params, deadline)
+                batch, answered_from, body = self._get_page(url, params, deadline)
             except HTTPStatusError as exc:
                 raise HTTPStatusError(str(exc), status=exc.status, page=page) from exc
+            pages.add(page, body)
             final_url = final_url or _strip_query(answered_from)
             rows.extend(batch)
             if len(batch) < self.config.page_size:
@@ -374,7 +505,7 @@ class DataSFClient:
         raise DataSourceError(f"{url}: more than {self.config.max_pages} pages; stopping")
 
     def _get_page(self, url: str, params: dict[str, str], deadline: float
-                  ) -> tuple[list[dict[str, object]], str]:
+                  ) -> tuple[list[dict[str, object]], str, bytes]:
         attempts = self.config.max_retries + 1
         last_problem = "no attempt made"
         for attempt in range(1, attempts + 1):
@@ -389,7 +520,9 @@ class DataSFClient:
                 last_problem = str(exc)
             else:
                 if answer.status == 200:
-                    return _parse_page(answer.body, answer.url), answer.url
+                    rows = decode_json_records(answer.body, source=answer.url,
+                                               max_bytes=self.config.max_body_bytes)
+                    return rows, answer.url, answer.body
                 if not _retryable_status(answer.status):
                     raise HTTPStatusError(f"HTTP {answer.status} from {answer.url}: "
                                           f"{_body_excerpt(answer.body)!r}", status=answer.status)
@@ -453,25 +586,40 @@ class DataSFClient:
         its next read (at most ``timeout_s`` later); its answer is discarded.
         """
         outcome: dict[str, object] = {}
-        cancel = threading.Event()
+        watch = _RequestWatch()
 
         def work() -> None:
+            _current_watch.watch = watch
             try:
-                outcome["answer"] = self._read(url, headers, until, cancel)
+                outcome["answer"] = self._read(url, headers, until, watch.cancelled)
             except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
                 outcome["error"] = exc
+            finally:
+                _current_watch.watch = None
 
-        worker = threading.Thread(target=work, name="datasf-request", daemon=True)
+        worker = threading.Thread(target=work, name=REQUEST_THREAD_NAME, daemon=True)
         worker.start()
         worker.join(max(0.0, until - self.clock()) + 0.05)
         if worker.is_alive():
-            cancel.set()
+            # Shut its sockets: a read blocked on a server that drips bytes (headers included,
+            # which requests reads with per-read timeouts only) returns at once, so the worker
+            # ends now instead of living on after the fetch gave up (issue 22: 4 threads and
+            # their sockets 15 s later).
+            watch.cancel()
+            worker.join(_WORKER_GRACE_S)
+            if worker.is_alive():
+                log.warning("DataSF request thread for %s still running %.0f s after its "
+                            "deadline (blocked outside a socket read)", url, _WORKER_GRACE_S)
             raise _TransportProblem(f"no complete answer from {url} within the request deadline "
                                     f"of {budget_s:.0f} s")
         error = outcome.get("error")
         if isinstance(error, _TransportProblem | DataSourceError):
             raise error
         if isinstance(error, requests.RequestException):
+            failure = _connect_failure(error)
+            if failure is not None:
+                raise UnreachableError(f"cannot connect to {urlsplit(url).netloc} ({failure}); "
+                                       f"not retried") from error
             raise _TransportProblem(f"{type(error).__name__}: {error}") from error
         if isinstance(error, BaseException):
             raise error
@@ -483,7 +631,8 @@ class DataSFClient:
               cancel: threading.Event) -> _Answer:
         assert self.session is not None
         remaining = max(0.001, until - self.clock())
-        timeout = (min(self.config.timeout_s, remaining), min(self.config.timeout_s, remaining))
+        timeout = (min(self.config.connect_timeout_s, self.config.timeout_s, remaining),
+                   min(self.config.timeout_s, remaining))
         with self.session.get(url, headers=headers, timeout=timeout, stream=True,
                               allow_redirects=False) as response:
             chunks: list[bytes] = []
@@ -511,6 +660,20 @@ class DataSFClient:
                            response.url)
 
 
+def _connect_failure(error: requests.RequestException) -> str | None:
+    """Why no connection could be made when the answer is definite (refused, unknown host, no
+    route), or None for any other failure. A connect *timeout* is not definite (an overloaded
+    host drops SYNs too), so it is retried like the rest, each try bounded by
+    ``connect_timeout_s``."""
+    for arg in error.args:
+        # requests wraps urllib3's MaxRetryError, whose reason is the connection's own error
+        # (NameResolutionError is a NewConnectionError).
+        reason = getattr(arg, "reason", None)
+        if isinstance(reason, urllib3.exceptions.NewConnectionError):
+            return str(reason)
+    return None
+
+
 def _as_requests_error(exc: BaseException) -> BaseException:
     for low, high in _BODY_ERRORS:
         if isinstance(exc, low):
@@ -518,13 +681,24 @@ def _as_requests_error(exc: BaseException) -> BaseException:
     return exc
 
 
-def _parse_page(body: bytes, url: str) -> list[dict[str, object]]:
-    try:
-        data = json.loads(body)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataSourceError(
-            f"invalid JSON from {url} ({len(body)} bytes, truncated or damaged): {exc}") from exc
-    if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
-        raise DataSourceError(f"{url}: expected a JSON array of objects, got "
-                              f"{type(data).__name__}")
-    return data
+class _PageLedger:
+    """What the pages of one fetch have cost so far: stops a server that ignores ``$offset``
+    at its first repeated page (it would otherwise serve the same page until ``max_pages``,
+    1.27 GB in the probe) and any fetch whose pages together pass ``max_bytes``."""
+
+    def __init__(self, url: str, page_size: int, max_bytes: int) -> None:
+        self.url, self.page_size, self.max_bytes = url, page_size, max_bytes
+        self.first_page_of: dict[str, int] = {}
+        self.total = 0
+
+    def add(self, page: int, body: bytes) -> None:
+        self.total += len(body)
+        if self.total > self.max_bytes:
+            raise DataSourceError(f"{self.url}: pages 0…{page} hold {self.total:,} bytes, more "
+                                  f"than the {self.max_bytes:,} one dataset may have; stopping")
+        digest = hashlib.sha256(body).hexdigest()
+        earlier = self.first_page_of.setdefault(digest, page)
+        if earlier != page and body.strip() not in (b"[]", b""):
+            raise DataSourceError(
+                f"{self.url}: the page at $offset={page * self.page_size} repeats the page at "
+                f"$offset={earlier * self.page_size} (the server ignores $offset?); stopping")

@@ -31,9 +31,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.cache import CachedPayload, CommitCheck, DatasetCache, SourceKind
+from pipeline.data.datasf import SF_PLAUSIBILITY
 from pipeline.data.payloads import decode_cached
+from pipeline.data.plausibility import PlausibilityRule, check_plausible
 from pipeline.data.validation import GapPolicy, ValidatedFrame, validate_frame
 from pipeline.errors import DataSourceError, ValidationError
+from pipeline.io import LOCK_TIMEOUT_S
 
 log = logging.getLogger(__name__)
 
@@ -119,11 +122,13 @@ def _check_revisions(new: ValidatedFrame, cached: ValidatedFrame, key: str,
 
 
 def successor_check(new: ValidatedFrame, *, gap_policy: GapPolicy,
-                    policy: RevisionPolicy = DEFAULT_POLICY) -> CommitCheck:
+                    policy: RevisionPolicy = DEFAULT_POLICY,
+                    plausibility: PlausibilityRule = SF_PLAUSIBILITY) -> CommitCheck:
     """A :meth:`DatasetCache.store` check: refuse ``new`` unless it may replace the live copy.
 
-    A live copy that no longer validates (damaged, or stored by an older flowcast with weaker
-    checks, e.g. a poisoned count) is no reference: the new payload repairs it.
+    A live copy that no longer validates or is implausible (damaged, or stored by an older
+    flowcast with weaker checks, e.g. a poisoned count) is no reference: the new payload repairs
+    it instead of being held as a revision of it.
     """
     def check(live: CachedPayload | None) -> None:
         if live is None:
@@ -131,6 +136,8 @@ def successor_check(new: ValidatedFrame, *, gap_policy: GapPolicy,
         try:
             cached = validate_frame(decode_cached(live), new.spec, source=str(live.path),
                                     gap_policy=gap_policy)
+            check_plausible(cached.frame, new.spec.count_columns, plausibility,
+                            source=str(live.path))
         except DataSourceError as exc:
             log.warning("cached %s no longer validates (%s); replacing it", new.spec.key, exc)
             return
@@ -143,19 +150,26 @@ def commit_validated(cache: DatasetCache, validated: ValidatedFrame, payload: by
                      suffix: str, source_kind: SourceKind, source: str,
                      final_url: str | None = None, gap_policy: GapPolicy,
                      accept_revisions: bool = False,
-                     policy: RevisionPolicy = DEFAULT_POLICY) -> Any:
-    """Store a validated payload unless it may not replace the live copy (shrinks, goes back,
-    breaks the revision policy: then it is held for review and the error says where)."""
+                     policy: RevisionPolicy = DEFAULT_POLICY,
+                     plausibility: PlausibilityRule = SF_PLAUSIBILITY,
+                     lock_timeout_s: float = LOCK_TIMEOUT_S) -> Any:
+    """Store a validated payload unless a count is implausible (refused, even with
+    ``accept_revisions``: no review makes 1e8 cases in a day true) or it may not replace the
+    live copy (shrinks, goes back, breaks the revision policy: then it is held for review and
+    the error says where)."""
     report = validated.report
-    check = None if accept_revisions else successor_check(validated, gap_policy=gap_policy,
-                                                          policy=policy)
+    check_plausible(validated.frame, validated.spec.count_columns, plausibility,
+                    source=report.source)
+    check = None if accept_revisions else successor_check(
+        validated, gap_policy=gap_policy, policy=policy, plausibility=plausibility)
     try:
         return cache.store(
             validated.spec, payload, suffix=suffix, source_kind=source_kind, source=source,
             row_count=report.row_count, first_date=str(report.first_date.date()),
             last_date=str(report.last_date.date()),
             data_as_of=report.data_as_of.isoformat() if report.data_as_of is not None else None,
-            final_cumulative=report.final_cumulative, final_url=final_url, check=check)
+            final_cumulative=report.final_cumulative, final_url=final_url, check=check,
+            lock_timeout_s=lock_timeout_s)
     except RevisionRefusedError as exc:
         if not exc.hold:
             raise

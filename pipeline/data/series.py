@@ -33,17 +33,23 @@ import pandas as pd
 import requests
 
 from pipeline.data.cache import CacheManifest, CachedPayload, DatasetCache, SourceKind, utc_now
-from pipeline.data.datasf import (DATASETS, CASES, ClientConfig, DataSFClient, DatasetSpec,
-                                  NetworkError)
+from pipeline.data.datasf import (DATASETS, CASES, SF_PLAUSIBILITY, ClientConfig, DataSFClient,
+                                  DatasetSpec, NetworkError)
+from pipeline.data.decoding import decode_boundary
 from pipeline.data.payloads import decode_cached as _decode_payload
 from pipeline.data.payloads import rows_frame
+from pipeline.data.plausibility import PlausibilityRule
 from pipeline.data.revisions import DEFAULT_POLICY, RevisionPolicy, commit_validated
 from pipeline.data.validation import GapPolicy, ValidatedFrame, validate_frame
 from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
+from pipeline.io import LockTimeoutError
 
 log = logging.getLogger(__name__)
 
 DEFAULT_TRAILING_DAYS = 14
+# A commit holds the cache lock for milliseconds; a lock held this long belongs to a stuck run,
+# so the fetched payload is dropped and the committed cache read (readers take no lock).
+DEFAULT_LOCK_TIMEOUT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,8 @@ class SFDataConfig:
     data_dir: Path | None = None  # None -> $FLOWCAST_DATA_DIR or ./data
     accept_revisions: bool = False  # take a payload the revision policy would hold (reviewed)
     revision_policy: RevisionPolicy = DEFAULT_POLICY
+    plausibility: PlausibilityRule = SF_PLAUSIBILITY
+    lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S
 
     def __post_init__(self) -> None:
         unknown = [d for d in self.datasets if d not in DATASETS]
@@ -83,6 +91,7 @@ class DatasetProvenance:
     from_cache: bool
     stale_days: float       # age of the cached copy when it was used; 0 for a live fetch
     notes: tuple[str, ...] = ()
+    final_url: str | None = None  # where DataSF answered from after redirects (API only)
 
 
 @dataclass(frozen=True)
@@ -137,13 +146,17 @@ def decode_cached(cached: CachedPayload, spec: DatasetSpec) -> pd.DataFrame:
 def _fetch_live(spec: DatasetSpec, client: DataSFClient, cache: DatasetCache,
                 config: SFDataConfig, now: datetime) -> tuple[ValidatedFrame, DatasetProvenance]:
     result = client.fetch(spec)
-    validated = validate_frame(rows_frame(result.rows), spec, source=result.url,
-                               gap_policy=config.gap_policy, today=pd.Timestamp(now.date()))
+    # The rows were decoded at the client's boundary; reading them as a frame is decoding too.
+    with decode_boundary("payload", result.url, len(result.payload)):
+        validated = validate_frame(rows_frame(result.rows, source=result.url), spec,
+                                   source=result.url, gap_policy=config.gap_policy,
+                                   today=pd.Timestamp(now.date()))
     manifest = commit_validated(cache, validated, result.payload, suffix="json",
                                 source_kind="api", source=result.url,
                                 final_url=result.final_url, gap_policy=config.gap_policy,
                                 accept_revisions=config.accept_revisions,
-                                policy=config.revision_policy)
+                                policy=config.revision_policy, plausibility=config.plausibility,
+                                lock_timeout_s=config.lock_timeout_s)
     return validated, _provenance(manifest, from_cache=False, stale_days=0.0,
                                   notes=validated.report.warnings)
 
@@ -179,7 +192,7 @@ def _provenance(manifest: CacheManifest, *, from_cache: bool, stale_days: float,
         fetched_at=manifest.fetched_at, sha256=manifest.sha256, row_count=manifest.row_count,
         first_date=manifest.first_date, last_date=manifest.last_date,
         data_as_of=manifest.data_as_of, from_cache=from_cache, stale_days=stale_days,
-        notes=notes)
+        notes=notes, final_url=manifest.final_url)
 
 
 def load_dataset(spec: DatasetSpec, config: SFDataConfig, *, offline: bool = False,
@@ -202,7 +215,7 @@ def _load_one(spec: DatasetSpec, config: SFDataConfig, *, offline: bool,
     if unreachable is not None:
         # Name this dataset's own resource: the first failure's text cites the first dataset's URL
         # (the deaths and tests notes used to carry the cases URL, gyr2-k29z).
-        why = (f"DataSF unreachable (an earlier dataset's fetch failed every retry), so "
+        why = (f"DataSF unreachable (an earlier dataset's fetch failed), so "
                f"{spec.resource_url(config.client.base_url)} was not retried for {spec.key}")
         return (*_from_cache(spec, cache, config.gap_policy, now, why=why), unreachable)
     client = DataSFClient(config.client, session=session)
@@ -212,6 +225,11 @@ def _load_one(spec: DatasetSpec, config: SFDataConfig, *, offline: bool,
         unreachable = why = f"DataSF unreachable: {exc}"
     except DataSourceError as exc:  # includes ValidationError: bad payload, 4xx
         why = f"DataSF payload rejected, cache kept: {exc}"
+        if not cache.has(spec):
+            raise
+    except LockTimeoutError as exc:
+        # Another run holds the writer lock (stuck): the committed copy is still readable.
+        why = f"DataSF payload fetched but not stored, cache kept: {exc}"
         if not cache.has(spec):
             raise
     return (*_from_cache(spec, cache, config.gap_policy, now, why=why), unreachable)
@@ -253,10 +271,14 @@ def combine(frames: dict[str, ValidatedFrame], trailing_days: int) -> pd.DataFra
     return pd.concat(parts, axis=1).rename_axis("date").reset_index()
 
 
-def load_sf_series(config: SFDataConfig = SFDataConfig(), *, offline: bool = False,
+def load_sf_series(config: SFDataConfig | None = None, *, offline: bool = False,
                    session: requests.Session | None = None,
                    now: datetime | None = None) -> SFSeries:
-    """Cases (+ deaths, tests) as one validated, vintage-trimmed daily frame with provenance."""
+    """Cases (+ deaths, tests) as one validated, vintage-trimmed daily frame with provenance.
+
+    ``config`` defaults to ``SFDataConfig()``, built here and not at import: it reads
+    ``$FLOWCAST_DATASF_BASE_URL``, and a bad value must fail the fetch, not every import."""
+    config = config if config is not None else SFDataConfig()
     now = now or utc_now()
     frames: dict[str, ValidatedFrame] = {}
     provenance: list[DatasetProvenance] = []

@@ -72,10 +72,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.data.datasf import SF_POPULATION_2020_CENSUS
 from pipeline.data.series import SeriesProvenance, SFSeries
 from pipeline.errors import ConfigError, ValidationError
 
-SF_POPULATION_2020_CENSUS = 873_965
 DEFAULT_INFECTIOUS_PERIOD_DAYS = 7
 
 
