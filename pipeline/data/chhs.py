@@ -263,13 +263,13 @@ class CHHSClient:
             delay = max(self.backoff_delay(attempt), retry_after or 0.0)
             if self.clock() + delay >= deadline:
                 raise CHHSNetworkError(f"{url}: fetch deadline of "
-                                       f"{self.config.fetch_deadline_s:.0f} s would pass before "
+                                       f"{self.config.fetch_deadline_s:g} s would pass before "
                                        f"retry {attempt} (in {delay:.0f} s); last: {last}")
             log.warning("CHHS %s: %s; retry %d/%d in %.1f s", url, last, attempt,
                         attempts - 1, delay)
             self.sleep(delay)
         if self.clock() >= deadline:
-            raise CHHSNetworkError(f"{url}: fetch deadline of {self.config.fetch_deadline_s:.0f}"
+            raise CHHSNetworkError(f"{url}: fetch deadline of {self.config.fetch_deadline_s:g}"
                                    f" s passed; last: {last}")
         raise CHHSNetworkError(f"{url} failed after {attempts} attempts; last: {last}")
 
