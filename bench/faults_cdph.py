@@ -23,6 +23,7 @@ Run: ``python -m bench.faults_cdph`` -> ``bench/results/faults_cdph.json``. Also
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import gzip
 import io
@@ -33,9 +34,10 @@ import socket
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pandas as pd
 
@@ -43,6 +45,9 @@ from bench.faults import FakeDataSF, Responder, bytes_lost, cache_bytes, redirec
 from pipeline.data.cdph_source import SPEC, CDPHConfig
 from pipeline.data.chhs import CHHSClientConfig
 from pipeline.io import atomic_write_json
+
+if TYPE_CHECKING:
+    from bench.faults import _Handler
 
 RESULT_PATH = Path(__file__).parent / "results" / "faults_cdph.json"
 CDPH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cdph"
@@ -99,8 +104,8 @@ def gzip_bomb() -> bytes:
     return gzip.compress(b"0" * BOMB_BYTES, compresslevel=9)
 
 
-def package_show(download_url: str, *, resources: list[dict[str, object]] | None = None
-                 ) -> bytes:
+def package_show(download_url: str, *,
+                 resources: Sequence[Mapping[str, object]] | None = None) -> bytes:
     """CKAN's ``package_show`` answer for the CDPH dataset (the fields flowcast reads, plus a
     second resource as on the real portal)."""
     ours = {"id": SPEC.resource_id, "name": "Statewide COVID-19 Cases Deaths Tests",
@@ -108,7 +113,7 @@ def package_show(download_url: str, *, resources: list[dict[str, object]] | None
     other = {"id": "0d9be83b-5027-41ff-97b2-6ca70238d778", "name": "Data Dictionary",
              "format": "XLSX", "url": download_url.rsplit("/", 1)[0] + "/dictionary.xlsx"}
     result = {"id": SPEC.package_uuid, "name": SPEC.dataset_id, "title": SPEC.title,
-              "resources": resources if resources is not None else [ours, other]}
+              "resources": list(resources) if resources is not None else [ours, other]}
     return json.dumps({"help": "package_show", "success": True, "result": result}).encode()
 
 
@@ -125,9 +130,8 @@ class FakeCKAN:
         self.download: Responder = lambda h: h.send_body(200, vintage_bytes(), "text/csv")
         self.http.respond(self._route)
 
-    def _route(self, h: object) -> None:
-        path = getattr(h, "path", "")
-        (self.package if path.startswith("/api/3/action/package_show") else self.download)(h)
+    def _route(self, h: _Handler) -> None:
+        (self.package if h.path.startswith("/api/3/action/package_show") else self.download)(h)
 
     @property
     def url(self) -> str:
@@ -155,28 +159,26 @@ def body(data: bytes, content_type: str = "text/csv",
 
 def short_of_length(data: bytes) -> Responder:
     """Content-Length of the whole file, then half of it and the connection closed."""
-    def respond(h: object) -> None:
-        handler = h  # bench.faults._Handler
-        handler.send_response(200)  # type: ignore[attr-defined]
-        handler.send_header("Content-Type", "text/csv")  # type: ignore[attr-defined]
-        handler.send_header("Content-Length", str(len(data)))  # type: ignore[attr-defined]
-        handler.send_header("Connection", "close")  # type: ignore[attr-defined]
-        handler.end_headers()  # type: ignore[attr-defined]
-        handler.wfile.write(data[:len(data) // 2])  # type: ignore[attr-defined]
-        handler.close_connection = True  # type: ignore[attr-defined]
+    def respond(handler: _Handler) -> None:
+        handler.send_response(200)
+        handler.send_header("Content-Type", "text/csv")
+        handler.send_header("Content-Length", str(len(data)))
+        handler.send_header("Connection", "close")
+        handler.end_headers()
+        handler.wfile.write(data[:len(data) // 2])
+        handler.close_connection = True
     return respond
 
 
 def cut_without_length(data: bytes) -> Responder:
     """No Content-Length (the body ends when the connection closes), cut at 60 %."""
-    def respond(h: object) -> None:
-        handler = h
-        handler.send_response(200)  # type: ignore[attr-defined]
-        handler.send_header("Content-Type", "text/csv")  # type: ignore[attr-defined]
-        handler.send_header("Connection", "close")  # type: ignore[attr-defined]
-        handler.end_headers()  # type: ignore[attr-defined]
-        handler.wfile.write(data[:int(len(data) * 0.6)])  # type: ignore[attr-defined]
-        handler.close_connection = True  # type: ignore[attr-defined]
+    def respond(handler: _Handler) -> None:
+        handler.send_response(200)
+        handler.send_header("Content-Type", "text/csv")
+        handler.send_header("Connection", "close")
+        handler.end_headers()
+        handler.wfile.write(data[:int(len(data) * 0.6)])
+        handler.close_connection = True
     return respond
 
 
@@ -267,10 +269,10 @@ def faults() -> list[Fault]:
 
 def client_config(base_url: str, **overrides: float) -> CHHSClientConfig:
     """Short timeouts, no backoff: every case ends in seconds."""
-    base: dict[str, object] = dict(base_url=base_url, timeout_s=2.0, request_deadline_s=5.0,
-                                   fetch_deadline_s=10.0, max_retries=2, backoff_base_s=0.0,
-                                   max_body_bytes=BODY_LIMIT)
-    return CHHSClientConfig(**{**base, **overrides})  # type: ignore[arg-type]
+    config = CHHSClientConfig(base_url=base_url, timeout_s=2.0, request_deadline_s=5.0,
+                              fetch_deadline_s=10.0, max_retries=2, backoff_base_s=0.0,
+                              max_body_bytes=BODY_LIMIT)
+    return dataclasses.replace(config, **overrides)
 
 
 def held_files(data_dir: Path) -> list[Path]:

@@ -22,6 +22,7 @@ from typer.testing import CliRunner
 
 from bench.faults import bytes_lost, cache_bytes
 from bench.faults_cdph import (CDPH, DOWNLOAD_PATH, GOOD_VINTAGE, FakeCKAN, client_config,
+                               closed_port,
                                edited, faults, held_files, package_show, revised_settled,
                                run_fault, vintage_bytes)
 from pipeline.cli.data import data_app
@@ -178,7 +179,7 @@ def test_client_resolves_the_resource_through_package_show():
     calls = [c.request for c in responses.calls]
     assert calls[0].url == (f"{base}/api/3/action/package_show?"
                             f"id=covid-19-time-series-metrics-by-county-and-state")
-    assert calls[1].headers["Accept"].startswith("text/csv")
+    assert str(calls[1].headers["Accept"]).startswith("text/csv")
 
 
 @responses.activate
@@ -214,9 +215,10 @@ def test_live_load_caches_the_vintage_and_keeps_it(data_dir):
     assert p.final_url == portal.url + DOWNLOAD_PATH and "last modified 2021-11-04" in p.notes[0]
     cache = DatasetCache(data_dir)
     assert cache.directory(SPEC) == data_dir / "chhs" / SPEC.dataset_id
-    assert cache.load(SPEC).payload == vintage_bytes()  # type: ignore[union-attr]
+    live = cache.load(SPEC)
+    assert live is not None and live.payload == vintage_bytes()
     assert [p.name for p in vintages_dir(cache).iterdir()] == [
-        f"2021-11-04-{cache.read_manifest(SPEC).sha256[:16]}.csv"]  # type: ignore[union-attr]
+        f"2021-11-04-{live.manifest.sha256[:16]}.csv"]
     again = load_cdph_vintage(CDPHConfig(data_dir=data_dir), offline=True)
     assert again.populations() == loaded.vintage.populations()
 
@@ -238,7 +240,7 @@ def test_held_revision_is_taken_after_review(data_dir):
     revised = edited(revised_settled)
     with FakeCKAN() as portal:
         load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
-        portal.download = lambda h: h.send_body(200, revised, "text/csv")  # type: ignore[attr-defined]
+        portal.download = lambda h: h.send_body(200, revised, "text/csv")
         held = load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
         assert held.provenance.from_cache and "held for review" in held.provenance.notes[0]
         [payload] = held_files(data_dir)
@@ -253,7 +255,7 @@ def test_held_revision_is_taken_after_review(data_dir):
 
 def test_rejected_payload_without_a_cache_writes_nothing(data_dir):
     with FakeCKAN() as portal:
-        portal.download = lambda h: h.send_body(  # type: ignore[attr-defined]
+        portal.download = lambda h: h.send_body(
             200, edited(lambda f: f.drop(columns=["cases"])), "text/csv")
         with pytest.raises(CDPHFormatError, match=r"missing column\(s\) \['cases'\]"):
             load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
@@ -261,8 +263,7 @@ def test_rejected_payload_without_a_cache_writes_nothing(data_dir):
 
 
 def test_unreachable_without_a_cache_names_import(data_dir):
-    config = CDPHConfig(client=client_config(FAULTS["connection-refused"].base_url()),  # type: ignore[misc]
-                        data_dir=data_dir)
+    config = CDPHConfig(client=client_config(closed_port()), data_dir=data_dir)
     with pytest.raises(OfflineError, match=r"CHHS portal unreachable.*`flowcast data import "
                                            r"FILE`"):
         load_cdph(config)
@@ -295,7 +296,8 @@ def test_import_keeps_every_vintage_in_any_order(data_dir):
                                                           ("2021-11-04", "imported")]
     older = import_cdph_exports([path_of("rolnasz95__csv_parsing")], data_dir)
     assert older[0].action == "archived" and "live copy unchanged" in older[0].note
-    assert DatasetCache(data_dir).read_manifest(SPEC).last_date == "2021-11-04"  # type: ignore[union-attr]
+    manifest = DatasetCache(data_dir).read_manifest(SPEC)
+    assert manifest is not None and manifest.last_date == "2021-11-04"
     assert [str(v.as_of.date()) for v in cached_vintages(data_dir)] == [
         "2021-09-12", "2021-09-19", "2021-11-04"]
     skipped = import_cdph_exports([path_of(GOOD_VINTAGE)], data_dir, if_empty=True)
@@ -336,7 +338,7 @@ cli = typer.Typer()
 cli.add_typer(data_app, name="data")
 
 
-def run(*args: str):  # type: ignore[no-untyped-def]
+def run(*args: str | Path):  # type: ignore[no-untyped-def]
     return CliRunner().invoke(cli, ["data", *map(str, args)])
 
 
@@ -357,7 +359,7 @@ def test_cli_import_status_counties_and_fetch(datasf_dir, data_dir):
                for line in counties.output.splitlines())
     assert len(run("counties").output.splitlines()) == 59
     with FakeCKAN() as portal:
-        portal.download = lambda h: h.send_body(  # type: ignore[attr-defined]
+        portal.download = lambda h: h.send_body(
             200, vintage_bytes("hhaeri__CA_State_COVID-19_Cases_Deaths_Tests"), "text/csv")
         fetched = run("fetch", "--source", "chhs", "--chhs-base-url", portal.url)
     assert fetched.exit_code == 0, fetched.output

@@ -66,18 +66,17 @@ def import_command(
     """Validate DataSF CSV exports and CDPH county files and put them into the cache
     ($FLOWCAST_DATA_DIR or ./data). CDPH files are vintages: each is kept, the newest is live."""
     from pipeline.data.cache import data_dir
-    from pipeline.data.cdph_source import (import_cdph_exports, is_cdph_export, peek_columns,
-                                           validate_cdph_payload)
+    from pipeline.data.cdph_source import (is_cdph_export, peek_columns, store_cdph_exports,
+                                           validate_cdph_exports)
     from pipeline.data.csv_import import import_csv_exports
     cdph = [f for f in files if is_cdph_export(peek_columns(f))]
     datasf = [f for f in files if f not in cdph]
     try:
-        for f in cdph:  # every file is checked before anything is stored
-            validate_cdph_payload(f.read_bytes(), str(f))
+        checked = validate_cdph_exports(cdph)  # every file is checked before any is stored
         summaries = import_csv_exports(datasf, if_empty=if_empty,
                                        accept_revisions=accept_revisions) if datasf else []
-        cdph_summaries = import_cdph_exports(cdph, if_empty=if_empty,
-                                             accept_revisions=accept_revisions) if cdph else []
+        cdph_summaries = store_cdph_exports(checked, if_empty=if_empty,
+                                            accept_revisions=accept_revisions)
     except FlowcastError as exc:
         _fail(exc)
     for c in cdph_summaries:

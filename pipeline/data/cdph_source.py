@@ -385,16 +385,19 @@ def peek_columns(path: str | os.PathLike[str]) -> list[str]:
     return []
 
 
-def import_cdph_exports(paths: Sequence[str | os.PathLike[str]],
-                        data_dir: str | os.PathLike[str] | None = None, *,
-                        if_empty: bool = False, accept_revisions: bool = False,
-                        policy: CDPHRevisionPolicy = DEFAULT_POLICY,
-                        limits: PlausibilityLimits = DEFAULT_LIMITS) -> list[CDPHImportSummary]:
-    """Validate every file first (nothing is stored if one fails), then store them oldest
-    first: each becomes the live copy if the revision policy allows; one older than the live
-    copy is kept in ``vintages/`` only (archived downloads may come in any order)."""
-    cache = DatasetCache.default(data_dir)
-    checked: list[tuple[Path, CDPHVintage, bytes]] = []
+@dataclass(frozen=True)
+class CheckedExport:
+    """A CDPH file read and validated, not yet stored."""
+
+    path: Path
+    vintage: CDPHVintage
+    payload: bytes
+
+
+def validate_cdph_exports(paths: Sequence[str | os.PathLike[str]],
+                          limits: PlausibilityLimits = DEFAULT_LIMITS) -> list[CheckedExport]:
+    """Read and validate every file (the first problem raises; nothing is stored)."""
+    checked = []
     for p in paths:
         path = Path(p)
         try:
@@ -402,10 +405,32 @@ def import_cdph_exports(paths: Sequence[str | os.PathLike[str]],
         except OSError as exc:
             raise CDPHFormatError(f"cannot read CDPH export {path}: {exc.strerror or exc}") \
                 from exc
-        checked.append((path, validate_cdph_payload(data, str(path), limits), data))
-    checked.sort(key=lambda item: item[1].as_of)
+        checked.append(CheckedExport(path, validate_cdph_payload(data, str(path), limits), data))
+    return checked
+
+
+def import_cdph_exports(paths: Sequence[str | os.PathLike[str]],
+                        data_dir: str | os.PathLike[str] | None = None, *,
+                        if_empty: bool = False, accept_revisions: bool = False,
+                        policy: CDPHRevisionPolicy = DEFAULT_POLICY,
+                        limits: PlausibilityLimits = DEFAULT_LIMITS) -> list[CDPHImportSummary]:
+    """Validate every file first (nothing is stored if one fails), then store them oldest
+    first (:func:`store_cdph_exports`)."""
+    return store_cdph_exports(validate_cdph_exports(paths, limits), data_dir, if_empty=if_empty,
+                              accept_revisions=accept_revisions, policy=policy)
+
+
+def store_cdph_exports(checked: Sequence[CheckedExport],
+                       data_dir: str | os.PathLike[str] | None = None, *,
+                       if_empty: bool = False, accept_revisions: bool = False,
+                       policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
+    """Store validated files oldest first: each becomes the live copy if the revision policy
+    allows (a refusal stops here: the files before it are stored, the rest are not); one older
+    than the live copy is kept in ``vintages/`` only (archived downloads come in any order)."""
+    cache = DatasetCache.default(data_dir)
     summaries = []
-    for path, vintage, data in checked:
+    for path, vintage, data in ((c.path, c.vintage, c.payload)
+                                for c in sorted(checked, key=lambda c: c.vintage.as_of)):
         live, damage = cache.load_or_damage(SPEC)
         live_vintage = _cached_vintage(live) if live is not None else None
         note, action = "", "imported"
@@ -437,5 +462,6 @@ def describe_columns() -> str:
 
 __all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance", "CDPHRevisionPolicy",
            "cached_vintages", "check_cdph_successor", "check_plausible", "commit_vintage",
-           "import_cdph_exports", "is_cdph_export", "load_cdph", "load_cdph_vintage",
+           "import_cdph_exports", "is_cdph_export", "store_cdph_exports",
+           "validate_cdph_exports", "load_cdph", "load_cdph_vintage",
            "validate_cdph_payload"]
