@@ -290,7 +290,8 @@ def test_base_url_is_read_at_use_not_at_import(data_dir, monkeypatch):
 
 
 def test_import_keeps_every_vintage_in_any_order(data_dir):
-    files = [path_of(f) for f in ("ofaye98__CSC508_Mentor_Class", "OlinaZhu__BIS633_Fall2021_qz258")]
+    files = [path_of(f) for f in ("ofaye98__CSC508_Mentor_Class",
+                                  "OlinaZhu__BIS633_Fall2021_qz258")]
     summaries = import_cdph_exports(files, data_dir)
     assert [(s.as_of, s.action) for s in summaries] == [("2021-09-12", "imported"),
                                                           ("2021-11-04", "imported")]

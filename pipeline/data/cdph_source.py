@@ -2,7 +2,8 @@
 
 Flow of one vintage (a download of ``covid19cases_test.csv``, live or imported)::
 
-    bytes -> parse_cdph_csv (strict, pipeline.data.cdph) -> plausibility (pipeline.data.plausibility)
+    bytes -> parse_cdph_csv (strict, pipeline.data.cdph)
+          -> plausibility (pipeline.data.plausibility)
           -> DatasetCache.store under the lock, whose check runs the revision policy against the
              live copy -> manifest swapped; the bytes also kept in vintages/
 
@@ -47,8 +48,7 @@ import requests
 
 from pipeline.data.cache import (CacheDamagedError, CachedPayload, CacheManifest, DatasetCache,
                                  SourceKind, utc_now)
-from pipeline.data.cdph import (COUNT_COLUMNS, REQUIRED_COLUMNS, CDPHFormatError, CDPHVintage,
-                                parse_cdph_csv)
+from pipeline.data.cdph import COUNT_COLUMNS, CDPHFormatError, CDPHVintage, parse_cdph_csv
 from pipeline.data.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient, CHHSClientConfig,
                                 CHHSNetworkError, CKANResourceSpec)
 from pipeline.data.plausibility import DEFAULT_LIMITS, PlausibilityLimits, first_implausible
@@ -456,12 +456,8 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
     return summaries
 
 
-def describe_columns() -> str:
-    return ", ".join(REQUIRED_COLUMNS)
-
-
-__all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance", "CDPHRevisionPolicy",
-           "cached_vintages", "check_cdph_successor", "check_plausible", "commit_vintage",
-           "import_cdph_exports", "is_cdph_export", "store_cdph_exports",
-           "validate_cdph_exports", "load_cdph", "load_cdph_vintage",
+__all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance",
+           "CDPHRevisionPolicy", "CheckedExport", "cached_vintages", "check_cdph_successor",
+           "check_plausible", "commit_vintage", "import_cdph_exports", "is_cdph_export",
+           "load_cdph", "load_cdph_vintage", "store_cdph_exports", "validate_cdph_exports",
            "validate_cdph_payload"]
