@@ -228,12 +228,16 @@ def test_live_load_caches_the_vintage_and_keeps_it(data_dir):
 
 @pytest.mark.parametrize("name", list(FAULTS))
 def test_fault_falls_back_to_the_untouched_cache(name, data_dir):
-    result = run_fault(FAULTS[name], data_dir)
-    assert FAULTS[name].expect in result.note, result.note
+    fault = FAULTS[name]
+    result = run_fault(fault, data_dir)
+    assert fault.expect in result.note, result
     assert "using cache, fetched 0 days ago (its last day, 2021-11-04" in result.note
     assert result.bytes_lost == 0
     assert result.passed, result
-    assert result.seconds < 4.0  # the drip included: bounded by the deadlines
+    # Bounded by the client's deadlines, not by the server (the drip would take 4 s more);
+    # the margin is for a loaded machine (the cache fallback parses a 4 MB file).
+    deadline = fault.config.get("fetch_deadline_s", client_config("http://x").fetch_deadline_s)
+    assert result.seconds < deadline + 2.0, result
 
 
 def test_held_revision_is_taken_after_review(data_dir):
