@@ -371,6 +371,15 @@ def test_cli_import_status_counties_and_fetch(datasf_dir, data_dir):
     assert "from cache" in fetched.output and "last date moves backwards" in fetched.output
 
 
+def test_cli_import_names_the_missing_column_of_a_cdph_file(tmp_path, data_dir):
+    broken = tmp_path / "covid19cases_test.csv"
+    broken.write_bytes(edited(lambda f: f.drop(columns=["cases"])))
+    result = run("import", broken)
+    assert result.exit_code == 1
+    assert "missing column(s) ['cases']" in result.output and "CDPH" in result.output
+    assert cache_bytes(data_dir) == {}
+
+
 def test_cli_fetch_refuses_a_base_url_without_scheme(data_dir):
     result = run("fetch", "--source", "chhs", "--chhs-base-url", "data.chhs.ca.gov")
     assert result.exit_code == 1

@@ -34,6 +34,7 @@ own previous 28 days and its population.
 from __future__ import annotations
 
 import contextlib
+import csv
 import logging
 import os
 import re
@@ -120,10 +121,11 @@ class CDPHLoad:
 
 
 def is_cdph_export(columns: Sequence[str]) -> bool:
-    """Does a CSV header look like CDPH's county file (``area``, ``area_type``, ``population``
-    beside ``date`` and ``cases``)?"""
+    """Does a CSV header look like CDPH's county file? ``area`` and ``area_type`` (no DataSF
+    export has them) are enough, so a CDPH file missing another column is read as CDPH and its
+    error names that column."""
     names = {str(c).strip().lower() for c in columns}
-    return {"area", "area_type", "population", "date", "cases"} <= names
+    return {"area", "area_type"} <= names
 
 
 def check_plausible(vintage: CDPHVintage,
@@ -378,10 +380,11 @@ class CDPHImportSummary:
 
 
 def peek_columns(path: str | os.PathLike[str]) -> list[str]:
-    """The header of a CSV file (its first line), for telling CDPH from DataSF exports."""
-    with contextlib.suppress(OSError, UnicodeDecodeError):
-        with open(path, encoding="utf-8-sig", errors="strict") as handle:
-            return [c.strip().strip('"') for c in handle.readline().rstrip("\r\n").split(",")]
+    """The header of a CSV file (its first row), for telling CDPH from DataSF exports; [] when
+    the file cannot be read as text."""
+    with contextlib.suppress(OSError, UnicodeDecodeError, StopIteration, csv.Error):
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            return [c.strip() for c in next(csv.reader(handle))]
     return []
 
 
