@@ -149,7 +149,8 @@ def test_history_bound_names_the_day_and_the_bracket():
     with pytest.raises(ImplausibleCountError, match=r"^s: implausible count 30,000 in 'n' on "
                                                     r"2021-02-05: more than 20× the plausible "
                                                     r"bracket of the previous 28 day\(s\) "
-                                                    r"\(median 100, bound 3,000\)"):
+                                                    r"\(median 100, largest of the last 7 100, "
+                                                    r"bound 3,000\)"):
         check_plausible(frame, ["n"], PlausibilityRule(population=1_000_000), source="s")
 
 
@@ -245,7 +246,7 @@ def test_stuck_cache_lock_falls_back_and_goes_on_with_the_other_datasets(rows, d
             assert time.monotonic() - started < 3.0
     cases, deaths, tests = series.provenance.datasets
     assert cases.from_cache and cases.notes[0].startswith(
-        f"DataSF payload fetched but not stored, cache kept: DataSF cache "
+        f"DataSF payload fetched but not stored, cache kept: data cache "
         f"{data_dir / 'datasf' / 'gyr2-k29z'}: still locked after 0 s by pid {os.getpid()}")
     assert not deaths.from_cache and not tests.from_cache
     assert len(series.frame) == 730

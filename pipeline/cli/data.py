@@ -1,4 +1,5 @@
-"""`flowcast data …`: import DataSF exports, fetch live, show the cache, convert to S/I/R, plot."""
+"""`flowcast data …`: import DataSF and CDPH exports, fetch live, show the cache, list California
+counties, convert to S/I/R, plot."""
 from __future__ import annotations
 
 import json
@@ -14,10 +15,15 @@ from pipeline.data.datasf import SF_POPULATION_2020_CENSUS
 from pipeline.errors import FlowcastError
 
 if TYPE_CHECKING:
+    from datetime import datetime
+
+    from pipeline.data.cache import DatasetCache
     from pipeline.data.series import SFDataConfig
     from pipeline.data.sir_transform import SIRConversionConfig
 
-data_app = typer.Typer(no_args_is_help=True, help="San Francisco COVID-19 data from DataSF.")
+data_app = typer.Typer(no_args_is_help=True,
+                       help="COVID-19 data: San Francisco from DataSF, California counties from "
+                            "CDPH (data.chhs.ca.gov).")
 app.add_typer(data_app, name="data")
 
 TrailingDays = typer.Option(14, "--trailing-days", min=0,
@@ -53,20 +59,34 @@ AcceptRevisions = typer.Option(
 @data_app.command("import")
 def import_command(
     files: list[Path] = typer.Argument(..., exists=True, dir_okay=False,
-                                       help="DataSF CSV exports (rows.csv?accessType=DOWNLOAD)."),
+                                       help="DataSF CSV exports (rows.csv?accessType=DOWNLOAD) "
+                                            "and/or CDPH covid19cases_test.csv downloads "
+                                            "(told apart by their columns)."),
     if_empty: bool = typer.Option(False, "--if-empty",
                                   help="Import only datasets the cache does not hold yet or "
                                        "holds damaged (those are repaired)."),
     accept_revisions: bool = AcceptRevisions,
 ) -> None:
-    """Validate DataSF CSV exports and put them into the cache ($FLOWCAST_DATA_DIR or ./data)."""
+    """Validate DataSF CSV exports and CDPH county files and put them into the cache
+    ($FLOWCAST_DATA_DIR or ./data). CDPH files are vintages: each is kept, the newest is live."""
     from pipeline.data.cache import data_dir
+    from pipeline.data.cdph_source import (is_cdph_export, peek_columns, store_cdph_exports,
+                                           validate_cdph_exports)
     from pipeline.data.csv_import import import_csv_exports
+    cdph = [f for f in files if is_cdph_export(peek_columns(f))]
+    datasf = [f for f in files if f not in cdph]
     try:
-        summaries = import_csv_exports(files, if_empty=if_empty,
-                                       accept_revisions=accept_revisions)
+        checked = validate_cdph_exports(cdph)  # every file is checked before any is stored
+        summaries = import_csv_exports(datasf, if_empty=if_empty,
+                                       accept_revisions=accept_revisions) if datasf else []
+        cdph_summaries = store_cdph_exports(checked, if_empty=if_empty,
+                                            accept_revisions=accept_revisions)
     except FlowcastError as exc:
         _fail(exc)
+    for c in cdph_summaries:
+        typer.echo(f"{c.action} {c.path.name}: CDPH counties vintage of {c.as_of}, "
+                   f"{c.first_date} … {c.as_of}, {c.counties} counties, {c.row_count} rows"
+                   + (f" — {c.note}" if c.note else ""))
     for s in summaries:
         total = f"{s.final_cumulative:,}" if s.final_cumulative is not None else "n/a"
         action = "imported" if s.imported else "skipped"
@@ -76,7 +96,9 @@ def import_command(
                    + (f" — {s.note}" if s.note else ""))
         for warning in s.warnings:
             typer.echo(f"  warning: {warning}")
-    typer.echo(f"cache: {data_dir().resolve() / 'datasf'}")
+    for folder, used in (("datasf", datasf), ("chhs", cdph)):
+        if used:
+            typer.echo(f"cache: {data_dir().resolve() / folder}")
 
 
 @data_app.command("fetch")
@@ -91,8 +113,21 @@ def fetch_command(
         help="Socrata app token (sent as X-App-Token, only to the base URL's https host). "
              "Prefer the environment variable: a command line is visible to other users."),
     accept_revisions: bool = AcceptRevisions,
+    source: str = typer.Option("datasf", "--source", metavar="datasf|chhs",
+                               help="datasf: San Francisco (cases, deaths, tests); chhs: CDPH's "
+                                    "California county file from data.chhs.ca.gov."),
+    chhs_base_url: str | None = typer.Option(
+        None, "--chhs-base-url", metavar="URL",
+        help="The CHHS portal or a mirror of it (default $FLOWCAST_CHHS_BASE_URL, else "
+             "https://data.chhs.ca.gov); --source chhs only."),
 ) -> None:
-    """Fetch cases, deaths and tests from DataSF (falls back to the cache when offline)."""
+    """Fetch cases, deaths and tests from DataSF, or (--source chhs) the CDPH county file
+    (falls back to the cache when offline)."""
+    if source not in ("datasf", "chhs"):
+        _fail(ValueError(f"--source must be datasf or chhs, got {source!r}"))
+    if source == "chhs":
+        _fetch_chhs(chhs_base_url, accept_revisions)
+        return
     from pipeline.data.series import load_sf_series
     try:
         series = load_sf_series(_config(trailing_days, base_url=base_url, app_token=app_token,
@@ -106,6 +141,22 @@ def fetch_command(
         for note in p.notes:
             typer.echo(f"  note: {note}")
     typer.echo(series.vintage.describe())
+
+
+def _fetch_chhs(base_url: str | None, accept_revisions: bool) -> None:
+    from pipeline.data.cdph_source import CDPHConfig, load_cdph
+    from pipeline.data.chhs import CHHSClientConfig
+    try:
+        loaded = load_cdph(CDPHConfig(client=CHHSClientConfig(base_url=base_url),
+                                      accept_revisions=accept_revisions))
+    except FlowcastError as exc:
+        _fail(exc)
+    p, v = loaded.provenance, loaded.vintage
+    where = f"cache (fetched {p.stale_days:.0f} days ago)" if p.from_cache else "CHHS portal"
+    typer.echo(f"{p.dataset_key} ({p.dataset_id}) from {where}: vintage of {v.as_of.date()}, "
+               f"{len(v.counties)} counties, {p.first_date} … {p.last_date}, {p.row_count} rows")
+    for note in p.notes:
+        typer.echo(f"  note: {note}")
 
 
 @data_app.command("status")
@@ -136,6 +187,54 @@ def status_command() -> None:
         if held:
             typer.echo(f"  {len(held)} payload(s) held for review in "
                        f"{cache.directory(spec) / 'held'}")
+    _status_chhs(cache, now)
+
+
+def _status_chhs(cache: DatasetCache, now: datetime) -> None:
+    from pipeline.data.cdph_source import SPEC, vintages_dir
+    label = f"{SPEC.key} ({SPEC.dataset_id})"
+    typer.echo(f"cache: {cache.root.resolve() / SPEC.cache_folder}")
+    try:
+        manifest = cache.read_manifest(SPEC)
+    except FlowcastError as exc:
+        typer.echo(f"{label}: {exc}")
+        return
+    if manifest is None:
+        typer.echo(f"{label}: not cached — `flowcast data fetch --source chhs` or "
+                   f"`flowcast data import covid19cases_test.csv`")
+        return
+    vintages = sorted(p.name[:10] for p in vintages_dir(cache).glob("*.csv"))
+    typer.echo(f"{label}: {manifest.source_kind} {manifest.source}"
+               + (f" (answered by {manifest.final_url})" if manifest.final_url else "")
+               + f"; vintage of {manifest.last_date}, {manifest.row_count} county-day rows "
+               f"{manifest.first_date} … {manifest.last_date}; fetched {manifest.fetched_at} "
+               f"({manifest.age_days(now):.1f} days ago); {len(vintages)} vintage(s) kept"
+               + (f" ({vintages[0]} … {vintages[-1]})" if vintages else ""))
+    held = sorted((cache.directory(SPEC) / "held").glob("payload-*.reason.json"))
+    if held:
+        typer.echo(f"  {len(held)} payload(s) held for review in "
+                   f"{cache.directory(SPEC) / 'held'}")
+
+
+@data_app.command("counties")
+def counties_command(
+    min_population: int = typer.Option(0, "--min-population", min=0,
+                                       help="Only counties with at least this many people."),
+) -> None:
+    """The California counties of the cached CDPH vintage, with CDPH's population (no network)."""
+    from pipeline.data.cdph_source import load_cdph
+    try:
+        loaded = load_cdph(offline=True)
+    except FlowcastError as exc:
+        _fail(exc)
+    vintage = loaded.vintage
+    populations = vintage.populations()
+    shown = [(a, p) for a, p in populations.items() if p >= min_population]
+    typer.echo(f"CDPH vintage of {vintage.as_of.date()} ({loaded.provenance.source}): "
+               f"{len(shown)} of {len(populations)} counties"
+               + (f" with at least {min_population:,} people" if min_population else ""))
+    for area, population in shown:
+        typer.echo(f"{area:<20} {population:>12,}")
 
 
 def _sir_config(population: int, infectious_days: int,

@@ -1,4 +1,5 @@
-"""On-disk cache of DataSF payloads: ``<data dir>/datasf/<dataset-id>/``.
+"""On-disk cache of source payloads: ``<data dir>/datasf/<dataset-id>/`` (DataSF) and
+``<data dir>/chhs/<dataset-id>/`` (CDPH via the CHHS portal, :mod:`pipeline.data.cdph_source`).
 
 Layout of one dataset's directory::
 
@@ -38,9 +39,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from datetime import UTC, date, datetime
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Protocol
 
-from pipeline.data.datasf import DatasetSpec
 from pipeline.errors import DataSourceError
 from pipeline.io import (LOCK_TIMEOUT_S, atomic_write_bytes, atomic_write_json, file_lock,
                          sha256_bytes, sha256_file, sweep_stale)
@@ -58,6 +58,24 @@ _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 _READ_ATTEMPTS = 5
 
 SourceKind = Literal["api", "csv-import"]
+DEFAULT_CACHE_FOLDER = "datasf"
+
+
+class CacheSpec(Protocol):
+    """What the cache needs of a dataset: its key and id (a DataSF
+    :class:`~pipeline.data.datasf.DatasetSpec`, a CKAN resource spec, ...). A spec with a
+    ``cache_folder`` attribute is kept under ``<data dir>/<cache_folder>/<id>/``; others under
+    ``datasf/``."""
+
+    @property
+    def key(self) -> str: ...
+
+    @property
+    def dataset_id(self) -> str: ...
+
+
+def cache_folder(spec: CacheSpec) -> str:
+    return str(getattr(spec, "cache_folder", DEFAULT_CACHE_FOLDER))
 
 
 def data_dir(override: str | os.PathLike[str] | None = None) -> Path:
@@ -154,20 +172,20 @@ class DatasetCache:
     def default(cls, override: str | os.PathLike[str] | None = None) -> DatasetCache:
         return cls(data_dir(override))
 
-    def directory(self, spec: DatasetSpec) -> Path:
-        return self.root / "datasf" / spec.dataset_id
+    def directory(self, spec: CacheSpec) -> Path:
+        return self.root / cache_folder(spec) / spec.dataset_id
 
-    def manifest_path(self, spec: DatasetSpec) -> Path:
+    def manifest_path(self, spec: CacheSpec) -> Path:
         return self.directory(spec) / MANIFEST_NAME
 
-    def lock_path(self, spec: DatasetSpec) -> Path:
+    def lock_path(self, spec: CacheSpec) -> Path:
         """Beside, not inside, the dataset directory: that holds only manifest and payloads."""
-        return self.root / "datasf" / LOCKS_DIR / f"{spec.dataset_id}.lock"
+        return self.root / cache_folder(spec) / LOCKS_DIR / f"{spec.dataset_id}.lock"
 
-    def has(self, spec: DatasetSpec) -> bool:
+    def has(self, spec: CacheSpec) -> bool:
         return self.manifest_path(spec).is_file()
 
-    def read_manifest(self, spec: DatasetSpec) -> CacheManifest | None:
+    def read_manifest(self, spec: CacheSpec) -> CacheManifest | None:
         path = self.manifest_path(spec)
         if not path.is_file():
             return None
@@ -185,7 +203,7 @@ class DatasetCache:
             raise CacheDamagedError(f"damaged cache manifest {path}: {problem}; {fix}")
         return manifest
 
-    def load(self, spec: DatasetSpec) -> CachedPayload | None:
+    def load(self, spec: CacheSpec) -> CachedPayload | None:
         """The cached payload, sha256-checked; ``None`` if nothing is cached.
 
         Without a lock: if a concurrent commit collected the payload between our reading the
@@ -211,14 +229,14 @@ class DatasetCache:
                 break  # not a race: the live manifest itself points at a bad payload
         raise CacheDamagedError(problem)
 
-    def load_or_damage(self, spec: DatasetSpec) -> tuple[CachedPayload | None, str | None]:
+    def load_or_damage(self, spec: CacheSpec) -> tuple[CachedPayload | None, str | None]:
         """(payload, None), (None, None) when nothing is cached, (None, why) when damaged."""
         try:
             return self.load(spec), None
         except CacheDamagedError as exc:
             return None, str(exc)
 
-    def store(self, spec: DatasetSpec, payload: bytes, *, suffix: str, source_kind: SourceKind,
+    def store(self, spec: CacheSpec, payload: bytes, *, suffix: str, source_kind: SourceKind,
               source: str, row_count: int, first_date: str, last_date: str,
               data_as_of: str | None, final_cumulative: int | None,
               fetched_at: datetime | None = None, final_url: str | None = None,
@@ -232,7 +250,7 @@ class DatasetCache:
         payload_name = f"payload-{digest[:16]}.{suffix}"
         directory = self.directory(spec)
         directory.mkdir(parents=True, exist_ok=True)
-        with file_lock(self.lock_path(spec), what=f"DataSF cache {directory}",
+        with file_lock(self.lock_path(spec), what=f"data cache {directory}",
                        timeout_s=lock_timeout_s):
             live, damage = self.load_or_damage(spec)
             if damage:
@@ -262,7 +280,7 @@ class DatasetCache:
                     old.unlink()
         sweep_stale(directory, (".*.tmp",))  # temp files of writers killed mid-write
 
-    def hold(self, spec: DatasetSpec, payload: bytes, *, suffix: str, reason: str) -> Path:
+    def hold(self, spec: CacheSpec, payload: bytes, *, suffix: str, reason: str) -> Path:
         """Keep a refused payload under ``held/`` for review (the newest ``HELD_KEEP``)."""
         held = self.directory(spec) / HELD_DIR
         path = held / f"payload-{sha256_bytes(payload)[:16]}.{suffix}"

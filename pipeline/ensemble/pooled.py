@@ -20,7 +20,8 @@ widen, and drop a member that does not help.
 2. **Recalibration** (``PooledConfig.calibration``) of the average from the PITs of its past
    forecasts in every place over the last ``calibration_window_origins`` scored origins, by
    horizon: Φ⁻¹(τ') = μ + σ Φ⁻¹(τ), μ and σ the mean and standard deviation of the PITs'
-   probits (a bias and a dispersion correction that may narrow as well as widen);
+   probits (a bias and a dispersion correction that may narrow as well as widen; without the
+   bias, σ is their root mean square);
    ``"bias-scale-regime"`` (default) fits μ, σ separately for each **regime** of the forecast's
    place at its origin — the case series falling, flat or rising over the last week
    (:func:`growth_regimes`) — shrunk towards the all-regime fit by n_r / (n_r + n0); the other
@@ -45,7 +46,10 @@ from pipeline.ensemble.combine import EnsembleError
 from pipeline.evaluation.scoring import weighted_interval_score
 
 WeightMethod = Literal["stacking", "inverse-wis", "equal"]
-CalibrationMethod = Literal["bias-scale-regime", "bias-scale", "widen-only", "none"]
+CalibrationMethod = Literal["scale-regime", "scale", "bias-scale-regime", "bias-scale",
+                            "widen-only", "none"]
+CALIBRATION_METHODS: tuple[str, ...] = ("scale-regime", "scale", "bias-scale-regime",
+                                        "bias-scale", "widen-only", "none")
 N_REGIMES = 3                       # falling, flat, rising
 FLAT_LOG_GROWTH = 0.1               # |log(C_0 / C_-1)| below this is "flat" (±10 % a week)
 _EPS_WIS = 1e-12
@@ -68,8 +72,9 @@ class PooledConfig:
         if self.weights not in ("stacking", "inverse-wis", "equal"):
             raise EnsembleError(f"PooledConfig.weights={self.weights!r}: use stacking, "
                                 "inverse-wis or equal")
-        if self.calibration not in ("bias-scale-regime", "bias-scale", "widen-only", "none"):
-            raise EnsembleError(f"PooledConfig.calibration={self.calibration!r}")
+        if self.calibration not in CALIBRATION_METHODS:
+            raise EnsembleError(f"PooledConfig.calibration={self.calibration!r}; use one of "
+                                f"{CALIBRATION_METHODS}")
         if (self.window_origins < 1 or self.calibration_window_origins < 1
                 or not 0 < self.stacking_step <= 0.5 or self.shrinkage_origins < 0
                 or self.shrinkage_pits < 0):
@@ -140,35 +145,40 @@ def fit_weights(past_values: NDArray[np.float64], past_truth: NDArray[np.float64
     return lam * grid[int(np.argmin(loss))] + (1.0 - lam) * equal
 
 
-def fit_bias_scale(probits: NDArray[np.float64], shrinkage: float) -> tuple[float, float]:
-    """(μ, σ) of probits, shrunk towards (0, 1) by n / (n + shrinkage)."""
+def fit_bias_scale(probits: NDArray[np.float64], shrinkage: float, with_bias: bool
+                   ) -> tuple[float, float]:
+    """(μ, σ) of probits, shrunk towards (0, 1) by n / (n + shrinkage). Without a bias term σ
+    is the root mean square of the probits (the spread about 0 that the levels must cover)."""
     z = probits[np.isfinite(probits)]
     if z.size < 2:
         return 0.0, 1.0
     lam = z.size / (z.size + shrinkage)
-    return lam * float(z.mean()), lam * float(z.std(ddof=1)) + (1.0 - lam)
+    if with_bias:
+        return lam * float(z.mean()), lam * float(z.std(ddof=1)) + (1.0 - lam)
+    return 0.0, lam * float(np.sqrt(np.mean(z ** 2))) + (1.0 - lam)
 
 
 def fit_calibration(pits: NDArray[np.float64], regimes: NDArray[np.intp],
                     config: PooledConfig) -> NDArray[np.float64]:
     """μ, σ per regime ``(R, 2)`` from past PITs and their cells' regimes (flattened)."""
     out = np.tile(np.array([0.0, 1.0]), (N_REGIMES, 1))
-    if config.calibration == "none":
+    method = config.calibration
+    if method == "none":
         return out
     probits = ndtri(np.clip(pits, config.min_level, 1.0 - config.min_level))
-    mu, sigma = fit_bias_scale(probits, config.shrinkage_pits)
-    if config.calibration == "widen-only":
+    with_bias = method.startswith("bias")
+    mu, sigma = fit_bias_scale(probits, config.shrinkage_pits, with_bias)
+    if method == "widen-only":
         out[:, 1] = max(sigma, 1.0)
         return out
     out[:] = (mu, sigma)
-    if config.calibration == "bias-scale":
+    if not method.endswith("regime"):
         return out
     for r in range(N_REGIMES):
-        z = probits[(regimes == r) & np.isfinite(probits)]
-        if z.size < 2:
-            continue
-        lam = z.size / (z.size + config.shrinkage_pits)
-        out[r] = (lam * z.mean() + (1 - lam) * mu, lam * z.std(ddof=1) + (1 - lam) * sigma)
+        mu_r, sigma_r = fit_bias_scale(probits[regimes == r], 0.0, with_bias)
+        n_r = int(np.isfinite(probits[regimes == r]).sum())
+        lam = n_r / (n_r + config.shrinkage_pits)
+        out[r] = (lam * mu_r + (1 - lam) * mu, lam * sigma_r + (1 - lam) * sigma)
     return out
 
 

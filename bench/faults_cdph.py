@@ -1,0 +1,360 @@
+"""Benchmark: fault injection against the CDPH source (CKAN portal); a good cache is never lost.
+
+A fake CHHS portal on 127.0.0.1 (the threaded server of :mod:`bench.faults`, never any other
+address) answers CKAN's ``/api/3/action/package_show`` with a JSON built here and serves the real
+``covid19cases_test.csv`` bytes of the 2021-11-04 vintage (``../shared/data/cdph``, read in place)
+at the resource's download URL. Then each fault in turn: HTTP 500 and 429 (with Retry-After), a
+Retry-After longer than the client waits, a truncated body (short of its Content-Length, and cut
+without one), HTML instead of the CSV or the JSON, a resource missing from the package, a gzip
+bomb, a bad gzip body, a missing column, a dropped county, a shrunk date range (a real older
+vintage; a later first day), an implausible count, a revision of settled days (held for review), a
+refused connection, a server dripping bytes past the deadline, a redirect to another host and a
+download URL on another host. Everything goes through the real ``requests`` stack.
+
+For each case the cache is first filled by a good fetch; then the fault is served and
+:func:`pipeline.data.cdph_source.load_cdph` must (a) return the cached vintage, (b) say why in a
+note naming the problem, (c) leave every cache file byte-identical (``held/`` may gain the refused
+payload) and (d) never contact the other host. "bytes of good cache lost" sums the sizes of
+cache files that changed or vanished (must be 0).
+
+Run: ``python -m bench.faults_cdph`` -> ``bench/results/faults_cdph.json``. Also the harness of
+``tests/test_cdph.py``.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import gzip
+import io
+import json
+import os
+import platform
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pandas as pd
+
+from bench.faults import FakeDataSF, Responder, bytes_lost, cache_bytes, redirect, status, trickle
+from pipeline.data.cdph_source import SPEC, CDPHConfig
+from pipeline.data.chhs import CHHSClientConfig
+from pipeline.io import atomic_write_json
+
+if TYPE_CHECKING:
+    from bench.faults import _Handler
+
+RESULT_PATH = Path(__file__).parent / "results" / "faults_cdph.json"
+CDPH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cdph"
+GOOD_VINTAGE = "ofaye98__CSC508_Mentor_Class"              # 2021-11-04
+OLDER_VINTAGE = "hhaeri__CA_State_COVID-19_Cases_Deaths_Tests"  # 2021-09-23
+CSV_NAME = "covid19cases_test.csv"
+DOWNLOAD_PATH = (f"/dataset/{SPEC.package_uuid}/resource/{SPEC.resource_id}/download/"
+                 f"{SPEC.resource_name}")
+BOMB_BYTES = 64 << 20          # decoded size of the gzip bomb (64 KB on the wire)
+BODY_LIMIT = 16 << 20          # the client's limit in these cases (the real file is 4 MB)
+
+
+# ------------------------------------------------------------------------------ payloads
+
+
+@functools.cache
+def vintage_bytes(folder: str = GOOD_VINTAGE) -> bytes:
+    return (CDPH / folder / CSV_NAME).read_bytes()
+
+
+@functools.cache
+def _good_frame() -> pd.DataFrame:
+    return pd.read_csv(io.BytesIO(vintage_bytes()), dtype=str, keep_default_na=False)
+
+
+def edited(change: Callable[[pd.DataFrame], pd.DataFrame]) -> bytes:
+    """The good vintage with ``change`` applied to its rows (all cells strings)."""
+    return change(_good_frame().copy()).to_csv(index=False).encode()
+
+
+def without_county(frame: pd.DataFrame, county: str = "Alpine") -> pd.DataFrame:
+    return frame[frame["area"] != county]
+
+
+def starting_later(frame: pd.DataFrame) -> pd.DataFrame:
+    return frame[(frame["date"] == "") | (frame["date"] >= "2020-03-01")]
+
+
+def with_cell(frame: pd.DataFrame, area: str, day: str, column: str, value: str
+              ) -> pd.DataFrame:
+    frame.loc[(frame["area"] == area) & (frame["date"] == day), column] = value
+    return frame
+
+
+def revised_settled(frame: pd.DataFrame) -> pd.DataFrame:
+    """Los Angeles' cases of 2021-01-04 … 2021-01-10 (ten months settled) times ten."""
+    days = (frame["area"] == "Los Angeles") & frame["date"].between("2021-01-04", "2021-01-10")
+    frame.loc[days, "cases"] = (frame.loc[days, "cases"].astype(float) * 10).map(str)
+    return frame
+
+
+@functools.cache
+def gzip_bomb() -> bytes:
+    return gzip.compress(b"0" * BOMB_BYTES, compresslevel=9)
+
+
+def package_show(download_url: str, *,
+                 resources: Sequence[Mapping[str, object]] | None = None) -> bytes:
+    """CKAN's ``package_show`` answer for the CDPH dataset (the fields flowcast reads, plus a
+    second resource as on the real portal)."""
+    ours = {"id": SPEC.resource_id, "name": "Statewide COVID-19 Cases Deaths Tests",
+            "format": "CSV", "url": download_url, "last_modified": "2021-11-04T15:02:11.000000"}
+    other = {"id": "0d9be83b-5027-41ff-97b2-6ca70238d778", "name": "Data Dictionary",
+             "format": "XLSX", "url": download_url.rsplit("/", 1)[0] + "/dictionary.xlsx"}
+    result = {"id": SPEC.package_uuid, "name": SPEC.dataset_id, "title": SPEC.title,
+              "resources": list(resources) if resources is not None else [ours, other]}
+    return json.dumps({"help": "package_show", "success": True, "result": result}).encode()
+
+
+# ------------------------------------------------------------------------------ the portal
+
+
+class FakeCKAN:
+    """A fake CHHS portal on 127.0.0.1: package_show and the download, each replaceable."""
+
+    def __init__(self) -> None:
+        self.http = FakeDataSF()
+        self.package: Responder = lambda h: h.send_body(200, package_show(self.url
+                                                                           + DOWNLOAD_PATH))
+        self.download: Responder = lambda h: h.send_body(200, vintage_bytes(), "text/csv")
+        self.http.respond(self._route)
+
+    def _route(self, h: _Handler) -> None:
+        (self.package if h.path.startswith("/api/3/action/package_show") else self.download)(h)
+
+    @property
+    def url(self) -> str:
+        return self.http.url
+
+    @property
+    def seen(self) -> list[str]:
+        return [s.path for s in self.http.seen]
+
+    def __enter__(self) -> FakeCKAN:
+        self.http.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.http.__exit__(*exc)
+
+
+# ------------------------------------------------------------------------------ the faults
+
+
+def body(data: bytes, content_type: str = "text/csv",
+         headers: dict[str, str] | None = None) -> Responder:
+    return lambda h: h.send_body(200, data, content_type, headers)
+
+
+def short_of_length(data: bytes) -> Responder:
+    """Content-Length of the whole file, then half of it and the connection closed."""
+    def respond(handler: _Handler) -> None:
+        handler.send_response(200)
+        handler.send_header("Content-Type", "text/csv")
+        handler.send_header("Content-Length", str(len(data)))
+        handler.send_header("Connection", "close")
+        handler.end_headers()
+        handler.wfile.write(data[:len(data) // 2])
+        handler.close_connection = True
+    return respond
+
+
+def cut_without_length(data: bytes) -> Responder:
+    """No Content-Length (the body ends when the connection closes), cut at 60 %."""
+    def respond(handler: _Handler) -> None:
+        handler.send_response(200)
+        handler.send_header("Content-Type", "text/csv")
+        handler.send_header("Connection", "close")
+        handler.end_headers()
+        handler.wfile.write(data[:int(len(data) * 0.6)])
+        handler.close_connection = True
+    return respond
+
+
+def closed_port() -> str:
+    """A loopback URL on which nothing listens (connection refused)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return f"http://127.0.0.1:{port}"
+
+
+Build = Callable[["FakeCKAN", "FakeCKAN"], Responder]
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One failure served after a good fetch. ``package``/``download`` build the responders
+    (None: the good one) from the portal and another host; ``expect``: text the note must hold;
+    ``held``: the payload must land in held/; ``base_url``: overrides the portal's URL."""
+
+    name: str
+    expect: str
+    package: Build | None = None
+    download: Build | None = None
+    config: dict[str, float] = field(default_factory=dict)
+    held: bool = False
+    base_url: Callable[[], str] | None = None
+
+
+def faults() -> list[Fault]:
+    return [
+        Fault("http-500", "HTTP 500", package=lambda s, o: status(500)),
+        Fault("http-429-retry-after", "HTTP 429: '{\"error\": true}' (Retry-After 1 s)",
+              download=lambda s, o: status(429, {"Retry-After": "1"}), config={"max_retries": 1}),
+        Fault("retry-after-too-long", "asks to retry after 3600 s",
+              download=lambda s, o: status(503, {"Retry-After": "3600"})),
+        Fault("truncated-body", "IncompleteRead",
+              download=lambda s, o: short_of_length(vintage_bytes())),
+        Fault("truncated-without-length",
+              "covid19cases_test.csv: San Bernardino ends on 2020-02-29, the file on 2021-11-04",
+              download=lambda s, o: cut_without_length(vintage_bytes())),
+        Fault("html-instead-of-csv", "answered with an HTML page, not the CSV",
+              download=lambda s, o: body(b"<!DOCTYPE html><html><body>Site maintenance"
+                                         b"</body></html>", "text/html")),
+        Fault("html-instead-of-package-json", "an HTML page instead of a CKAN package_show",
+              package=lambda s, o: body(b"<html><body>502 Bad Gateway</body></html>",
+                                        "text/html")),
+        Fault("resource-missing", "has no resource covid19cases_test.csv",
+              package=lambda s, o: body(package_show(s.url + DOWNLOAD_PATH, resources=[]),
+                                        "application/json")),
+        Fault("gzip-bomb", f"body larger than {BODY_LIMIT:,} bytes (after decoding); refused",
+              download=lambda s, o: body(gzip_bomb(), headers={"Content-Encoding": "gzip"})),
+        Fault("bad-gzip", "DecodeError",
+              download=lambda s, o: body(gzip.compress(b"x")[:10] + b"\x00not deflate" * 50,
+                                         headers={"Content-Encoding": "gzip"})),
+        Fault("missing-column", "missing column(s) ['reported_cases']",
+              download=lambda s, o: body(edited(lambda f: f.drop(columns=["reported_cases"])))),
+        Fault("county-dropped", "county dropped: Alpine",
+              download=lambda s, o: body(edited(without_county))),
+        Fault("shrunk-date-range-older-vintage",
+              "last date moves backwards: new vintage ends 2021-09-23, the cached copy "
+              "2021-11-04", download=lambda s, o: body(vintage_bytes(OLDER_VINTAGE))),
+        Fault("shrunk-date-range-later-start",
+              "date range shrinks: new vintage starts 2020-03-01",
+              download=lambda s, o: body(edited(starting_later))),
+        Fault("absurd-count",
+              "implausible count 5,000,000 in 'cases' on 2021-06-01: more than 10% of the "
+              "population 892,280 in one day",
+              download=lambda s, o: body(edited(
+                  lambda f: with_cell(f, "San Francisco", "2021-06-01", "cases", "5000000.0")))),
+        Fault("revised-settled-days",
+              "revision beyond policy: 'cases' changed on 7 settled county-day(s)",
+              download=lambda s, o: body(edited(revised_settled)), held=True),
+        Fault("connection-refused", "Connection refused", base_url=closed_port),
+        Fault("drip-past-deadline", "within the request deadline",
+              download=lambda s, o: trickle([{"x": "y" * 100}]),
+              config={"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
+        Fault("redirect-to-other-host", "refused, only redirects to the same host",
+              download=lambda s, o: redirect(o.url + DOWNLOAD_PATH)),
+        Fault("download-url-on-other-host", "names the download",
+              package=lambda s, o: body(package_show(o.url + DOWNLOAD_PATH),
+                                        "application/json")),
+    ]
+
+
+# ------------------------------------------------------------------------------ running cases
+
+
+def client_config(base_url: str, **overrides: float) -> CHHSClientConfig:
+    """Short timeouts, no backoff: every case ends in seconds."""
+    config = CHHSClientConfig(base_url=base_url, timeout_s=2.0, request_deadline_s=5.0,
+                              fetch_deadline_s=10.0, max_retries=2, backoff_base_s=0.0,
+                              max_body_bytes=BODY_LIMIT)
+    return dataclasses.replace(config, **overrides)
+
+
+def held_files(data_dir: Path) -> list[Path]:
+    from pipeline.data.cache import DatasetCache
+    held = DatasetCache(data_dir).directory(SPEC) / "held"
+    return sorted(p for p in held.glob("payload-*") if not p.name.endswith(".reason.json")) \
+        if held.is_dir() else []
+
+
+@dataclass
+class CaseResult:
+    name: str
+    passed: bool
+    seconds: float
+    bytes_lost: int
+    note: str
+
+
+def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
+    """Good fetch, then the fault; the loader must fall back to the untouched cache."""
+    from pipeline.data.cdph_source import load_cdph
+
+    with FakeCKAN() as portal, FakeCKAN() as other:
+        load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
+        before = cache_bytes(data_dir)
+        if fault.package is not None:
+            portal.package = fault.package(portal, other)
+        if fault.download is not None:
+            portal.download = fault.download(portal, other)
+        base = fault.base_url() if fault.base_url is not None else portal.url
+        config = CDPHConfig(client=client_config(base, **fault.config), data_dir=data_dir)
+        started = time.monotonic()
+        try:
+            loaded = load_cdph(config)
+        except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
+            return CaseResult(fault.name, False, time.monotonic() - started,
+                              bytes_lost(before, cache_bytes(data_dir)),
+                              f"raised {type(exc).__name__}: {exc}")
+        seconds = time.monotonic() - started
+        note = " | ".join(loaded.provenance.notes)
+        lost = bytes_lost(before, cache_bytes(data_dir))
+        held_ok = bool(held_files(data_dir)) == fault.held
+        passed = (loaded.provenance.from_cache and fault.expect in note and lost == 0
+                  and held_ok and str(loaded.vintage.as_of.date()) == "2021-11-04"
+                  and not other.seen)
+        return CaseResult(fault.name, passed, seconds, lost, note)
+
+
+@contextlib.contextmanager
+def _scratch() -> Iterator[Path]:
+    with tempfile.TemporaryDirectory(prefix="flowcast-faults-cdph-") as tmp:
+        yield Path(tmp)
+
+
+def main() -> int:
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    results = []
+    for fault in faults():
+        with _scratch() as tmp:
+            result = run_fault(fault, tmp / "data")
+        results.append(result)
+        print(f"{'PASS' if result.passed else 'FAIL'} {result.name:34s} {result.seconds:5.2f} s "
+              f"lost {result.bytes_lost} B — {result.note[:150]}")
+    summary = {
+        "cases": len(results),
+        "passed": sum(r.passed for r in results),
+        "bytes_of_good_cache_lost": sum(r.bytes_lost for r in results),
+        "results": [asdict(r) for r in results],
+        "good_vintage": f"{GOOD_VINTAGE}/{CSV_NAME} (2021-11-04, "
+                        f"{len(vintage_bytes()):,} bytes)",
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
+                    "cpus": os.cpu_count()},
+        "command": "python -m bench.faults_cdph",
+        "date": time.strftime("%Y-%m-%d"),
+    }
+    atomic_write_json(RESULT_PATH, summary)
+    print(f"cases {summary['cases']}, passed {summary['passed']}, bytes of good cache lost "
+          f"{summary['bytes_of_good_cache_lost']} -> {RESULT_PATH}")
+    return 0 if summary["passed"] == summary["cases"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

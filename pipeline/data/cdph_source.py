@@ -1,0 +1,456 @@
+"""The CDPH county source: live from the CHHS portal, cached, revision-checked, with fallback.
+
+Flow of one vintage (a download of ``covid19cases_test.csv``, live or imported)::
+
+    bytes -> parse_cdph_csv (strict, pipeline.data.cdph)
+          -> plausibility (pipeline.data.plausibility)
+          -> DatasetCache.store under the lock, whose check runs the revision policy against the
+             live copy -> manifest swapped; the bytes also kept in vintages/
+
+Cache layout (``<data dir>/chhs/covid-19-time-series-metrics-by-county-and-state/``; the
+transactional store of :mod:`pipeline.data.cache`)::
+
+    manifest.json                   the live vintage: source, fetched-at, dates, sha256, ...
+    payload-<sha256[:16]>.csv       the live (and the previous) payload, content-addressed
+    vintages/<as-of>-<sha[:16]>.csv every vintage ever accepted, immutable (nowcasting needs them)
+    held/payload-<sha[:16]>.csv     payloads the revision policy refused, with .reason.json
+
+Revision policy (:class:`CDPHRevisionPolicy`), a new vintage against the live one:
+
+* it may not end earlier (an older vintage) nor start later, nor drop a county;
+* days older than ``open_days`` (28) before the live vintage's last day are *settled*: each
+  county's ``cases``, ``deaths`` and ``reported_cases`` there may change by at most
+  ``max(settled_abs, settled_rel × cached)`` = max(100, 50 %); the statewide total of each column
+  over the common days may fall by at most 2 %. Breaking either holds the payload for review
+  (``held/``; ``--accept-revisions`` takes it after review).
+
+Measured on the six real vintages: weekly successors revise settled days by at most 58 cases
+(none beyond the tolerance); the four-month step 2021-04-28 → 2021-09-06 revises one settled day
+beyond it (Los Angeles 2020-06-21, 1,043 → 1,573 cases), so it is held unless accepted.
+
+Plausibility (before any commit, a rejection, not a hold): every county's daily counts against its
+own previous 28 days and its population.
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import logging
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import date, datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import requests
+
+from pipeline.data.cache import (CacheDamagedError, CachedPayload, CacheManifest, DatasetCache,
+                                 SourceKind, utc_now)
+from pipeline.data.cdph import COUNT_COLUMNS, CDPHFormatError, CDPHVintage, parse_cdph_csv
+from pipeline.data.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient, CHHSClientConfig,
+                                CHHSNetworkError, CKANResourceSpec)
+from pipeline.data.plausibility import PlausibilityRule, check_plausible as check_counts
+from pipeline.data.revisions import RevisionRefusedError
+from pipeline.errors import DataSourceError, OfflineError, ValidationError
+from pipeline.io import atomic_write_bytes, sha256_bytes
+
+log = logging.getLogger(__name__)
+
+VINTAGES_DIR = "vintages"
+_VINTAGE_RE = re.compile(r"^(\d{4}-\d{2}-\d{2})-([0-9a-f]{16})\.csv$")
+SPEC: CKANResourceSpec = CDPH_COUNTIES
+_IMPORT_HINT = (f"import a downloaded covid19cases_test.csv ({SPEC.download_url()}) with "
+                f"`flowcast data import FILE`")
+
+
+@dataclass(frozen=True)
+class CDPHRevisionPolicy:
+    open_days: int = 28
+    settled_abs: int = 100
+    settled_rel: float = 0.5
+    max_total_drop: float = 0.02
+    columns: tuple[str, ...] = COUNT_COLUMNS
+
+
+DEFAULT_POLICY = CDPHRevisionPolicy()
+
+
+@dataclass(frozen=True)
+class CDPHConfig:
+    """Where and how to load the CDPH county vintage."""
+
+    client: CHHSClientConfig = field(default_factory=CHHSClientConfig)
+    data_dir: Path | None = None          # None -> $FLOWCAST_DATA_DIR or ./data
+    accept_revisions: bool = False        # take a payload the revision policy would hold
+    policy: CDPHRevisionPolicy = DEFAULT_POLICY
+
+
+@dataclass(frozen=True)
+class CDPHProvenance:
+    """Where a loaded vintage came from; the fields of the DataSF loader's
+    :class:`pipeline.data.series.DatasetProvenance` (without its DataSF-only stamp)."""
+
+    dataset_key: str
+    dataset_id: str
+    source_kind: SourceKind
+    source: str             # package_show URL (live) or the imported file
+    fetched_at: str
+    sha256: str
+    row_count: int
+    first_date: str
+    last_date: str          # the vintage's last day (its as-of date)
+    from_cache: bool
+    stale_days: float       # age of the cached copy when it was used; 0 for a live fetch
+    final_url: str | None = None
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class CDPHLoad:
+    """A loaded vintage and where it came from (live or cache, how old, why)."""
+
+    vintage: CDPHVintage
+    provenance: CDPHProvenance
+
+
+# ---------------------------------------------------------------------------- validation
+
+
+def is_cdph_export(columns: Sequence[str]) -> bool:
+    """Does a CSV header look like CDPH's county file? ``area`` and ``area_type`` (no DataSF
+    export has them) are enough, so a CDPH file missing another column is read as CDPH and its
+    error names that column."""
+    names = {str(c).strip().lower() for c in columns}
+    return {"area", "area_type"} <= names
+
+
+def check_plausible(vintage: CDPHVintage) -> None:
+    """Every county's daily counts against its recent history and population
+    (:mod:`pipeline.data.plausibility`, the rule every source shares)."""
+    for area, rows in vintage.frame.groupby("area", sort=True):
+        rule = PlausibilityRule(population=int(rows["population"].iloc[0]))
+        check_counts(rows, COUNT_COLUMNS, rule, source=f"{vintage.source} ({area})")
+
+
+def validate_cdph_payload(data: bytes, source: str) -> CDPHVintage:
+    """Parse strictly and check plausibility; raises a named :class:`ValidationError`."""
+    vintage = parse_cdph_csv(data, source)
+    check_plausible(vintage)
+    return vintage
+
+
+# ---------------------------------------------------------------------------- revision policy
+
+
+def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
+                         policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> None:
+    """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (module doc)."""
+    key = SPEC.key
+    if new.as_of < cached.as_of:
+        raise RevisionRefusedError(
+            f"{key}: last date moves backwards: new vintage ends {new.as_of.date()}, the cached "
+            f"copy {cached.as_of.date()} (an older vintage); cached copy kept")
+    new_first, old_first = new.frame["date"].min(), cached.frame["date"].min()
+    if new_first > old_first:
+        raise RevisionRefusedError(
+            f"{key}: date range shrinks: new vintage starts {new_first.date()}, the cached copy "
+            f"{old_first.date()}; cached copy kept")
+    dropped = sorted(set(cached.counties) - set(new.counties))
+    if dropped:
+        raise RevisionRefusedError(
+            f"{key}: county dropped: {', '.join(dropped)} in the cached vintage of "
+            f"{cached.as_of.date()} but not in the new one ({len(new.counties)} counties); "
+            f"cached copy kept")
+    columns = list(policy.columns)
+    common = cached.frame.merge(new.frame, on=["area", "date"], suffixes=("", "_new"))
+    settled_until = cached.as_of - pd.Timedelta(days=policy.open_days)
+    settled = (common["date"] <= settled_until).to_numpy()
+    for column in columns:
+        before = common[column].to_numpy(np.int64)
+        after = common[f"{column}_new"].to_numpy(np.int64)
+        allowed = np.maximum(policy.settled_abs, policy.settled_rel * np.abs(before))
+        breaks = settled & (np.abs(after - before) > allowed)
+        if breaks.any():
+            i = int(np.flatnonzero(breaks)[0])
+            raise RevisionRefusedError(
+                f"{key}: revision beyond policy: '{column}' changed on {int(breaks.sum())} "
+                f"settled county-day(s) (on or before {settled_until.date()}) by more than "
+                f"max({policy.settled_abs}, {policy.settled_rel:.0%}), e.g. "
+                f"{common['area'].iloc[i]} {pd.Timestamp(common['date'].iloc[i]).date()} "
+                f"{before[i]:,} -> {after[i]:,}; held for review, cached copy kept", hold=True)
+        total_before, total_after = int(before.sum()), int(after.sum())
+        if total_before > 0 and total_after < (1.0 - policy.max_total_drop) * total_before:
+            raise RevisionRefusedError(
+                f"{key}: revision beyond policy: statewide total '{column}' over the common days "
+                f"falls from {total_before:,} to {total_after:,} (more than "
+                f"{policy.max_total_drop:.0%}); held for review, cached copy kept", hold=True)
+
+
+def _cached_vintage(live: CachedPayload) -> CDPHVintage | None:
+    try:
+        return parse_cdph_csv(live.payload, str(live.path))
+    except DataSourceError as exc:
+        log.warning("cached CDPH vintage no longer parses (%s); replacing it", exc)
+        return None
+
+
+def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
+                   source_kind: SourceKind, source: str, final_url: str | None = None,
+                   accept_revisions: bool = False,
+                   policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> CacheManifest:
+    """Store an already validated vintage as the live copy (under the cache lock, after the
+    revision check against the live copy), and keep it in ``vintages/``. A vintage the policy
+    refuses is held for review (the error names where) and the cache is unchanged."""
+    def check(live: CachedPayload | None) -> None:
+        if live is None or accept_revisions:
+            return
+        cached = _cached_vintage(live)
+        if cached is not None:
+            check_cdph_successor(vintage, cached, policy)
+
+    frame = vintage.frame
+    try:
+        manifest = cache.store(
+            SPEC, payload, suffix="csv", source_kind=source_kind, source=source,
+            row_count=len(frame), first_date=str(frame["date"].min().date()),
+            last_date=str(vintage.as_of.date()), data_as_of=None, final_cumulative=None,
+            final_url=final_url, check=check)
+    except RevisionRefusedError as exc:
+        if not exc.hold:
+            raise
+        held = cache.hold(SPEC, payload, suffix="csv", reason=str(exc))
+        raise RevisionRefusedError(f"{exc} (payload held in {held}; after review accept it "
+                                   f"with --accept-revisions)", hold=True) from exc
+    archive_vintage(cache, vintage, payload)
+    return manifest
+
+
+def vintages_dir(cache: DatasetCache) -> Path:
+    return cache.directory(SPEC) / VINTAGES_DIR
+
+
+def archive_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes) -> Path:
+    """Keep ``payload`` as ``vintages/<as-of>-<sha16>.csv`` (content-addressed, immutable: a
+    writer of the same bytes writes the same file, so no lock is needed)."""
+    digest = sha256_bytes(payload)
+    path = vintages_dir(cache) / f"{vintage.as_of.date()}-{digest[:16]}.csv"
+    if not (path.is_file() and sha256_bytes(path.read_bytes()) == digest):
+        atomic_write_bytes(path, payload)
+    return path
+
+
+# ---------------------------------------------------------------------------- loading
+
+
+def _provenance(manifest: CacheManifest, *, from_cache: bool, stale_days: float,
+                notes: tuple[str, ...]) -> CDPHProvenance:
+    return CDPHProvenance(
+        dataset_key=manifest.dataset_key, dataset_id=manifest.dataset_id,
+        source_kind=manifest.source_kind, source=manifest.source,
+        fetched_at=manifest.fetched_at, sha256=manifest.sha256, row_count=manifest.row_count,
+        first_date=manifest.first_date, last_date=manifest.last_date, from_cache=from_cache,
+        stale_days=stale_days, final_url=manifest.final_url, notes=notes)
+
+
+def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad:
+    cached = cache.load(SPEC)
+    if cached is None:
+        reason = f" ({why})" if why else ""
+        raise OfflineError(f"no cached CDPH county data in {cache.directory(SPEC)}{reason}. "
+                           f"Fetch it with `flowcast data fetch --source chhs` when online, or "
+                           f"{_IMPORT_HINT}.")
+    vintage = parse_cdph_csv(cached.payload, str(cached.path))
+    stale = cached.manifest.age_days(now)
+    data_age = (now.date() - date.fromisoformat(cached.manifest.last_date[:10])).days
+    notes = ((why,) if why else ()) + (
+        f"using cache, fetched {stale:.0f} days ago (its last day, {cached.manifest.last_date}, "
+        f"is {data_age} days before today)",)
+    log.warning("CDPH counties: %s", "; ".join(notes))
+    return CDPHLoad(vintage, _provenance(cached.manifest, from_cache=True, stale_days=stale,
+                                         notes=notes))
+
+
+def _fetch_live(cache: DatasetCache, config: CDPHConfig, session: requests.Session | None,
+                now: datetime) -> CDPHLoad:
+    fetched = CHHSClient(config.client, session=session).fetch(SPEC)
+    source = fetched.package_url
+    vintage = validate_cdph_payload(fetched.payload, fetched.final_url)
+    if vintage.as_of > pd.Timestamp(now.date()) + pd.Timedelta(days=1):
+        raise ValidationError(f"{fetched.final_url}: last date {vintage.as_of.date()} is after "
+                              f"today ({now.date()}); refused")
+    manifest = commit_vintage(cache, vintage, fetched.payload, source_kind="api", source=source,
+                              final_url=fetched.final_url,
+                              accept_revisions=config.accept_revisions, policy=config.policy)
+    notes = (f"CKAN resource {fetched.resource.id or fetched.resource.name}, last modified "
+             f"{fetched.resource.last_modified or 'unknown'}",)
+    return CDPHLoad(vintage, _provenance(manifest, from_cache=False, stale_days=0.0,
+                                         notes=notes))
+
+
+def load_cdph(config: CDPHConfig | None = None, *, offline: bool = False,
+              session: requests.Session | None = None, now: datetime | None = None) -> CDPHLoad:
+    """The county vintage, live with cache fallback (cache only when ``offline``).
+
+    Any network fault (after the retries) or payload fault (not the CSV, a dropped county, an
+    implausible count, a revision beyond policy, ...) falls back to the cached copy, with a note
+    saying why and how old it is. Without a cache: offline an :class:`OfflineError` naming
+    ``flowcast data import``; online the fault itself. A configuration error (a base URL
+    without a scheme) is raised, never hidden by the cache."""
+    config = config or CDPHConfig()
+    now = now or utc_now()
+    cache = DatasetCache.default(config.data_dir)
+    if offline:
+        return _from_cache(cache, now, why=None)
+    try:
+        return _fetch_live(cache, config, session, now)
+    except CHHSNetworkError as exc:
+        why = f"CHHS portal unreachable: {exc}"
+        if not cache.has(SPEC):
+            raise OfflineError(f"{why}; and no cached CDPH county data: {_IMPORT_HINT}") from exc
+    except DataSourceError as exc:  # a bad payload, 4xx, a refused redirect or revision
+        why = f"CDPH payload rejected, cache kept: {exc}"
+        if not cache.has(SPEC):
+            raise
+    return _from_cache(cache, now, why=why)
+
+
+def load_cdph_vintage(config: CDPHConfig | None = None, *, offline: bool = False,
+                      session: requests.Session | None = None,
+                      now: datetime | None = None) -> CDPHVintage:
+    """:func:`load_cdph` without the provenance (the notes are logged)."""
+    return load_cdph(config, offline=offline, session=session, now=now).vintage
+
+
+def cached_vintages(data_dir: str | os.PathLike[str] | None = None) -> list[CDPHVintage]:
+    """Every vintage the cache holds, oldest first (one per as-of date: the last written).
+
+    Each file's sha256 must match the prefix in its name (a damaged file is a
+    :class:`CacheDamagedError`). A cache filled before ``vintages/`` existed still yields its
+    live copy."""
+    cache = DatasetCache.default(data_dir)
+    chosen: dict[str, tuple[Path, str]] = {}
+    folder = vintages_dir(cache)
+    files = sorted(folder.glob("*.csv"), key=lambda p: (p.name[:10], p.stat().st_mtime)) \
+        if folder.is_dir() else []
+    for path in files:
+        match = _VINTAGE_RE.match(path.name)
+        if match:
+            chosen[match.group(1)] = (path, match.group(2))
+    vintages: list[CDPHVintage] = []
+    for as_of, (path, digest) in sorted(chosen.items()):
+        data = path.read_bytes()
+        if not sha256_bytes(data).startswith(digest):
+            raise CacheDamagedError(f"cached CDPH vintage {path} does not match the hash in its "
+                                    f"name (damaged); delete it or re-import that download")
+        vintage = parse_cdph_csv(data, str(path))
+        if str(vintage.as_of.date()) != as_of:
+            raise CacheDamagedError(f"cached CDPH vintage {path} ends {vintage.as_of.date()}, "
+                                    f"not on the date in its name")
+        vintages.append(vintage)
+    if not vintages:
+        live = cache.load(SPEC)
+        if live is not None:
+            vintages.append(parse_cdph_csv(live.payload, str(live.path)))
+    return vintages
+
+
+# ---------------------------------------------------------------------------- import
+
+
+@dataclass(frozen=True)
+class CDPHImportSummary:
+    path: Path
+    as_of: str
+    first_date: str
+    counties: int
+    row_count: int
+    action: str              # "imported" | "archived" | "skipped"
+    note: str = ""
+
+
+def peek_columns(path: str | os.PathLike[str]) -> list[str]:
+    """The header of a CSV file (its first row), for telling CDPH from DataSF exports; [] when
+    the file cannot be read as text."""
+    with contextlib.suppress(OSError, UnicodeDecodeError, StopIteration, csv.Error):
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            return [c.strip() for c in next(csv.reader(handle))]
+    return []
+
+
+@dataclass(frozen=True)
+class CheckedExport:
+    """A CDPH file read and validated, not yet stored."""
+
+    path: Path
+    vintage: CDPHVintage
+    payload: bytes
+
+
+def validate_cdph_exports(paths: Sequence[str | os.PathLike[str]]) -> list[CheckedExport]:
+    """Read and validate every file (the first problem raises; nothing is stored)."""
+    checked = []
+    for p in paths:
+        path = Path(p)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise CDPHFormatError(f"cannot read CDPH export {path}: {exc.strerror or exc}") \
+                from exc
+        checked.append(CheckedExport(path, validate_cdph_payload(data, str(path)), data))
+    return checked
+
+
+def import_cdph_exports(paths: Sequence[str | os.PathLike[str]],
+                        data_dir: str | os.PathLike[str] | None = None, *,
+                        if_empty: bool = False, accept_revisions: bool = False,
+                        policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
+    """Validate every file first (nothing is stored if one fails), then store them oldest
+    first (:func:`store_cdph_exports`)."""
+    return store_cdph_exports(validate_cdph_exports(paths), data_dir, if_empty=if_empty,
+                              accept_revisions=accept_revisions, policy=policy)
+
+
+def store_cdph_exports(checked: Sequence[CheckedExport],
+                       data_dir: str | os.PathLike[str] | None = None, *,
+                       if_empty: bool = False, accept_revisions: bool = False,
+                       policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
+    """Store validated files oldest first: each becomes the live copy if the revision policy
+    allows (a refusal stops here: the files before it are stored, the rest are not); one older
+    than the live copy is kept in ``vintages/`` only (archived downloads come in any order)."""
+    cache = DatasetCache.default(data_dir)
+    summaries = []
+    for path, vintage, data in ((c.path, c.vintage, c.payload)
+                                for c in sorted(checked, key=lambda c: c.vintage.as_of)):
+        live, damage = cache.load_or_damage(SPEC)
+        live_vintage = _cached_vintage(live) if live is not None else None
+        note, action = "", "imported"
+        if if_empty and live_vintage is not None:
+            action, note = "skipped", "cache already holds CDPH county data (--if-empty)"
+        elif live_vintage is not None and vintage.as_of < live_vintage.as_of \
+                and not accept_revisions:
+            archive_vintage(cache, vintage, data)
+            action = "archived"
+            note = (f"older than the live vintage of {live_vintage.as_of.date()}: kept in "
+                    f"{vintages_dir(cache)}, live copy unchanged")
+        else:
+            commit_vintage(cache, vintage, data, source_kind="csv-import",
+                           source=str(path.resolve()),
+                           accept_revisions=accept_revisions or damage is not None
+                           or live_vintage is None, policy=policy)
+            if damage:
+                note = f"repaired a damaged cache: {damage}"
+        frame = vintage.frame
+        summaries.append(CDPHImportSummary(
+            path=path, as_of=str(vintage.as_of.date()), first_date=str(frame["date"].min().date()),
+            counties=len(vintage.counties), row_count=len(frame), action=action, note=note))
+    return summaries
+
+
+__all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance",
+           "CDPHRevisionPolicy", "CheckedExport", "cached_vintages", "check_cdph_successor",
+           "check_plausible", "commit_vintage", "import_cdph_exports", "is_cdph_export",
+           "load_cdph", "load_cdph_vintage", "store_cdph_exports", "validate_cdph_exports",
+           "validate_cdph_payload"]
