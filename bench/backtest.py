@@ -9,8 +9,9 @@ Targets I and weekly reported cases, 1–4 weeks, 23 hub quantiles; WIS relative
 Forecast Hub baseline per target × horizon (never pooled across targets), 50 %/90 % coverage,
 PIT histograms, and the count of invalid values in the published sample paths.
 
-    python -m bench.backtest              # the published forecast's members (AutoETS + flow)
-    python -m bench.backtest --no-nf      # AutoETS only (the flow member left out)
+    python -m bench.backtest              # the published forecast (hub baseline, growth-qr,
+                                          # nf-growth, nf-real; California's counties pooled)
+    python -m bench.backtest --no-nf      # without the flow members
     python -m bench.backtest --quick      # last 6 origins → bench/results/backtest-quick.json
 """
 from __future__ import annotations
@@ -25,6 +26,7 @@ from typing import Any
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATASF = Path(__file__).resolve().parents[2] / "shared" / "data" / "datasf"
+SHARED_CDPH = Path(__file__).resolve().parents[2] / "shared" / "data" / "cdph"
 
 
 def _parse(argv: list[str] | None) -> argparse.Namespace:
@@ -33,6 +35,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--no-nf", action="store_true", help="members without the NF member")
     p.add_argument("--data", default=str(SHARED_DATASF), help="DataSF CSV exports directory "
                    "(imported only into an empty cache)")
+    p.add_argument("--cdph", default=str(SHARED_CDPH), help="CDPH county downloads (the "
+                   "pooled members' reference places; imported only into an empty cache)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="output JSON path")
     return p.parse_args(argv)
@@ -44,23 +48,32 @@ def design_variants(history: Any, members: list[Any], config: Any) -> dict[str, 
     import dataclasses
 
     from pipeline.ensemble.backtest import run_realtime_backtest, summarize
-    from pipeline.ensemble.hub_baseline import HubBaseline
     from pipeline.ensemble.calibration import CalibrationConfig
+    from pipeline.ensemble.combine import EnsembleConfig
 
-    never = CalibrationConfig(shrinkage_pits=float("inf"))
+    def without(name: str) -> list[Any]:
+        return [m for m in members if m.name != name]
+
+    published = config.ensemble
     choices = {
-        "as published": (members, config.calibration),
-        "no recalibration": (members, never),
-        "recalibration may narrow (probit-normal with bias)": (
-            members, dataclasses.replace(config.calibration, widen_only=False)),
-        "empirical quantile recalibration, all past PITs": (
-            members, CalibrationConfig(method="empirical", window=None, widen_only=False)),
-        "hub baseline as a third member": ([HubBaseline(), *members], config.calibration),
+        "linear average": (members, dataclasses.replace(published, scale="linear"),
+                           config.calibration),
+        "skill weights (inverse WIS, last 12 origins)": (
+            members, dataclasses.replace(published, weighting="skill"), config.calibration),
+        "widen-only recalibration (the SF-only design)": (
+            members, published, CalibrationConfig()),
+        "recalibration that may narrow (probit-normal with bias)": (
+            members, published, CalibrationConfig(widen_only=False)),
+        "the SF-only design: AutoETS + nf-growth, skill weights, linear, widen-only": (
+            [m for m in members if m.name == "nf-growth"] + [_autoets()],
+            EnsembleConfig(weighting="skill", scale="linear"), CalibrationConfig()),
+        **{f"without {m.name}": (without(m.name), published, config.calibration)
+           for m in members},
     }
     out: dict[str, Any] = {}
-    for name, (chosen, calibration) in choices.items():
-        result = run_realtime_backtest(history, chosen,
-                                       dataclasses.replace(config, calibration=calibration))
+    for name, (chosen, ensemble, calibration) in choices.items():
+        result = run_realtime_backtest(history, chosen, dataclasses.replace(
+            config, ensemble=ensemble, calibration=calibration))
         out[name] = {target: {"relative_wis_vs_baseline": s["published"]["relative_wis_vs_baseline"],
                               "coverage50": s["published"]["coverage50"],
                               "coverage90": s["published"]["coverage90"]}
@@ -70,12 +83,21 @@ def design_variants(history: Any, members: list[Any], config: Any) -> dict[str, 
     return out
 
 
+def _autoets() -> Any:
+    from pipeline.ensemble.autoets import AutoETSMember
+
+    return AutoETSMember()
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
     import dataclasses
 
     from pipeline import forecast as fc
-    from pipeline.forecast.sources import import_exports, load_sf_history
+    from pipeline.forecast.sources import (import_exports, load_reference_histories,
+                                           load_sf_history)
+    from pipeline.data.cdph import find_vintage_files
+    from pipeline.data.cdph_source import import_cdph_exports
     from pipeline.training.model_store import default_store_root
     from pipeline.ensemble.backtest import (backtest_origins,
                                                run_realtime_backtest, summarize)
@@ -83,7 +105,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.io import atomic_write_json
 
     import_exports([args.data], if_empty=True)
-    history = load_sf_history(fc.DataSourceConfig(kind="cache"))
+    if Path(args.cdph).is_dir():
+        import_cdph_exports(find_vintage_files(args.cdph), if_empty=True, accept_revisions=True)
+    source = fc.DataSourceConfig(kind="cache")
+    history = load_sf_history(source)
+    reference = load_reference_histories(source)
     weekly = dataclasses.replace(fc.resolve_config("default", seed=args.seed).weekly_config(),
                                  include_nf=not args.no_nf)
     config = weekly.backtest_config(scored_only=True)
@@ -91,7 +117,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         origins = backtest_origins(history, config)
         config = dataclasses.replace(config, first_origin=origins[-6].date())
     t0 = time.perf_counter()
-    members, model_key, reused = build_weekly_members(weekly, default_store_root())
+    chosen = build_weekly_members(weekly, default_store_root(), reference, history)
+    members, model_key, reused = chosen.members, chosen.model_key, chosen.reused
     t_members = time.perf_counter() - t0
     result = run_realtime_backtest(history, members, config)
     summary = summarize(result)
@@ -103,7 +130,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     "total": round(t_members + result.seconds, 2)},
         "flow_model": {"key": model_key, "reused": reused},
         "data": {"first_day": str(history.dates[0].date()), "last_day": str(history.origin.date()),
-                 "population": history.population},
+                 "population": history.population,
+                 "reference_places": len(reference),
+                 "reference_last_day": (str(reference[0].origin.date()) if reference else None)},
         "quick": args.quick,
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
         "python": sys.version.split()[0],

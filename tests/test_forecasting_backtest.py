@@ -14,6 +14,7 @@ from pipeline.ensemble.backtest import (HUB_COLUMNS, BacktestConfig, backtest_or
                                            summarize, summarize_forecaster)
 from pipeline.forecast.sources import sf_history
 from pipeline.ensemble.hub_baseline import HubBaseline
+from pipeline.ensemble.calibration import CalibrationConfig
 from pipeline.ensemble.combine import PUBLISHED, UNCALIBRATED, EnsembleConfig, skill_weights
 from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
 from pipeline.ensemble.targets import EpiHistory, observed_targets
@@ -68,7 +69,8 @@ def test_scores_per_target_and_horizon_hand_computed():
 def test_ensemble_weights_use_only_forecasts_scored_by_the_origin():
     history = random_walk_history(40, seed=2)
     members = [LogNormalMember("sharp", 0.1), LogNormalMember("wide", 0.6)]
-    config = BacktestConfig(ensemble=EnsembleConfig(shrinkage_origins=4.0), n_paths=50)
+    config = BacktestConfig(ensemble=EnsembleConfig(weighting="skill", shrinkage_origins=4.0),
+                            n_paths=50)
     result = run_realtime_backtest(history, members, config)
     w = result.weights.set_index(["origin_date", "horizon", "member"])["weight"]
     scores = result.scores.set_index(["forecaster", "target", "horizon", "origin_date"])["wis"]
@@ -88,7 +90,7 @@ def test_ensemble_weights_use_only_forecasts_scored_by_the_origin():
 def test_recalibration_in_the_backtest_fixes_an_over_confident_member():
     history = random_walk_history(110, seed=4, sigma=0.3)
     result = run_realtime_backtest(history, [LogNormalMember("overconfident", 0.08)],
-                                   BacktestConfig(n_paths=20))
+                                   BacktestConfig(n_paths=20, calibration=CalibrationConfig()))
     s = summarize(result)["by_target"]["cases"]
     raw, pub = s[UNCALIBRATED], s[PUBLISHED]
     assert raw["coverage90"] < 0.45 and raw["coverage50"] < 0.2          # measured 0.30 / 0.09
@@ -138,8 +140,10 @@ def test_backtest_cli_on_the_real_data_writes_hub_forecasts_scores_and_summary(
     i_prop = q[q["target"] == "I"]["value"].to_numpy()
     np.testing.assert_allclose(i_prop * 873_965, cases, rtol=1e-9)      # I = cases / N
     scores = pd.read_csv(out / "scores.csv")
-    assert set(scores["forecaster"]) == {"hub-baseline", "autoets", UNCALIBRATED, PUBLISHED}
-    assert len(scores) == 4 * 2 * 4 * 4       # forecasters × targets × horizons × origins
+    # --no-nf: the flat baseline and growth-qr (no CDPH counties in this cache: SF alone)
+    assert set(scores["forecaster"]) == {"hub-baseline", "growth-qr", "autoets", UNCALIBRATED,
+                                         PUBLISHED}
+    assert len(scores) == 5 * 2 * 4 * 4       # forecasters × targets × horizons × origins
     summary = json.loads((out / "summary.json").read_text())
     assert summary["invalid_values"] == 0 and summary["n_origins"] == 4
     rel = summary["by_target"]["I"]["autoets"]["relative_wis_vs_baseline"]

@@ -90,11 +90,14 @@ def test_skill_weights_hand_computed_and_equal_without_past_scores():
     np.testing.assert_allclose(skill_weights(np.empty((0, 3))), [1 / 3] * 3)
     # WIS 1 and 2 at two past origins: inverse-WIS weights 2/3, 1/3; n = 2, n0 = 4 → λ = 1/3:
     # w = 1/3·(2/3, 1/3) + 2/3·(1/2, 1/2) = (5/9, 4/9)
-    w = skill_weights(np.array([[1.0, 2.0], [1.0, 2.0]]), EnsembleConfig(shrinkage_origins=4))
+    w = skill_weights(np.array([[1.0, 2.0], [1.0, 2.0]]),
+                      EnsembleConfig(weighting="skill", shrinkage_origins=4))
     np.testing.assert_allclose(w, [5 / 9, 4 / 9])
+    # the published weighting is equal whatever the past scores
+    np.testing.assert_allclose(skill_weights(np.array([[1.0, 2.0], [1.0, 2.0]])), [0.5, 0.5])
     # rows with a missing member are ignored; only the last ``window`` rows count
     w2 = skill_weights(np.array([[9.0, 1.0], [np.nan, 1.0], [1.0, 2.0], [1.0, 2.0]]),
-                       EnsembleConfig(window=2, shrinkage_origins=4))
+                       EnsembleConfig(weighting="skill", window=2, shrinkage_origins=4))
     np.testing.assert_allclose(w2, [5 / 9, 4 / 9])
     np.testing.assert_allclose(vincentize(np.array([[[1.0, 3.0]], [[3.0, 7.0]]]),
                                           np.array([0.75, 0.25])), [[1.5, 4.0]])

@@ -422,12 +422,16 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
     than the live copy is kept in ``vintages/`` only (archived downloads come in any order)."""
     cache = DatasetCache.default(data_dir)
     summaries = []
+    # --if-empty is decided once, before the first file: an archive of several vintages goes in
+    # whole, or not at all
+    held_before = cache.load_or_damage(SPEC)[0]
+    skip_all = if_empty and held_before is not None and _cached_vintage(held_before) is not None
     for path, vintage, data in ((c.path, c.vintage, c.payload)
                                 for c in sorted(checked, key=lambda c: c.vintage.as_of)):
         live, damage = cache.load_or_damage(SPEC)
         live_vintage = _cached_vintage(live) if live is not None else None
         note, action = "", "imported"
-        if if_empty and live_vintage is not None:
+        if skip_all:
             action, note = "skipped", "cache already holds CDPH county data (--if-empty)"
         elif live_vintage is not None and vintage.as_of < live_vintage.as_of \
                 and not accept_revisions:

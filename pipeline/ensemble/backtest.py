@@ -85,7 +85,11 @@ class BacktestConfig:
     seed: int = 0
     warm_up: bool = True
     ensemble: EnsembleConfig = field(default_factory=EnsembleConfig)
-    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    # No recalibration by default: on the cross-county backtest every recalibration from past
+    # PITs (widen-only, bias + scale, per regime) made the published forecast worse
+    # (bench/results/backtest_counties.json, variants).
+    calibration: CalibrationConfig = field(
+        default_factory=lambda: CalibrationConfig(method="none"))
 
     def __post_init__(self) -> None:
         if self.step_days < 1 or self.min_history_weeks < 2 or self.n_paths < 1:
@@ -240,7 +244,8 @@ def publish(history: EpiHistory, current: dict[str, QuantileForecast], members: 
     values = member_matrix(current, members, PUBLISHED_BASIS)              # (M, H, Q)
     weights = np.stack([skill_weights(past_wis_matrix(past, members, PUBLISHED_BASIS, h, t),
                                       config.ensemble) for h in config.horizons])   # (H, M)
-    raw = np.stack([vincentize(values[:, k], weights[k]) for k in range(len(config.horizons))])
+    raw = np.stack([vincentize(values[:, k], weights[k], config.ensemble.scale)
+                    for k in range(len(config.horizons))])
     calibrated = np.stack([
         recalibrate(levels, raw[k],
                     [p for _, (_, p) in sorted(past.known_at(UNCALIBRATED, PUBLISHED_BASIS, h,

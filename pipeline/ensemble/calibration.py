@@ -51,11 +51,11 @@ class CalibrationError(FlowcastError):
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """``method``: ``probit-normal`` (default) or ``empirical`` (module docstring).
+    """``method``: ``probit-normal``, ``empirical`` (module docstring) or ``none`` (identity).
     ``shrinkage_pits`` n0: with n past PITs the map is n/(n + n0) of the fitted one.
     ``window``: the most recent PITs used (None: every past one)."""
 
-    method: Literal["probit-normal", "empirical"] = "probit-normal"
+    method: Literal["probit-normal", "empirical", "none"] = "probit-normal"
     shrinkage_pits: float = 10.0
     window: int | None = 52
     widen_only: bool = True
@@ -64,9 +64,9 @@ class CalibrationConfig:
     def __post_init__(self) -> None:
         if self.shrinkage_pits < 0 or not 0 < self.min_level < 0.5:
             raise CalibrationError(f"invalid CalibrationConfig {self}")
-        if self.method not in ("probit-normal", "empirical"):
+        if self.method not in ("probit-normal", "empirical", "none"):
             raise CalibrationError(f"CalibrationConfig.method={self.method!r}: use "
-                                   "'probit-normal' or 'empirical'")
+                                   "'probit-normal', 'empirical' or 'none'")
         if self.window is not None and self.window < 1:
             raise CalibrationError(f"CalibrationConfig.window={self.window} must be >= 1")
 
@@ -142,7 +142,7 @@ def recalibrated_levels(levels: ArrayLike, past_pits: ArrayLike,
     if config.window is not None:
         pits = pits[-config.window:]
     n = pits.size
-    if n == 0:
+    if n == 0 or config.method == "none":
         return lv.copy()
     if (pits < 0).any() or (pits > 1).any():
         raise CalibrationError("PIT values must lie in [0, 1]")

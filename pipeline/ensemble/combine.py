@@ -38,6 +38,8 @@ from pipeline.errors import FlowcastError
 from pipeline.ensemble.calibration import quantiles_at
 from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 
+AverageScale = Literal["log", "linear"]
+
 PUBLISHED = "published"
 UNCALIBRATED = "ensemble-uncalibrated"
 
@@ -48,8 +50,12 @@ class EnsembleError(FlowcastError):
 
 @dataclass(frozen=True)
 class EnsembleConfig:
-    """``window``: past scored origins per member in the skill; ``shrinkage_origins``: n0."""
+    """How the members are averaged. ``weighting``: ``"equal"`` (published) or ``"skill"``
+    (inverse mean WIS over the last ``window`` scored origins, shrunk towards equal with n0 =
+    ``shrinkage_origins``); ``scale``: average log(1 + quantiles) (published) or the quantiles."""
 
+    weighting: Literal["equal", "skill"] = "equal"
+    scale: AverageScale = "log"
     window: int = 12
     shrinkage_origins: float = 4.0
     skill: Literal["wis", "relative-wis"] = "wis"
@@ -60,6 +66,9 @@ class EnsembleConfig:
         if self.skill not in ("wis", "relative-wis"):
             raise EnsembleError(f"EnsembleConfig.skill={self.skill!r}: use 'wis' or "
                                 "'relative-wis'")
+        if self.weighting not in ("equal", "skill") or self.scale not in ("log", "linear"):
+            raise EnsembleError(f"EnsembleConfig weighting={self.weighting!r} (equal|skill), "
+                                f"scale={self.scale!r} (log|linear)")
 
 
 def skill_weights(past_wis: NDArray[np.float64],
@@ -69,6 +78,8 @@ def skill_weights(past_wis: NDArray[np.float64],
     wis = np.asarray(past_wis, dtype=np.float64)
     m = wis.shape[1]
     equal = np.full(m, 1.0 / m)
+    if config.weighting == "equal":
+        return equal
     wis = wis[np.isfinite(wis).all(axis=1)][-config.window:]
     scale = wis.mean(axis=1, keepdims=True) if wis.size else wis
     wis, scale = wis[scale[:, 0] > 0], scale[scale[:, 0] > 0]
@@ -82,13 +93,23 @@ def skill_weights(past_wis: NDArray[np.float64],
     return lam * skill + (1.0 - lam) * equal
 
 
-def vincentize(values: NDArray[np.float64], weights: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Quantile average: ``values (M, ..., Q)`` with weights ``(M,)`` → ``(..., Q)``."""
+def vincentize(values: NDArray[np.float64], weights: NDArray[np.float64],
+               scale: AverageScale = "linear") -> NDArray[np.float64]:
+    """Quantile average: ``values (M, ..., Q)`` with weights ``(M,)`` → ``(..., Q)``.
+
+    ``scale="log"`` averages log(1 + q): the weighted geometric mean of the members' quantiles
+    (of counts + 1). Epidemic counts grow multiplicatively, so a member forecasting growth and one
+    forecasting a plateau average to a damped growth *rate*, where the linear average is pulled
+    to the larger member's scale."""
     w = np.asarray(weights, dtype=np.float64)
     if w.shape != values.shape[:1] or abs(w.sum() - 1.0) > 1e-9 or (w < 0).any():
         raise EnsembleError(f"weights {w.tolist()} must be {values.shape[0]} non-negative "
                             "numbers summing to 1")
-    return np.tensordot(w, values, axes=1)
+    if scale == "log":
+        return np.expm1(np.tensordot(w, np.log1p(np.maximum(values, 0.0)), axes=1))
+    if scale == "linear":
+        return np.tensordot(w, values, axes=1)
+    raise EnsembleError(f"average scale {scale!r}: use 'log' or 'linear'")
 
 
 def check_compatible(forecasts: Sequence[QuantileForecast]) -> None:

@@ -21,8 +21,10 @@ across targets:
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -32,19 +34,30 @@ from numpy.typing import NDArray
 
 from pipeline.data.cdph import CDPHVintage
 from pipeline.ensemble.calibration import pit_from_quantiles
-from pipeline.ensemble.combine import PUBLISHED, UNCALIBRATED
-from pipeline.ensemble.hub_baseline import HUB_BASELINE, HubBaseline, HubBaselineConfig
+from pipeline.ensemble.combine import PUBLISHED, UNCALIBRATED, EnsembleError
+from pipeline.ensemble.hub_baseline import HUB_BASELINE, HubBaseline
 from pipeline.ensemble.members import Member
-from pipeline.ensemble.panel import (BatchMember, Panel, cell_histories, member_forecast_arrays,
-                                     truth_arrays, weekly_origins)
-from pipeline.ensemble.pooled import PooledConfig, combine_panel, growth_regimes
+from pipeline.ensemble.panel import (BatchMember, Panel, PoolingMember, member_forecast_arrays,
+                                     truth_arrays, weekly_grid, weekly_origins)
+from pipeline.ensemble.pooled import PooledConfig, PooledForecast, combine_panel, growth_regimes
 from pipeline.ensemble.targets import (HORIZONS_WEEKS, HUB_QUANTILE_LEVELS, TARGETS,
                                        history_from_county)
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
+from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.progress import ProgressReporter, SilentProgress
 
 PIT_BINS = 10
 DEFAULT_MIN_POPULATION = 100_000
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A design alternative scored beside the published forecast: another combiner over the
+    same members, or the published combiner over a subset of them (``members``)."""
+
+    name: str
+    pooled: PooledConfig = field(default_factory=PooledConfig)
+    members: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -57,12 +70,8 @@ class CountyBacktestConfig:
     horizons: tuple[int, ...] = HORIZONS_WEEKS
     levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
     seed: int = 0
-    # The hub baseline resamples its differences; 10,000 draws per cell (reichlab: 100,000) keep
-    # the Monte Carlo error of its 1 % quantile under 0.1 percentage points of level, at a tenth
-    # of the cost over thousands of cells.
-    baseline_samples: int = 10_000
     published: PooledConfig = field(default_factory=PooledConfig)
-    variants: tuple[tuple[str, PooledConfig], ...] = ()
+    variants: tuple[Variant, ...] = ()
 
 
 def county_panel(vintage: CDPHVintage, counties: Sequence[str], trailing_days: int) -> Panel:
@@ -91,34 +100,37 @@ class PanelBacktestResult:
 
 def cell_regimes(panel: Panel, origins: Sequence[pd.Timestamp]) -> NDArray[np.intp]:
     """Each cell's growth regime ``(C, O)`` from the last two weeks of cases before its origin."""
-    out = np.empty((len(panel.places), len(origins)), dtype=np.intp)
-    for c, history in enumerate(panel.histories.values()):
-        cumulative = np.concatenate([[0], np.cumsum(history.cases)])
-        ends = np.searchsorted(history.dates.to_numpy(dtype=np.int64),
-                               np.array([o.value for o in origins])) + 1
-        last_two = np.stack([cumulative[ends - 7] - cumulative[ends - 14],
-                             cumulative[ends] - cumulative[ends - 7]], axis=-1)
-        out[c] = growth_regimes(last_two.astype(np.float64))
-    return out
+    weekly, index = weekly_grid(panel, origins)
+    last_two = np.stack([weekly[:, index - 1], weekly[:, index]], axis=-1)
+    return growth_regimes(last_two)
 
 
-def run_panel_backtest(panel: Panel, members: Sequence[Member | BatchMember],
+AnyMember = Member | BatchMember | PoolingMember
+
+
+def run_panel_backtest(panel: Panel, members: Sequence[AnyMember],
                        config: CountyBacktestConfig = CountyBacktestConfig(),
+                       references: Sequence[AnyMember] = (),
                        progress: ProgressReporter | None = None) -> PanelBacktestResult:
-    """Every member and the hub baseline at every cell, then the pooled published forecast and
-    the variants (module docstring)."""
+    """Every member and reference at every cell, then the published combination of the members
+    and the variants (module docstring). The hub baseline is scored always: as a member when it
+    is one, else as a reference."""
     progress = progress or SilentProgress()
     levels = np.asarray(config.levels, dtype=np.float64)
     horizons = tuple(config.horizons)
+    names = tuple(m.name for m in members)
+    if not names or len(set(names)) != len(names) or {PUBLISHED, UNCALIBRATED} & set(names):
+        raise EnsembleError(f"members need distinct names other than {PUBLISHED!r} and "
+                            f"{UNCALIBRATED!r}, got {names}")
+    if HUB_BASELINE not in names and not any(r.name == HUB_BASELINE for r in references):
+        references = (*references, HubBaseline())
     origins = weekly_origins(panel.dates, min_history_weeks=config.min_history_weeks,
                              horizon_weeks=max(horizons))
-    cells = cell_histories(panel, origins)
-    shape = (len(panel.places), len(origins))
     seconds: dict[str, float] = {}
     forecasts: dict[str, dict[str, NDArray[np.float64]]] = {t: {} for t in TARGETS}
-    for member in (*members, HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples))):
+    for member in (*members, *references):
         started = time.perf_counter()
-        arrays = member_forecast_arrays(member, cells, shape, horizons, levels, config.seed,
+        arrays = member_forecast_arrays(member, panel, origins, horizons, levels, config.seed,
                                         progress)
         seconds[member.name] = time.perf_counter() - started
         for t in TARGETS:
@@ -126,33 +138,46 @@ def run_panel_backtest(panel: Panel, members: Sequence[Member | BatchMember],
     started = time.perf_counter()
     truth = truth_arrays(panel, origins, horizons)
     regimes = cell_regimes(panel, origins)
-    names = tuple(m.name for m in members)
-    member_cases = {n: forecasts["cases"][n] for n in names}
     baseline = forecasts["cases"][HUB_BASELINE]
-    pooled = combine_panel(member_cases, baseline, truth["cases"], regimes, levels, horizons,
-                           config.published)
     population = panel.populations[:, None, None, None]
-    for name, values in ((PUBLISHED, pooled.published), (UNCALIBRATED, pooled.uncalibrated)):
+
+    def combine(chosen: Sequence[str], pooled: PooledConfig) -> PooledForecast:
+        return combine_panel({n: forecasts["cases"][n] for n in chosen}, baseline,
+                             truth["cases"], regimes, levels, horizons, pooled)
+
+    published = combine(names, config.published)
+    for name, values in ((PUBLISHED, published.published),
+                         (UNCALIBRATED, published.uncalibrated)):
         forecasts["cases"][name], forecasts["I"][name] = values, values / population
-    for name, variant in config.variants:
-        values = combine_panel(member_cases, baseline, truth["cases"], regimes, levels,
-                               horizons, variant).published
-        forecasts["cases"][name], forecasts["I"][name] = values, values / population
+    for variant in config.variants:
+        values = combine(variant.members or names, variant.pooled).published
+        forecasts["cases"][variant.name], forecasts["I"][variant.name] = values, values / population
     seconds["combine"] = time.perf_counter() - started
     return PanelBacktestResult(panel.places, tuple(origins), horizons, levels, panel.populations,
-                               names, forecasts, truth, pooled.weights, seconds, config)
+                               names, forecasts, truth, published.weights, seconds, config)
 
 
-def run_county_backtest(vintage: CDPHVintage, members: Sequence[Member | BatchMember],
+def run_county_backtest(vintage: CDPHVintage, members: Sequence[AnyMember],
                         config: CountyBacktestConfig = CountyBacktestConfig(),
                         counties: Sequence[str] | None = None,
+                        references: Sequence[AnyMember] = (),
                         progress: ProgressReporter | None = None) -> PanelBacktestResult:
     """:func:`run_panel_backtest` on ``counties`` (default: every county with at least
     ``config.min_population`` people) of a CDPH vintage."""
-    chosen = (tuple(counties) if counties is not None
-              else vintage.counties_with_population(config.min_population))
-    return run_panel_backtest(county_panel(vintage, chosen, config.trailing_days), members,
-                              config, progress)
+    return run_panel_backtest(county_panel(vintage, select_counties(vintage, config, counties),
+                                           config.trailing_days),
+                              members, config, references, progress)
+
+
+def select_counties(vintage: CDPHVintage, config: CountyBacktestConfig,
+                    counties: Sequence[str] | None = None) -> tuple[str, ...]:
+    """``counties`` (checked against the vintage), or every county with at least
+    ``config.min_population`` people."""
+    if counties is None:
+        return vintage.counties_with_population(config.min_population)
+    for county in counties:
+        vintage.county(county)                  # names the county and suggests a spelling
+    return tuple(counties)
 
 
 # ---------------------------------------------------------------------------------- summaries
@@ -175,8 +200,8 @@ def _score_arrays(values: NDArray[np.float64], truth: NDArray[np.float64],
     y = np.where(seen, truth, 0.0)
     nan = np.where(seen, 1.0, np.nan)
     return {"wis": weighted_interval_score(levels, values, y).wis * nan,
-            "c50": interval_coverage(levels, values, y, 0.5) * nan,
-            "c90": interval_coverage(levels, values, y, 0.9) * nan,
+            "c50": interval_coverage(levels, values, y, 0.5).astype(np.float64) * nan,
+            "c90": interval_coverage(levels, values, y, 0.9).astype(np.float64) * nan,
             "pit": pit_from_quantiles(levels, values, y) * nan}
 
 
@@ -243,7 +268,8 @@ def summarize_panel(result: PanelBacktestResult) -> dict[str, Any]:
 
 def _config_dict(config: CountyBacktestConfig) -> dict[str, Any]:
     out = asdict(config)
-    out["variants"] = {name: asdict(v) for name, v in config.variants}
+    out["variants"] = {v.name: {"pooled": asdict(v.pooled), "members": v.members}
+                       for v in config.variants}
     return out
 
 
@@ -259,3 +285,49 @@ def weights_frame(result: PanelBacktestResult) -> pd.DataFrame:
 
 def published_counts(result: PanelBacktestResult) -> Mapping[str, NDArray[np.float64]]:
     return {t: result.forecasts[t][PUBLISHED] for t in TARGETS}
+
+
+def for_places(result: PanelBacktestResult, places: Sequence[str]) -> PanelBacktestResult:
+    """The same backtest restricted to ``places`` (their forecasts are unchanged: the pooled
+    members learnt from every place of the panel)."""
+    unknown = [p for p in places if p not in result.places]
+    if unknown:
+        raise EnsembleError(f"places {unknown} are not in the backtest ({len(result.places)} "
+                            f"places: {', '.join(result.places[:5])}, …)")
+    keep = np.array([result.places.index(p) for p in places])
+    return dataclasses.replace(
+        result, places=tuple(places), populations=result.populations[keep],
+        forecasts={t: {n: v[keep] for n, v in f.items()} for t, f in result.forecasts.items()},
+        truth={t: v[keep] for t, v in result.truth.items()})
+
+
+def scores_frame(result: PanelBacktestResult) -> pd.DataFrame:
+    """One row per place × origin × horizon × target × forecaster with observed truth: the
+    truth, the forecast's median and WIS, 50 %/90 % coverage."""
+    mid = int(np.argmin(np.abs(result.levels - 0.5)))
+    frames = []
+    for target in TARGETS:
+        truth = result.truth[target]
+        for name, values in result.forecasts[target].items():
+            scores = _score_arrays(values, truth, result.levels)
+            c, o, h = np.nonzero(np.isfinite(truth))
+            frames.append(pd.DataFrame({
+                "place": np.asarray(result.places)[c],
+                "origin_date": [str(result.origins[i].date()) for i in o],
+                "horizon": np.asarray(result.horizons)[h], "target": target, "forecaster": name,
+                "observed": truth[c, o, h], "median": values[c, o, h, mid],
+                "wis": scores["wis"][c, o, h], "covered_50": scores["c50"][c, o, h] > 0,
+                "covered_90": scores["c90"][c, o, h] > 0}))
+    return pd.concat(frames, ignore_index=True)
+
+
+def write_panel_backtest(result: PanelBacktestResult, out_dir: str | Path,
+                         extra: Mapping[str, Any] | None = None) -> list[Path]:
+    """``summary.json`` (:func:`summarize_panel`), ``scores.csv`` (:func:`scores_frame`) and
+    ``weights.csv`` of the published combination, written atomically."""
+    root = Path(out_dir)
+    written = [root / "summary.json", root / "scores.csv", root / "weights.csv"]
+    atomic_write_json(written[0], {**summarize_panel(result), **(extra or {})})
+    atomic_write_text(written[1], scores_frame(result).to_csv(index=False))
+    atomic_write_text(written[2], weights_frame(result).to_csv(index=False))
+    return written

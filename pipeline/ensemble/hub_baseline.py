@@ -20,6 +20,7 @@ Deterministic given ``seed``. Reference: reichlab/covidModels ``R/quantile_basel
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,33 +49,61 @@ def symmetrized(differences: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([differences, -differences])
 
 
+def _row_quantiles(sorted_rows: NDArray[np.float64], counts: NDArray[np.intp],
+                   q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Type-7 quantiles ``(B, K)`` of each row's first ``counts[b]`` (sorted) values."""
+    position = q[None, :] * (counts[:, None] - 1)
+    low = np.floor(position).astype(np.intp)
+    high = np.minimum(low + 1, counts[:, None] - 1)
+    frac = position - low
+    below = np.take_along_axis(sorted_rows, low, axis=1)
+    above = np.take_along_axis(sorted_rows, high, axis=1)
+    return below + frac * (above - below)
+
+
+def baseline_quantiles_batch(last_values: NDArray[np.float64],
+                             differences: Sequence[NDArray[np.float64]],
+                             horizons: tuple[int, ...], levels: NDArray[np.float64],
+                             seeds: Sequence[int], config: HubBaselineConfig = HubBaselineConfig()
+                             ) -> NDArray[np.float64]:
+    """Quantiles ``(B, H, Q)`` of B baselines (module docstring), each from its last value, its
+    own past differences and its own seed: row b never depends on another row's data."""
+    rows = [np.asarray(d, dtype=np.float64) for d in differences]
+    rows = [d[np.isfinite(d)] for d in rows]
+    if any(d.size == 0 for d in rows):
+        raise TargetError("hub baseline needs at least one past difference")
+    if config.symmetrize:
+        rows = [symmetrized(d) for d in rows]
+    counts = np.array([d.size for d in rows], dtype=np.intp)
+    padded = np.full((len(rows), int(counts.max())), np.inf)
+    for b, d in enumerate(rows):
+        padded[b, :d.size] = np.sort(d)
+    lv = np.asarray(levels, dtype=np.float64)
+    grid = _row_quantiles(padded, counts, np.linspace(0.0, 1.0, config.n_samples))  # (B, S)
+    generators = [np.random.default_rng(seed) for seed in seeds]
+    out = np.empty((len(rows), len(horizons), lv.size))
+    total = np.zeros_like(grid)
+    for h in range(1, max(horizons) + 1):
+        # one week's draws: reichlab's grid, then an independent permutation each later week
+        total = total + (grid if h == 1 else np.stack(
+            [g.permutation(row) for g, row in zip(generators, grid)]))
+        if h not in horizons:
+            continue
+        k = horizons.index(h)
+        if h == 1:
+            out[:, k] = _row_quantiles(padded, counts, lv)
+            continue
+        centred = total - (np.median(total, axis=1, keepdims=True) if config.symmetrize else 0.0)
+        out[:, k] = np.quantile(centred, lv, axis=1).T
+    return np.maximum(np.asarray(last_values, dtype=np.float64)[:, None, None] + out, 0.0)
+
+
 def baseline_quantiles(last_value: float, differences: NDArray[np.float64],
                        horizons: tuple[int, ...], levels: NDArray[np.float64], seed: int,
                        config: HubBaselineConfig = HubBaselineConfig()) -> NDArray[np.float64]:
     """Quantiles ``(H, Q)`` of the hub baseline from the last value and the past differences."""
-    diffs = np.asarray(differences, dtype=np.float64)
-    diffs = diffs[np.isfinite(diffs)]
-    if diffs.size == 0:
-        raise TargetError("hub baseline needs at least one past difference")
-    if config.symmetrize:
-        diffs = symmetrized(diffs)
-    lv = np.asarray(levels, dtype=np.float64)
-    out = np.empty((len(horizons), lv.size))
-    grid = np.quantile(diffs, np.linspace(0.0, 1.0, config.n_samples))   # reichlab's draws
-    rng = np.random.default_rng(seed)
-    total = np.zeros(config.n_samples)
-    max_h = max(horizons)
-    sums: dict[int, NDArray[np.float64]] = {}
-    for h in range(1, max_h + 1):
-        total = total + (grid if h == 1 else rng.permutation(grid))
-        if h in horizons and h > 1:
-            sums[h] = total - (np.median(total) if config.symmetrize else 0.0)
-    for k, h in enumerate(horizons):
-        if h == 1:
-            out[k] = last_value + np.quantile(diffs, lv)
-        else:
-            out[k] = last_value + np.quantile(sums[h], lv)
-    return np.maximum(out, 0.0)
+    return baseline_quantiles_batch(np.array([last_value]), [differences], horizons, levels,
+                                    [seed], config)[0]
 
 
 def i_differences(history: EpiHistory) -> NDArray[np.float64]:
@@ -91,16 +120,27 @@ class HubBaseline:
 
     def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
                  levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        weekly = history.weekly_cases()
-        if len(history) <= DAYS_PER_WEEK or weekly.size < 2:
-            raise TargetError(f"hub baseline at {history.origin.date()}: needs more than one week "
-                              f"of history, got {len(history)} days")
-        seeds = np.random.SeedSequence(seed).generate_state(2)
-        values = {
-            "I": baseline_quantiles(float(history.I[-1]), i_differences(history), horizons,
-                                    levels, int(seeds[0]), self.config),
-            "cases": baseline_quantiles(float(weekly[-1]), np.diff(weekly), horizons, levels,
-                                        int(seeds[1]), self.config),
-        }
+        values = self.forecast_targets_batch([history], horizons, levels, [seed])
         return QuantileForecast(self.name, history.origin, tuple(horizons),
-                                np.asarray(levels, dtype=np.float64), values)
+                                np.asarray(levels, dtype=np.float64),
+                                {t: v[0] for t, v in values.items()})
+
+    def forecast_targets_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                               levels: NDArray[np.float64], seeds: Sequence[int]
+                               ) -> dict[str, NDArray[np.float64]]:
+        """Both targets' quantiles ``(B, H, Q)`` of B histories, history b with ``seeds[b]``
+        (the same numbers as :meth:`forecast` of each)."""
+        weekly = [h.weekly_cases() for h in histories]
+        short = [h for h, w in zip(histories, weekly) if len(h) <= DAYS_PER_WEEK or w.size < 2]
+        if short:
+            raise TargetError(f"hub baseline at {short[0].origin.date()}: needs more than one "
+                              f"week of history, got {len(short[0])} days")
+        streams = np.array([np.random.SeedSequence(s).generate_state(2) for s in seeds])
+        return {
+            "I": baseline_quantiles_batch(np.array([h.I[-1] for h in histories]),
+                                          [i_differences(h) for h in histories], horizons,
+                                          levels, streams[:, 0].tolist(), self.config),
+            "cases": baseline_quantiles_batch(np.array([w[-1] for w in weekly]),
+                                              [np.diff(w) for w in weekly], horizons, levels,
+                                              streams[:, 1].tolist(), self.config),
+        }

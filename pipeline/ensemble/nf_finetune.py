@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from pipeline.ensemble.nf_member import (CHECKPOINT_NAME, N_WEEKS, GrowthModelConfig,
                                          NFGrowthMember, context_features, estimator_config,
                                          growth_targets, trailing_week_sums)
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, TargetError
+from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast
 from pipeline.errors import CheckpointError, ConfigError
 from pipeline.models.estimator import ConditionalEstimator
 from pipeline.progress import ProgressReporter, SilentProgress
@@ -157,19 +157,31 @@ class FineTunedGrowthMember:
     models: Mapping[pd.Timestamp, ConditionalEstimator]
     name: str = NF_REAL
 
-    def model_for(self, origin: pd.Timestamp) -> NFGrowthMember:
+    def refit_for(self, origin: pd.Timestamp) -> pd.Timestamp | None:
+        """The latest refit date on or before ``origin`` (None: before the first refit)."""
         dates = [r for r in self.models if r <= origin]
-        if not dates:
+        return max(dates) if dates else None
+
+    def model_for(self, origin: pd.Timestamp) -> NFGrowthMember:
+        refit = self.refit_for(origin)
+        if refit is None:
             return self.base
-        return dataclasses.replace(self.base, estimator=self.models[max(dates)])
+        return dataclasses.replace(self.base, estimator=self.models[refit])
+
+    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
+        forecast = self.model_for(history.origin).forecast(history, horizons, levels, seed)
+        return dataclasses.replace(forecast, forecaster=self.name)
 
     def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
                        levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
-        """Weekly case quantiles ``(B, H, Q)``, each cell through its origin's model."""
+        """Weekly case quantiles ``(B, H, Q)``: the cells of each refit in one batch through
+        that refit's model."""
         out = np.empty((len(histories), len(horizons), len(levels)))
-        chosen = [self.model_for(h.origin) for h in histories]
-        for member in {id(m): m for m in chosen}.values():
-            index = [i for i, m in enumerate(chosen) if m is member]
+        refits = [self.refit_for(h.origin) for h in histories]
+        for refit in set(refits):
+            index = [i for i, r in enumerate(refits) if r == refit]
+            member = self.base if refit is None else self.model_for(refit)
             out[index] = member.forecast_batch([histories[i] for i in index], horizons, levels,
                                                seed)
         return out

@@ -112,7 +112,7 @@ def _logit(p: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def reported_share(week_cases: NDArray[np.float64], susceptible: NDArray[np.float64],
-                   population: int) -> NDArray[np.float64]:
+                   population: int | NDArray[np.int64]) -> NDArray[np.float64]:
     """f = (C + ½) / (N S): the share of the susceptibles reported in a week."""
     return (week_cases + HALF_CASE) / (population * susceptible)
 

@@ -40,6 +40,33 @@ class BatchMember(Protocol):
                        levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]: ...
 
 
+@runtime_checkable
+class BatchTargetsMember(Protocol):
+    """A member that forecasts each target on its own series, for many histories at once:
+    ``{target: (B, H, Q)}``, history b with ``seeds[b]``."""
+
+    @property
+    def name(self) -> str: ...
+
+    def forecast_targets_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                               levels: NDArray[np.float64], seeds: Sequence[int]
+                               ) -> dict[str, NDArray[np.float64]]: ...
+
+
+@runtime_checkable
+class PoolingMember(Protocol):
+    """A member that learns across the places of a panel: from weekly counts ``(C, W)`` and the
+    week index of each origin ``(O,)``, weekly case quantiles ``(C, O, H, Q)``; the forecast at
+    origin week j may use any place's counts up to week j, nothing later."""
+
+    @property
+    def name(self) -> str: ...
+
+    def forecast_panel(self, weekly_cases: NDArray[np.float64], origin_index: NDArray[np.intp],
+                       horizons: tuple[int, ...], levels: NDArray[np.float64]
+                       ) -> NDArray[np.float64]: ...
+
+
 @dataclass(frozen=True, eq=False)
 class Panel:
     """Places' daily histories on one calendar (same first and last date)."""
@@ -100,27 +127,62 @@ def cell_histories(panel: Panel, origins: Sequence[pd.Timestamp]) -> list[EpiHis
     return [h.up_to(o) for h in panel.histories.values() for o in origins]
 
 
-def member_forecast_arrays(member: Member | BatchMember, cells: Sequence[EpiHistory],
-                           shape: tuple[int, int], horizons: tuple[int, ...],
+def member_forecast_arrays(member: Member | BatchMember | BatchTargetsMember | PoolingMember,
+                           panel: Panel,
+                           origins: Sequence[pd.Timestamp], horizons: tuple[int, ...],
                            levels: NDArray[np.float64], seed: int,
                            progress: ProgressReporter | None = None
                            ) -> dict[str, NDArray[np.float64]]:
-    """A member's quantiles ``{target: (C, O, H, Q)}`` for every cell (place-major ``cells``).
+    """A member's quantiles ``{target: (C, O, H, Q)}`` at every cell of the panel.
 
-    Batch members forecast weekly cases (I = cases / N); other members are called per cell and
-    give both targets (the hub baseline forecasts I on its own series)."""
+    Pooling and batch members forecast weekly cases (I = cases / N); batch-targets members (the
+    hub baseline, which forecasts I on its own series) and the others, called per cell on
+    ``history.up_to(origin)``, give both targets."""
     progress = progress or SilentProgress()
-    n_c, n_o = shape
-    if isinstance(member, BatchMember):
-        cases = member.forecast_batch(cells, horizons, levels, seed)
+    n_c, n_o = len(panel.places), len(origins)
+    population = panel.populations[:, None, None, None]
+    if isinstance(member, PoolingMember):
+        weekly, index = weekly_grid(panel, origins)
+        cases = member.forecast_panel(weekly, index, horizons, levels)
+        progress.advance(n_c * n_o, member=member.name)
+        return {"cases": cases, "I": cases / population}
+    cells = cell_histories(panel, origins)
+    if isinstance(member, BatchTargetsMember):
+        seeds = [origin_seed(seed, h.origin) for h in cells]
+        values = member.forecast_targets_batch(cells, horizons, levels, seeds)
         progress.advance(len(cells), member=member.name)
-        population = np.array([h.population for h in cells], dtype=np.float64)
-        values = {"cases": cases, "I": cases / population[:, None, None]}
-    else:
-        forecasts = []
-        for history in cells:
-            forecasts.append(member.forecast(history, horizons, levels,
-                                             origin_seed(seed, history.origin)))
-            progress.advance(1, member=member.name)
-        values = {t: np.stack([f.values[t] for f in forecasts]) for t in TARGETS}
-    return {t: v.reshape(n_c, n_o, len(horizons), len(levels)) for t, v in values.items()}
+        return {t: values[t].reshape(n_c, n_o, len(horizons), len(levels)) for t in TARGETS}
+    if isinstance(member, BatchMember):
+        cases = member.forecast_batch(cells, horizons, levels, seed).reshape(
+            n_c, n_o, len(horizons), len(levels))
+        progress.advance(len(cells), member=member.name)
+        return {"cases": cases, "I": cases / population}
+    forecasts = []
+    for history in cells:
+        forecasts.append(member.forecast(history, horizons, levels,
+                                         origin_seed(seed, history.origin)))
+        progress.advance(1, member=member.name)
+    return {t: np.stack([f.values[t] for f in forecasts]).reshape(
+        n_c, n_o, len(horizons), len(levels)) for t in TARGETS}
+
+
+def weekly_grid(panel: Panel, origins: Sequence[pd.Timestamp]
+                ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Weekly case counts ``(C, W)`` of the consecutive 7-day weeks ending on the origins'
+    weekday, from the first whole week of the panel to the last one, and the week index of each
+    origin ``(O,)``."""
+    dates = panel.dates
+    weekday = origins[0].weekday()
+    last_end = dates[-1] - pd.Timedelta(days=(dates[-1].weekday() - weekday) % 7)
+    first_end = dates[0] + pd.Timedelta(days=DAYS_PER_WEEK - 1)
+    first_end = first_end + pd.Timedelta(days=(weekday - first_end.weekday()) % 7)
+    n_weeks = (last_end - first_end).days // DAYS_PER_WEEK + 1
+    ends = (first_end - dates[0]).days + DAYS_PER_WEEK * np.arange(n_weeks)    # day indices
+    cases = np.stack([h.cases for h in panel.histories.values()]).astype(np.float64)
+    cumulative = np.concatenate([np.zeros((cases.shape[0], 1)), np.cumsum(cases, axis=1)], axis=1)
+    weekly = cumulative[:, ends + 1] - cumulative[:, ends + 1 - DAYS_PER_WEEK]
+    index = np.array([(o - first_end).days // DAYS_PER_WEEK for o in origins], dtype=np.intp)
+    if any(o.weekday() != weekday for o in origins) or (index < 0).any() or \
+            (index >= n_weeks).any():
+        raise TargetError("origins must share one weekday and lie within the panel's weeks")
+    return weekly, index

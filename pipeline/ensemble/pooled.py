@@ -1,32 +1,30 @@
-"""The published forecast of a panel: weights and recalibration learnt from every place at once.
+"""The published forecast of a panel: members averaged, with weights and recalibration that may
+be learnt from every place at once.
 
 At origin t, horizon h, the scores known are those of forecasts from origins o with
-o + 7h ≤ t (their target week has ended), in **every** place of the panel. Pooling them gives
-dozens of scored forecasts per week instead of one, so the combination can follow the regime
-the whole region is in (waves move together across California's counties), narrow as well as
-widen, and drop a member that does not help.
+o + 7h ≤ t (their target week has ended), in **every** place of the panel.
 
-1. **Weights** per horizon (``PooledConfig.weights``):
+**Published** (``PooledConfig()``): the equal-weight average of the members' log(1 + quantile)
+— the geometric mean of their quantiles — with no recalibration. On the cross-county backtest
+(``bench/results/backtest_counties.json``, ``variants``) every choice below that learns from
+recent scores made the forecast worse: pooled stacking and inverse-WIS weights chased the
+current regime, and every recalibration (bias and scale, per growth regime, scale only, widen
+only) taught in one phase of a wave failed in the next. They are kept as the variants the
+benchmark reports beside the published forecast:
 
-   - ``"stacking"`` (default): the weights on a simplex grid (step ``stacking_step``) whose
-     quantile average had the lowest loss over the last ``window_origins`` scored origins; the
-     loss is the mean over places of log(Σ WIS / Σ WIS of the hub baseline) — the geometric
-     mean of relative WIS that the backtest reports, so the combination aims at the figure it is
-     judged by. A member whose forecasts do not help gets weight 0. Shrunk towards equal weights
-     with n scored origins: λ = n / (n + ``shrinkage_origins``);
-   - ``"inverse-wis"``: weights ∝ 1 / (mean over places of each member's relative WIS), shrunk;
-   - ``"equal"``.
-
-2. **Recalibration** (``PooledConfig.calibration``) of the average from the PITs of its past
-   forecasts in every place over the last ``calibration_window_origins`` scored origins, by
-   horizon: Φ⁻¹(τ') = μ + σ Φ⁻¹(τ), μ and σ the mean and standard deviation of the PITs'
-   probits (a bias and a dispersion correction that may narrow as well as widen; without the
-   bias, σ is their root mean square);
-   ``"bias-scale-regime"`` (default) fits μ, σ separately for each **regime** of the forecast's
-   place at its origin — the case series falling, flat or rising over the last week
-   (:func:`growth_regimes`) — shrunk towards the all-regime fit by n_r / (n_r + n0); the other
-   choices are ``"bias-scale"`` (one fit for all regimes), ``"widen-only"`` (σ ≥ 1, no bias: the
-   SF-only design) and ``"none"``.
+1. **Weights** per horizon (``PooledConfig.weights``): ``"equal"``; ``"stacking"`` — the weights
+   on a simplex grid (step ``stacking_step``) whose average had the lowest mean over places of
+   log(Σ WIS / Σ WIS of the hub baseline) over the last ``window_origins`` scored origins, shrunk
+   towards equal weights by n / (n + ``shrinkage_origins``); ``"inverse-wis"`` — ∝ 1 / (each
+   member's geometric-mean relative WIS), shrunk the same way.
+2. **Average** (``scale``): ``"log"`` (geometric mean of quantiles) or ``"linear"`` (Vincentization).
+3. **Recalibration** (``calibration``) from the PITs of the average's past forecasts in every
+   place over the last ``calibration_window_origins`` scored origins, by horizon:
+   Φ⁻¹(τ') = μ + σ Φ⁻¹(τ), μ and σ the mean and standard deviation of the PITs' probits;
+   ``"bias-scale-regime"`` fits μ, σ separately per **regime** of the forecast's place at its
+   origin (falling, flat or rising over the last week, :func:`growth_regimes`), shrunk towards
+   the all-regime fit; ``"scale-regime"``/``"scale"`` without the bias; ``"widen-only"``
+   (σ ≥ 1, no bias: the SF-only design of before); ``"none"`` (published).
 
 Everything is computed on weekly cases; I = cases / N.
 """
@@ -42,7 +40,7 @@ from numpy.typing import NDArray
 from scipy.special import ndtr, ndtri
 
 from pipeline.ensemble.calibration import pit_from_quantiles, quantiles_at
-from pipeline.ensemble.combine import EnsembleError
+from pipeline.ensemble.combine import AverageScale, EnsembleError, vincentize
 from pipeline.evaluation.scoring import weighted_interval_score
 
 WeightMethod = Literal["stacking", "inverse-wis", "equal"]
@@ -59,11 +57,12 @@ _EPS_WIS = 1e-12
 class PooledConfig:
     """The pooled combiner's settings (module docstring)."""
 
-    weights: WeightMethod = "stacking"
+    weights: WeightMethod = "equal"
+    scale: AverageScale = "log"
     window_origins: int = 12
     stacking_step: float = 0.05
     shrinkage_origins: float = 2.0
-    calibration: CalibrationMethod = "bias-scale-regime"
+    calibration: CalibrationMethod = "none"
     calibration_window_origins: int = 8
     shrinkage_pits: float = 50.0
     min_level: float = 1e-4
@@ -72,6 +71,8 @@ class PooledConfig:
         if self.weights not in ("stacking", "inverse-wis", "equal"):
             raise EnsembleError(f"PooledConfig.weights={self.weights!r}: use stacking, "
                                 "inverse-wis or equal")
+        if self.scale not in ("log", "linear"):
+            raise EnsembleError(f"PooledConfig.scale={self.scale!r}: use log or linear")
         if self.calibration not in CALIBRATION_METHODS:
             raise EnsembleError(f"PooledConfig.calibration={self.calibration!r}; use one of "
                                 f"{CALIBRATION_METHODS}")
@@ -139,7 +140,7 @@ def fit_weights(past_values: NDArray[np.float64], past_truth: NDArray[np.float64
         skill = 1.0 / np.maximum(loss, 1e-12)
         return lam * skill / skill.sum() + (1.0 - lam) * equal
     grid = simplex_grid(m, config.stacking_step)                           # (K, M)
-    combined = np.tensordot(grid, past_values, axes=1)                     # (K, C, n, Q)
+    combined = np.stack([vincentize(past_values, w, config.scale) for w in grid])  # (K, C, n, Q)
     wis = _wis(levels, combined, np.broadcast_to(past_truth, combined.shape[:-1]))
     loss = _log_relative_wis_by_place(wis, past_baseline_wis)              # (K,)
     return lam * grid[int(np.argmin(loss))] + (1.0 - lam) * equal
@@ -217,7 +218,7 @@ def combine_panel(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[
             n_scored = max(0, last + 1 - first)
             weights[j, k] = fit_weights(values[:, :, past, k], truth[:, past, k],
                                         baseline_wis[:, past, k], levels, n_scored, config)
-            uncal[:, j, k] = np.tensordot(weights[j, k], values[:, :, j, k], axes=1)
+            uncal[:, j, k] = vincentize(values[:, :, j, k], weights[j, k], config.scale)
             cal_past = slice(max(0, last - config.calibration_window_origins + 1), last + 1)
             calibration[j, k] = fit_calibration(pits[:, cal_past, k].ravel(),
                                                 regimes[:, cal_past].ravel(), config)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
 
+from pipeline.ensemble.nf_finetune import FineTuneConfig
 from pipeline.ensemble.nf_member import GrowthModelConfig
 from pipeline.ensemble.weekly import WeeklyConfig
 from pipeline.errors import ConfigError
@@ -234,6 +235,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
         smc=SMCSettings(particles=200, days=28),
         weekly=WeeklyConfig(growth=GrowthModelConfig(n_trajectories=120, iterations=30,
                                                      batch_size=256, prior=WavePrior(days=140)),
+                            finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),
                             n_paths=100),
         data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,
                               task_retry_delay_s=0.0)),

@@ -16,13 +16,16 @@ from pipeline.data.datasf import ClientConfig
 from pipeline.data.payloads import read_csv_bytes
 from pipeline.data.series import SFDataConfig, SFSeries, load_sf_series
 from pipeline.data.sir_transform import SIRSeries, to_sir
-from pipeline.ensemble.targets import EpiHistory, history_from_frames
+from pipeline.data.cdph_source import load_cdph_vintage
+from pipeline.ensemble.targets import EpiHistory, history_from_county, history_from_frames
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
 from pipeline.forecast.config import DataSourceConfig, DataSourceKind
 from pipeline.forecast.results import SIRArrays
 from pipeline.names import COMPARTMENTS
 
 log = logging.getLogger(__name__)
+SF_COUNTY = "San Francisco"
+REFERENCE_MIN_POPULATION = 100_000
 
 
 def import_exports(paths: Sequence[str], *, if_empty: bool = False) -> list[ImportSummary]:
@@ -107,6 +110,25 @@ def sf_history(series: SFSeries, sir: SIRSeries) -> EpiHistory:
     multiplier = sir.counts["multiplier"].to_numpy(dtype=np.float64)
     cases = np.rint(raw * multiplier).astype(np.int64)
     return history_from_frames(sir.frame, cases, int(sir.provenance.conversion.population))
+
+
+def load_reference_histories(source: DataSourceConfig,
+                             min_population: int = REFERENCE_MIN_POPULATION,
+                             exclude: Sequence[str] = (SF_COUNTY,)) -> tuple[EpiHistory, ...]:
+    """California's counties with at least ``min_population`` people (San Francisco excluded:
+    its series comes from DataSF) from the latest cached CDPH vintage, without its last
+    ``source.trailing_days`` days: the pool that the published forecast's growth-qr and nf-real
+    members learn from. Empty, with a warning, when the cache holds no CDPH data (the members
+    then learn from the forecast's own series alone)."""
+    try:
+        vintage = load_cdph_vintage(offline=True)
+    except OfflineError as exc:
+        log.warning("no CDPH county data in the cache (%s): the pooled members learn from the "
+                    "San Francisco series alone; `flowcast data import` the CDPH files", exc)
+        return ()
+    last = vintage.as_of - pd.Timedelta(days=source.trailing_days)
+    return tuple(history_from_county(vintage.county(c)).up_to(last)
+                 for c in vintage.counties_with_population(min_population) if c not in exclude)
 
 
 def load_sf_history(source: DataSourceConfig) -> EpiHistory:

@@ -30,7 +30,7 @@ from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
-from pipeline.forecast.sources import sf_history
+from pipeline.forecast.sources import load_reference_histories, sf_history
 from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, SIRArrays,
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
@@ -210,11 +210,12 @@ def seeded_smc(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) ->
 
 def weekly_forecast(series: SFSeries, sir: SIRSeries, config: ForecastConfig,
                     progress: ProgressReporter | None = None) -> WeeklyForecast:
-    """The published forecast (ensemble of the flow member and AutoETS, recalibrated) at the
-    latest Saturday, and the same method's real-time forecasts at every earlier Saturday
-    (:mod:`pipeline.ensemble.weekly`). The flow member comes from the model store."""
+    """The published forecast at the latest Saturday and the same method's real-time forecasts
+    at every earlier Saturday (:mod:`pipeline.ensemble.weekly`), with California's counties
+    from the CDPH cache as the pooled members' reference places. The flows come from the model
+    store."""
     return forecast_weekly(sf_history(series, sir), config.weekly_config(), default_store_root(),
-                           progress)
+                           load_reference_histories(config.data), progress)
 
 
 def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:

@@ -1,0 +1,154 @@
+"""Cross-county real-time backtest → bench/results/backtest_counties.json.
+
+Every California county with at least 100,000 people in the latest shared CDPH vintage
+(``../shared/data/cdph``), at every Saturday origin with four weeks of truth (from eight weeks
+into the data; the vintage's last 14 days, still filling in, are cut). Each county × origin sees
+its own county's data up to the origin, and the pooled members (growth-qr, nf-real) every
+county's data up to the origin, nothing later (:mod:`pipeline.ensemble.county_backtest`).
+
+Per target (weekly cases, I) × forecaster: the geometric mean over counties of each county's
+relative WIS against the COVID-19 Forecast Hub baseline, per horizon and overall; the share of
+counties beating the baseline; 50 %/90 % coverage; PIT histogram; per-county ratios. Beside the
+published forecast: every member alone, AutoETS (reference), and the design variants (other
+combiners, member subsets), on the same cells; the published forecast by year of origin.
+
+    python -m bench.backtest_counties                 # latest shared vintage
+    python -m bench.backtest_counties --vintage PATH  # another covid19cases_test.csv
+
+``seconds.members`` trains or loads the members' models (the flow, nf-real's refits: cached in
+the model store); ``seconds.backtest`` forecasts and combines every cell with them.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SHARED_CDPH = Path(__file__).resolve().parents[2] / "shared" / "data" / "cdph"
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--vintage", default=None, help="a CDPH covid19cases_test.csv (default: the "
+                   "latest under ../shared/data/cdph)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="output JSON path")
+    return p.parse_args(argv)
+
+
+def design_variants() -> tuple[Any, ...]:
+    """The alternatives scored beside the published combiner (docs/forecasting.md)."""
+    from pipeline.ensemble.county_backtest import Variant
+    from pipeline.ensemble.pooled import PooledConfig
+
+    long = 1_000                       # every past scored origin
+    return (
+        Variant("v-linear-average", PooledConfig(scale="linear")),
+        Variant("v-stacking-12-origins", PooledConfig(weights="stacking", stacking_step=0.1)),
+        Variant("v-inverse-wis-all-origins", PooledConfig(weights="inverse-wis",
+                                                          window_origins=long)),
+        Variant("v-recal-widen-only", PooledConfig(calibration="widen-only",
+                                                   calibration_window_origins=52)),
+        Variant("v-recal-scale-all-origins", PooledConfig(calibration="scale",
+                                                          calibration_window_origins=long)),
+        Variant("v-recal-bias-scale-regime", PooledConfig(calibration="bias-scale-regime")),
+        Variant("v-without-hub-baseline", members=("growth-qr", "nf-growth", "nf-real")),
+        Variant("v-without-nf-real", members=("hub-baseline", "growth-qr", "nf-growth")),
+        Variant("v-without-growth-qr", members=("hub-baseline", "nf-growth", "nf-real")),
+        Variant("v-without-nf-growth", members=("hub-baseline", "growth-qr", "nf-real")),
+    )
+
+
+def by_year(result: Any, forecasters: list[str]) -> dict[str, Any]:
+    """Geometric-mean relative WIS (all horizons, cases) of ``forecasters`` by year of origin."""
+    import numpy as np
+
+    from pipeline.ensemble.county_backtest import PanelBacktestResult, summarize_panel
+
+    assert isinstance(result, PanelBacktestResult)
+    years = sorted({o.year for o in result.origins})
+    out: dict[str, Any] = {}
+    for year in years:
+        keep = np.array([o.year == year for o in result.origins])
+        part = PanelBacktestResult(
+            result.places, tuple(o for o, k in zip(result.origins, keep) if k), result.horizons,
+            result.levels, result.populations, result.members,
+            {t: {n: v[:, keep] for n, v in f.items()} for t, f in result.forecasts.items()},
+            {t: v[:, keep] for t, v in result.truth.items()}, result.weights[keep],
+            result.seconds, result.config)
+        summary = summarize_panel(part)["by_target"]["cases"]
+        out[str(year)] = {"n_origins": int(keep.sum())} | {
+            n: summary[n]["gmean_relative_wis"] for n in forecasters}
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = _parse(argv)
+    import dataclasses
+
+    from pipeline.data.cdph import find_vintage_files, read_cdph_csv, read_vintages
+    from pipeline.ensemble.autoets import AutoETSMember
+    from pipeline.ensemble.county_backtest import (CountyBacktestConfig, county_panel,
+                                                   run_panel_backtest, select_counties,
+                                                   summarize_panel)
+    from pipeline.ensemble.panel import weekly_origins
+    from pipeline.ensemble.weekly import WeeklyConfig, build_panel_members
+    from pipeline.io import atomic_write_json
+    from pipeline.progress import rich_progress
+    from pipeline.training.model_store import default_store_root
+
+    vintage = (read_cdph_csv(args.vintage) if args.vintage
+               else read_vintages(find_vintage_files(SHARED_CDPH))[-1])
+    config = CountyBacktestConfig(seed=args.seed, variants=design_variants())
+    counties = select_counties(vintage, config)
+    panel = county_panel(vintage, counties, config.trailing_days)
+    origins = weekly_origins(panel.dates, min_history_weeks=config.min_history_weeks,
+                             horizon_weeks=max(config.horizons))
+    weekly = dataclasses.replace(WeeklyConfig(), seed=args.seed)
+
+    started = time.perf_counter()
+    with rich_progress("members' models", 1) as progress:
+        chosen = build_panel_members(list(panel.histories.values()), origins, weekly,
+                                     default_store_root(), progress)
+    t_members = time.perf_counter() - started
+
+    started = time.perf_counter()
+    n_cells = len(counties) * len(origins)
+    with rich_progress("cross-county backtest", n_cells * (len(chosen.members) + 1)) as progress:
+        result = run_panel_backtest(panel, chosen.members, config, (AutoETSMember(),), progress)
+    t_backtest = time.perf_counter() - started
+    summary = summarize_panel(result)
+    reference_forecasters = ["published", *result.members, "autoets"]
+    out = {
+        **summary,
+        "by_year": by_year(result, reference_forecasters),
+        "vintage": {"as_of": str(vintage.as_of.date()), "source": vintage.source},
+        "seconds": {"members": round(t_members, 2), "backtest": round(t_backtest, 2),
+                    "by_forecaster": summary["seconds"]},
+        "flow_model": {"key": chosen.model_key, "reused": chosen.reused},
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
+        "python": sys.version.split()[0],
+        "command": "python -m bench.backtest_counties " + " ".join(
+            argv if argv is not None else sys.argv[1:]),
+    }
+    target = Path(args.out) if args.out else RESULTS / "backtest_counties.json"
+    atomic_write_json(target, out)
+    for target_name, by_forecaster in summary["by_target"].items():
+        for name, s in by_forecaster.items():
+            g = s["gmean_relative_wis"]
+            print(f"{target_name:5s} {name:28s} " + " ".join(
+                f"{k}={g[k]:.3f}" for k in ("h1", "h2", "h3", "h4", "all"))
+                + f"  beat {s['share_beating_baseline']['all']:.2f}"
+                + f"  cov {s['coverage50']:.2f}/{s['coverage90']:.2f}")
+    print(f"{len(counties)} counties × {len(origins)} origins; members {t_members:.1f} s, "
+          f"backtest {t_backtest:.1f} s → {target}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
