@@ -94,8 +94,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import dataclasses
 
     from pipeline import forecast as fc
-    from pipeline.forecast.sources import (import_exports, load_reference_histories,
-                                           load_sf_history)
+    from pipeline.forecast.sources import (SF_COUNTY, import_exports,
+                                           load_reference_histories, load_sf_history)
     from pipeline.data.cdph import find_vintage_files
     from pipeline.data.cdph_source import import_cdph_exports
     from pipeline.training.model_store import default_store_root
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         origins = backtest_origins(history, config)
         config = dataclasses.replace(config, first_origin=origins[-6].date())
     t0 = time.perf_counter()
-    chosen = build_weekly_members(weekly, default_store_root(), reference, history)
+    chosen = build_weekly_members(weekly, default_store_root(), reference, history, SF_COUNTY)
     members, model_key, reused = chosen.members, chosen.model_key, chosen.reused
     t_members = time.perf_counter() - t0
     result = run_realtime_backtest(history, members, config)
@@ -132,7 +132,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "data": {"first_day": str(history.dates[0].date()), "last_day": str(history.origin.date()),
                  "population": history.population,
                  "reference_places": len(reference),
-                 "reference_last_day": (str(reference[0].origin.date()) if reference else None)},
+                 "reference_last_day": (str(next(iter(reference.values())).origin.date())
+                                        if reference else None)},
         "quick": args.quick,
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
         "python": sys.version.split()[0],

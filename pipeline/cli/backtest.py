@@ -74,8 +74,8 @@ def backtest_command(
         _county_backtest(county, out, nf, seed)
         return
     from pipeline import forecast as fc
-    from pipeline.forecast.sources import (import_exports, load_reference_histories,
-                                           load_sf_history)
+    from pipeline.forecast.sources import (SF_COUNTY, import_exports,
+                                           load_reference_histories, load_sf_history)
     from pipeline.training.model_store import default_store_root
     from pipeline.ensemble.backtest import (backtest_origins,
                                                run_realtime_backtest, summarize, write_backtest)
@@ -94,7 +94,7 @@ def backtest_command(
         n_origins = len(backtest_origins(history, config))
         members = build_weekly_members(weekly, default_store_root(),
                                        load_reference_histories(fc.DataSourceConfig()),
-                                       history).members
+                                       history, SF_COUNTY).members
         with rich_progress("backtest", n_origins) as progress:
             result = run_realtime_backtest(history, members, config, progress)
         written = write_backtest(result, out)
@@ -121,7 +121,8 @@ def _county_backtest(county: str, out: Path, nf: bool, seed: int) -> None:
                                                    select_counties, summarize_panel,
                                                    write_panel_backtest)
     from pipeline.ensemble.panel import weekly_origins
-    from pipeline.ensemble.weekly import WeeklyConfig, build_panel_members
+    from pipeline.ensemble.weekly import build_panel_members
+    from pipeline.forecast import resolve_config
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
@@ -134,7 +135,8 @@ def _county_backtest(county: str, out: Path, nf: bool, seed: int) -> None:
         panel = county_panel(vintage, sorted({*pool, *chosen}), config.trailing_days)
         origins = weekly_origins(panel.dates, min_history_weeks=config.min_history_weeks,
                                  horizon_weeks=max(config.horizons))
-        weekly = WeeklyConfig(include_nf=nf, seed=seed)
+        weekly = dataclasses.replace(resolve_config("default", seed=seed).weekly_config(),
+                                     include_nf=nf)
         with rich_progress("members' models", 1) as progress:
             members = build_panel_members(list(panel.histories.values()), origins, weekly,
                                           default_store_root(), progress).members

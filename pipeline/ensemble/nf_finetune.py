@@ -95,9 +95,17 @@ def real_windows(histories: Sequence[EpiHistory], cutoff: pd.Timestamp,
     return np.concatenate(contexts), np.concatenate(targets), np.concatenate(places)
 
 
+# Refits fall on a fixed calendar (every k-th week from this Saturday), not on every k-th origin
+# of a run: runs that start on different days, the weekly forecast and the cross-county
+# backtest, refit on the same dates with the same windows, so they share the stored models.
+REFIT_EPOCH = pd.Timestamp("2020-01-04")
+
+
 def refit_dates(origins: Sequence[pd.Timestamp], every_weeks: int) -> list[pd.Timestamp]:
-    """Every ``every_weeks``-th origin, from the first: the days the member is refitted."""
-    return list(origins[::every_weeks])
+    """The origins that fall on the refit calendar (every ``every_weeks`` weeks from
+    :data:`REFIT_EPOCH`): the days the member is refitted."""
+    return [o for o in origins
+            if (o - REFIT_EPOCH).days % (7 * every_weeks) == 0]
 
 
 def _dataset(context: NDArray[np.float32], target: NDArray[np.float32],

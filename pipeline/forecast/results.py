@@ -5,9 +5,11 @@ the Prefect flow read these types and nothing else.
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -94,6 +96,27 @@ Rollouts = dict[tuple[Direction, int], RolloutResult]
 
 
 @dataclass(frozen=True)
+class CountySkill:
+    """The published method's skill across California's counties (step ``county-skill``):
+    ``relative_wis[target][forecaster]``, the geometric mean over counties of relative WIS
+    (``h1``…``h4``, ``all``); ``share_beating_baseline[target]`` and ``coverage[target]`` (50 %,
+    90 %) of the published forecast; ``reused``: read from the kept summary."""
+
+    vintage: str
+    n_counties: int
+    n_origins: int
+    first_origin: str
+    last_origin: str
+    relative_wis: dict[str, dict[str, dict[str, float | None]]]
+    share_beating_baseline: dict[str, float]
+    coverage: dict[str, tuple[float, float]]
+    reused: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
 class ForecastResults:
     config: ForecastConfig
     sir_frame: pd.DataFrame
@@ -111,6 +134,7 @@ class ForecastResults:
     data_as_of: str | None = None           # DataSF's own "data as of" stamp, when it gave one
     # seconds per step, in the order run (the e2e benchmark reads them)
     timings: dict[str, float] = field(default_factory=dict, compare=False)
+    county_skill: CountySkill | None = None  # the method's skill across California's counties
 
     @property
     def reference_date(self) -> str:

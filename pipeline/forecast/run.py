@@ -17,6 +17,7 @@ import pandas as pd
 import requests
 
 from pipeline.forecast.config import ForecastConfig
+from pipeline.forecast.county_skill import county_skill
 from pipeline.forecast.joint_models import (cached_variant_models, simulate_training_data,
                                             train_or_reuse_models)
 from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels, TrainingData
@@ -29,7 +30,8 @@ from pipeline.progress import ProgressReporter, SilentProgress
 
 Step = Literal["fetch-datasf", "convert-to-sir", "simulate-training-data",
                "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
-               "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast"]
+               "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast",
+               "county-skill"]
 P = ParamSpec("P")
 R = TypeVar("R")
 # A step's progress reporter, by step (training and the weekly forecast report progress).
@@ -91,11 +93,12 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
                  progress=progress("weekly-forecast"))
     run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
                     weekly.origin.date(), published_skill(weekly))
+    counties = run("county-skill", county_skill, config, progress=progress("county-skill"))
     return ForecastResults(
         config=config, sir_frame=sir.frame, vintage=series.vintage.describe(), stale=stale,
         stale_notes=tuple(notes) if stale else (), models=models, latest=latest,
         rollouts=rolled, future=future, parameters=parameters, nll=nll, smc=smc, weekly=weekly,
-        data_as_of=series.vintage.data_as_of, timings=dict(run.timings))
+        data_as_of=series.vintage.data_as_of, timings=dict(run.timings), county_skill=counties)
 
 
 def nll_with_cached_variants(models: TrainedModels, data: TrainingData, sir: SIRArrays,

@@ -113,22 +113,22 @@ def sf_history(series: SFSeries, sir: SIRSeries) -> EpiHistory:
 
 
 def load_reference_histories(source: DataSourceConfig,
-                             min_population: int = REFERENCE_MIN_POPULATION,
-                             exclude: Sequence[str] = (SF_COUNTY,)) -> tuple[EpiHistory, ...]:
-    """California's counties with at least ``min_population`` people (San Francisco excluded:
-    its series comes from DataSF) from the latest cached CDPH vintage, without its last
-    ``source.trailing_days`` days: the pool that the published forecast's growth-qr and nf-real
-    members learn from. Empty, with a warning, when the cache holds no CDPH data (the members
-    then learn from the forecast's own series alone)."""
+                             min_population: int = REFERENCE_MIN_POPULATION
+                             ) -> dict[str, EpiHistory]:
+    """California's counties with at least ``min_population`` people, by name, from the latest
+    cached CDPH vintage without its last ``source.trailing_days`` days (as the cross-county
+    backtest cuts them): the places the published forecast's pooled members learn from. Empty,
+    with a warning, when the cache holds no CDPH data (the members then learn from the
+    forecast's own series alone)."""
     try:
         vintage = load_cdph_vintage(offline=True)
     except OfflineError as exc:
         log.warning("no CDPH county data in the cache (%s): the pooled members learn from the "
                     "San Francisco series alone; `flowcast data import` the CDPH files", exc)
-        return ()
+        return {}
     last = vintage.as_of - pd.Timedelta(days=source.trailing_days)
-    return tuple(history_from_county(vintage.county(c)).up_to(last)
-                 for c in vintage.counties_with_population(min_population) if c not in exclude)
+    return {c: history_from_county(vintage.county(c)).up_to(last)
+            for c in vintage.counties_with_population(min_population)}
 
 
 def load_sf_history(source: DataSourceConfig) -> EpiHistory:

@@ -30,7 +30,7 @@ from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
-from pipeline.forecast.sources import load_reference_histories, sf_history
+from pipeline.forecast.sources import SF_COUNTY, load_reference_histories, sf_history
 from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, SIRArrays,
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
@@ -215,7 +215,7 @@ def weekly_forecast(series: SFSeries, sir: SIRSeries, config: ForecastConfig,
     from the CDPH cache as the pooled members' reference places. The flows come from the model
     store."""
     return forecast_weekly(sf_history(series, sir), config.weekly_config(), default_store_root(),
-                           load_reference_histories(config.data), progress)
+                           load_reference_histories(config.data), SF_COUNTY, progress)
 
 
 def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:

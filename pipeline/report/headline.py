@@ -24,7 +24,7 @@ from torch import Tensor
 from pipeline.report.content import ReportError
 
 if TYPE_CHECKING:  # the report must not import torch-heavy modules at run time
-    from pipeline.forecast.results import ForecastResults
+    from pipeline.forecast.results import CountySkill, ForecastResults
     from pipeline.ensemble.weekly import WeeklyForecast
 
 PUBLISHED = "published"
@@ -333,16 +333,22 @@ def facts_frame(h: Headline) -> pd.DataFrame:
                         index=pd.Index(list(facts), name="growth"))
 
 
-def skill_frame(h: Headline) -> pd.DataFrame:
-    """The published forecast's backtest: relative WIS per horizon and overall, coverage."""
+def skill_frame(h: Headline, county: CountySkill | None = None) -> pd.DataFrame:
+    """The published forecast's backtest: relative WIS per horizon and overall, coverage; with
+    ``county``, a last row: the same method on weekly cases across California's counties
+    (geometric mean over counties)."""
     columns = [*(f"{f.horizon} wk" for f in h.horizons), "all", "50% cov.", "90% cov."]
-    rows = []
+    keys = [f"h{f.horizon}" for f in h.horizons] + ["all"]
+    rows, labels = [], []
     for s in h.skill:
-        rel = [s.relative_wis.get(f"h{f.horizon}") for f in h.horizons]
-        rows.append([*rel, s.relative_wis.get("all"), s.coverage50, s.coverage90])
+        rows.append([*(s.relative_wis.get(k) for k in keys), s.coverage50, s.coverage90])
+        labels.append(TARGET_LABELS.get(s.target, s.target))
+    if county is not None:
+        rel = county.relative_wis["cases"]["published"]
+        rows.append([*(rel.get(k) for k in keys), *county.coverage["cases"]])
+        labels.append(f"weekly cases, {county.n_counties} CA counties")
     frame = pd.DataFrame(rows, columns=columns, dtype=float,
-                         index=pd.Index([TARGET_LABELS.get(s.target, s.target) for s in h.skill],
-                                        name="target"))
+                         index=pd.Index(labels, name="target"))
     frame.columns = pd.MultiIndex.from_tuples(
         [("relative WIS vs hub baseline", c) for c in columns[:-2]]
         + [("coverage", c) for c in columns[-2:]])

@@ -37,14 +37,14 @@ from pipeline.io import sha256_bytes, sha256_file
 from pipeline.report import checks, figures
 from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
                                      SectionKey, TableItem, nll_table)
-from pipeline.report.headline import (PUBLISHED, Headline, as_numpy, compute_headline, facts_frame,
-                                      fmt_count, fmt_range, fmt_share, forecast_frame,
-                                      published_weekly, skill_frame)
+from pipeline.report.headline import (PUBLISHED, Headline, as_numpy, compute_headline,
+                                      facts_frame, fmt_count, fmt_range, fmt_share,
+                                      forecast_frame, published_weekly, skill_frame)
 from pipeline.report.render import ReportFiles, write_report
 from pipeline.names import COMPARTMENTS, DIRECTIONS
 
 if TYPE_CHECKING:
-    from pipeline.forecast.results import ForecastResults
+    from pipeline.forecast.results import CountySkill, ForecastResults
     from pipeline.ensemble.weekly import WeeklyForecast
     from pipeline.inference.smc import SMCResult
 
@@ -55,12 +55,13 @@ Q_COLUMNS = tuple(f"q{level:g}" for level in LEVELS)
 _VERSIONED = ("torch", "numpy", "pandas", "scipy", "nflows", "zuko", "pyro-ppl", "prefect",
               "matplotlib", "weasyprint", "statsforecast")
 HISTORY_WEEKS = 12          # weeks of observations before the forecast fan
-FORECASTERS = {  # the published forecast first, the reference last
-    PUBLISHED: "published (recalibrated ensemble)",
-    "ensemble-uncalibrated": "ensemble before recalibration",
-    "autoets": "AutoETS member",
+FORECASTERS = {  # the published forecast first, the references last
+    PUBLISHED: "published (log-scale ensemble)",
+    "growth-qr": "growth regression pooled over counties (growth-qr)",
     "nf-growth": "conditional-flow member (nf-growth)",
+    "nf-real": "flow fine-tuned on real counties (nf-real)",
     "hub-baseline": "hub baseline",
+    "autoets": "AutoETS (reference)",
 }
 TARGETS = {"cases": "weekly reported cases", "I": "I (share of the population)"}
 _SHORT_TARGETS = {"cases": "weekly cases", "I": "I (share)"}
@@ -88,23 +89,36 @@ def _label(name: str) -> str:
 
 # ----------------------------------------------------------------------------- page 1
 
-def headline_section(h: Headline) -> Section:
-    """Page 1: the forecast table, the key facts, the backtest's verdict on the intervals."""
+def headline_section(h: Headline, county: CountySkill | None = None) -> Section:
+    """Page 1: the forecast table, the key facts, the backtest's verdict on the intervals, and
+    the same method's skill across California's counties."""
     skill = {s.target: s for s in h.skill}
     cases = skill["cases"]
     return Section(key="headline", title=f"Forecast from {h.origin}: the next four weeks", items=(
         TableItem(forecast_frame(h), (
-            f"Published forecast (recalibrated ensemble) from Saturday {h.origin}: median and "
+            f"Published forecast (log-scale ensemble) from Saturday {h.origin}: median and "
             "50%/90% intervals of the cases reported in each week (Sunday–Saturday) and of I "
             f"at its end (I·N = cases reported in the last 7 days; N = {h.population:,}); the "
             "hub submission's quantiles."), css="headline"),
         TableItem(facts_frame(h), "", css="facts"),
-        TableItem(skill_frame(h), (
+        TableItem(skill_frame(h, county), (
             f"Track record: the same method forecast in real time at {cases.n_origins} earlier "
             f"Saturdays ({cases.first_origin} … {cases.last_origin}). Relative WIS = Σ WIS / "
             "Σ WIS of the COVID-19 Forecast Hub baseline (below 1: better); coverage: share of "
-            "observations inside the 50% and 90% intervals (nominal 0.50, 0.90)."),
+            "observations inside the 50% and 90% intervals (nominal 0.50, 0.90)."
+            + _county_caption(county)),
             decimals=2, css="skill")))
+
+
+def _county_caption(county: CountySkill | None) -> str:
+    if county is None:
+        return (" No CDPH county data in the cache, so no skill across California's counties "
+                "(`flowcast data import` the CDPH files).")
+    share = county.share_beating_baseline["cases"]
+    return (f" Last row: where the method was designed, every California county with at least "
+            f"100,000 people (CDPH vintage {county.vintage}, {county.n_origins} Saturdays "
+            f"{county.first_origin} … {county.last_origin}; geometric mean over counties of "
+            f"each county's relative WIS; {share:.0%} of the counties beat the baseline).")
 
 
 # ----------------------------------------------------------------------------- forecast
@@ -115,8 +129,7 @@ def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
     rows, index = [], []
     for target in TARGETS:
         fmt = fmt_share if target == "I" else fmt_count
-        for name in [n for n in FORECASTERS if n in forecasts] + \
-                [n for n in forecasts if n not in FORECASTERS]:
+        for name in _shown(weekly):
             f = forecasts[name]
             q = {lv: f.values[target][:, int(np.argmin(np.abs(f.levels - lv)))]
                  for lv in (0.05, 0.5, 0.95)}
@@ -141,8 +154,7 @@ def _weights_text(weekly: WeeklyForecast) -> str:
     for h, group in now.groupby("horizon"):
         shares = ", ".join(f"{m} {x:.2f}" for m, x in zip(group["member"], group["weight"]))
         parts.append(f"{h} wk: {shares}")
-    return ("Ensemble weights at this origin, from past scores only: " + "; ".join(parts)
-            + ".")
+    return "Weights at this origin: " + "; ".join(parts) + "."
 
 
 def forecast_section(results: ForecastResults, h: Headline) -> Section:
@@ -167,9 +179,10 @@ def forecast_section(results: ForecastResults, h: Headline) -> Section:
              "forecast fan"),
         TableItem(_member_frame(weekly), (
             "Every forecaster at this origin: median (90% interval). The published forecast "
-            "averages the members' quantiles with weights from their past scores and "
-            "recalibrates the result with the PIT of past forecasts (real time: only origins "
-            "whose truth was known on the day). " + _weights_text(weekly)), css="members")])
+            "is the equal-weight average of the members' log(1 + quantile), the geometric mean "
+            "of their quantiles, with no recalibration: the design that held across "
+            "California's counties (docs/forecasting.md). " + _weights_text(weekly)),
+            css="members")])
 
 
 # ----------------------------------------------------------------------------- backtest
@@ -177,8 +190,7 @@ def forecast_section(results: ForecastResults, h: Headline) -> Section:
 def _summary_tables(weekly: WeeklyForecast) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(relative WIS per target × horizon, coverage per target) — rows per forecaster."""
     by_target = weekly.summary()["by_target"]
-    names = [n for n in FORECASTERS if n in by_target["cases"]] + \
-        [n for n in by_target["cases"] if n not in FORECASTERS]
+    names = [n for n in _shown(weekly) if n in by_target["cases"]]
     horizons = weekly.backtest.config.horizons
     rel, cov = {}, {}
     for target, label in TARGETS.items():
@@ -196,6 +208,15 @@ def _summary_tables(weekly: WeeklyForecast) -> tuple[pd.DataFrame, pd.DataFrame]
         out.columns = pd.MultiIndex.from_tuples(list(d))
         return out.astype({c: float for c in d if c[1] != "scored"})
     return frame(rel), frame(cov)
+
+
+def _shown(weekly: WeeklyForecast) -> list[str]:
+    """The forecasters the report lists, known ones first; the ensemble before recalibration
+    only when there is a recalibration (otherwise it is the published forecast)."""
+    names = list(weekly.backtest.forecasts[weekly.origin])
+    recalibrated = weekly.backtest.config.calibration.method != "none"
+    return [n for n in [*FORECASTERS, *(n for n in names if n not in FORECASTERS)]
+            if n in names and (recalibrated or n != "ensemble-uncalibrated")]
 
 
 def _past_forecasts(weekly: WeeklyForecast, target: str, horizons: Sequence[int]
@@ -227,14 +248,15 @@ def backtest_section(results: ForecastResults) -> Section:
     span = f"{origins.nunique()} weekly origins ({origins.min().date()} … {origins.max().date()})"
     summary = weekly.summary()["by_target"]
     pit = {TARGETS[t]: {_label(n): summary[t][n]["pit_histogram"]["counts"]
-                        for n in (PUBLISHED, "ensemble-uncalibrated") if n in summary[t]}
+                        for n in (PUBLISHED, "ensemble-uncalibrated")
+                        if n in summary[t] and n in _shown(weekly)}
            for t in TARGETS}
     past = {TARGETS[t]: _past_forecasts(weekly, t, (1, 4)) for t in TARGETS}
     return Section.weekly(SectionKey.BACKTEST, [
         TableItem(rel, (
             f"Relative WIS against the COVID-19 Forecast Hub baseline per target and horizon, "
             f"over {span} forecast in real time: each forecast saw only the data up to its "
-            "origin, and the ensemble's weights and recalibration only scores known by then. "
+            "origin (the pooled members every county's data up to it, nothing later). "
             "Σ WIS(row) / Σ WIS(baseline) over the same forecasts; below 1 beats the baseline; "
             "bold: best in its column. Targets are never pooled."),
             decimals=2, highlight="col-min"),
@@ -248,9 +270,9 @@ def backtest_section(results: ForecastResults) -> Section:
              "and 50%/90% intervals at each target week (log scale), observed values in black.",
              "Past 1- and 4-week-ahead published forecasts with bands against observations"),
         _fig(figures.pit_figure(pit),
-             "PIT histograms of the published forecast and of the ensemble before "
-             "recalibration (all horizons): flat at 1 = calibrated; a U shape = intervals too "
-             "narrow, a hump = too wide, a slope = biased.",
+             "PIT histograms of the published forecast (all horizons; and of the ensemble "
+             "before recalibration, when there is one): flat at 1 = calibrated; a U shape = "
+             "intervals too narrow, a hump = too wide, a slope = biased.",
              "PIT histograms per target")], new_page=False)
 
 
@@ -512,7 +534,8 @@ def forecast_report_content(results: ForecastResults) -> ReportContent:
         title=f"San Francisco COVID-19 forecast from {headline.origin}",
         reference_date=headline.origin, data_vintage=vintage,
         sections=tuple(sections), provenance=_provenance(results), warnings=tuple(notes),
-        summary=headline.sentence(), headline=headline_section(headline))
+        summary=headline.sentence(),
+        headline=headline_section(headline, results.county_skill))
 
 
 def build_forecast_report(results: ForecastResults, out_dir: str | Path) -> list[str]:

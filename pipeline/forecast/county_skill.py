@@ -1,0 +1,95 @@
+"""Step ``county-skill``: the published method's skill across California's counties.
+
+The weekly report shows San Francisco's own track record (its real-time backtest) beside the
+same method's on every California county with at least 100,000 people, from the cached CDPH
+vintage (:mod:`pipeline.ensemble.county_backtest`, the design set of the published forecast).
+The summary is kept under ``<data dir>/county_skill/`` keyed by the vintage's contents and the
+weekly forecast's member settings: a weekly run recomputes it only when either changed (a new
+CDPH download, another model), and its models are the weekly run's own (shared through the
+model store). Without CDPH data in the cache there is no county skill, and the report says so.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import time
+from typing import Any
+
+import pandas as pd
+
+from pipeline.data.cache import data_dir
+from pipeline.data.cdph import CDPHVintage
+from pipeline.data.cdph_source import load_cdph_vintage
+from pipeline.ensemble.county_backtest import (CountyBacktestConfig, county_panel,
+                                               run_panel_backtest, select_counties,
+                                               summarize_panel)
+from pipeline.ensemble.panel import weekly_origins
+from pipeline.ensemble.weekly import build_panel_members
+from pipeline.errors import OfflineError
+from pipeline.forecast.config import ForecastConfig
+from pipeline.forecast.results import CountySkill
+from pipeline.io import atomic_write_json
+from pipeline.progress import ProgressReporter
+from pipeline.training.model_store import default_store_root
+
+log = logging.getLogger(__name__)
+FOLDER = "county_skill"
+SCORED = ("published", "hub-baseline", "growth-qr", "nf-growth", "nf-real")
+
+
+def skill_key(vintage: CDPHVintage, backtest: CountyBacktestConfig, config: ForecastConfig
+              ) -> str:
+    """What determines the county skill: the vintage's rows and the members' settings."""
+    rows = pd.util.hash_pandas_object(vintage.frame, index=False).to_numpy().tobytes()
+    settings = json.dumps({"backtest": dataclasses.asdict(backtest),
+                           "weekly": dataclasses.asdict(config.weekly_config())},
+                          sort_keys=True, default=str)
+    return hashlib.sha256(rows + settings.encode()).hexdigest()
+
+
+def _from_summary(summary: dict[str, Any], vintage: str) -> CountySkill:
+    by_target = summary["by_target"]
+    published = {t: by_target[t]["published"] for t in by_target}
+    return CountySkill(
+        vintage=vintage, n_counties=int(summary["n_counties"]),
+        n_origins=int(summary["n_origins"]), first_origin=summary["origins"]["first"],
+        last_origin=summary["origins"]["last"],
+        relative_wis={t: {n: dict(by_target[t][n]["gmean_relative_wis"]) for n in SCORED
+                          if n in by_target[t]} for t in by_target},
+        share_beating_baseline={t: float(p["share_beating_baseline"]["all"])
+                                for t, p in published.items()},
+        coverage={t: (float(p["coverage50"]), float(p["coverage90"]))
+                  for t, p in published.items()})
+
+
+def county_skill(config: ForecastConfig, progress: ProgressReporter | None = None
+                 ) -> CountySkill | None:
+    """The published method's cross-county skill on the cached CDPH vintage (module docstring);
+    None without CDPH data."""
+    try:
+        vintage = load_cdph_vintage(offline=True)
+    except OfflineError as exc:
+        log.warning("no county skill: %s", exc)
+        return None
+    backtest = CountyBacktestConfig(trailing_days=config.data.trailing_days)
+    path = data_dir() / FOLDER / f"{skill_key(vintage, backtest, config)[:24]}.json"
+    as_of = str(vintage.as_of.date())
+    if path.is_file():
+        try:
+            return dataclasses.replace(_from_summary(json.loads(path.read_text()), as_of),
+                                       reused=True)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("recomputing the county skill: %s is unreadable (%s)", path, exc)
+    started = time.perf_counter()
+    counties = select_counties(vintage, backtest)
+    panel = county_panel(vintage, counties, backtest.trailing_days)
+    origins = weekly_origins(panel.dates, min_history_weeks=backtest.min_history_weeks,
+                             horizon_weeks=max(backtest.horizons))
+    members = build_panel_members(list(panel.histories.values()), origins,
+                                  config.weekly_config(), default_store_root(), progress).members
+    summary = summarize_panel(run_panel_backtest(panel, members, backtest, progress=progress))
+    atomic_write_json(path, summary | {"vintage": as_of,
+                                       "seconds": time.perf_counter() - started})
+    return _from_summary(summary, as_of)
