@@ -44,6 +44,9 @@ def forecast_command(
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
+    # Prefect waits 20 s for its temporary server by default; on a busy 2-core machine its
+    # start-up was seen to take longer, failing the run before any work
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
     from flows.server_guard import guard_ephemeral_server
     from flows.weekly_forecast import weekly_forecast  # imports Prefect: only when run
 

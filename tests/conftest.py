@@ -15,6 +15,8 @@ DATASF = SHARED / "data" / "datasf"
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("DO_NOT_TRACK", "1")
+# Prefect's temporary server gets 20 s to start by default: too little on a loaded 2-core box
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 # Test models are tiny: one thread is as fast and never stalls on a shared 2-core machine.
 torch.set_num_threads(1)
 

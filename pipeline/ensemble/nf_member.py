@@ -22,9 +22,10 @@ Coordinates, chosen so that the model reads the trend and its samples are valid 
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 import numpy as np
@@ -254,6 +255,19 @@ def train_or_reuse_growth_model(config: GrowthModelConfig, store_root: Path, *,
                              float(loaded.meta.extra.get("best_val_nll_original", float("nan"))))
 
 
+@contextlib.contextmanager
+def single_thread() -> Iterator[None]:
+    """torch on one thread for the block. The flow's layers are small (64 units): sampling
+    16,000 draws at a time, one thread was 3.5× faster than two on a busy 2-core machine
+    (8.4 s against 29 s for 312 cells × 1,000 draws), where two threads wait on each other."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 @dataclass(frozen=True, eq=False)
 class NFGrowthMember:
     """Forecast member: samples the trained flow at the origin and decodes weekly paths."""
@@ -285,7 +299,7 @@ class NFGrowthMember:
         context = torch.from_numpy(context_features(week_sums, origins, self.config.context_days))
         mask = torch.ones(context.shape[:2], dtype=torch.bool)
         generator = torch.Generator().manual_seed(seed)
-        with torch.no_grad():
+        with torch.no_grad(), single_thread():
             z = torch.cat([self.estimator.sample(self.n_samples, context[i:i + chunk],
                                                  mask[i:i + chunk], generator)
                            for i in range(0, len(histories), chunk)]).double().numpy()
