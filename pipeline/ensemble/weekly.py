@@ -12,6 +12,7 @@ Forecast Hub and hubverse count in; data after the last Saturday wait for the ne
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -94,8 +95,11 @@ def build_weekly_members(config: WeeklyConfig, store_root: Path,
 
 
 def forecast_weekly(history: EpiHistory, config: WeeklyConfig, store_root: Path,
-                    progress: ProgressReporter | None = None) -> WeeklyForecast:
-    """Train or reuse the flow member, then forecast every Saturday origin in real time."""
+                    progress: ProgressReporter | None = None, *,
+                    references: Sequence[Member] = ()) -> WeeklyForecast:
+    """Train or reuse the flow member, then forecast every Saturday origin in real time;
+    ``references`` are scored beside the members, not averaged."""
     members, key, reused = build_weekly_members(config, store_root, progress)
-    result = run_realtime_backtest(history, members, config.backtest_config(), progress)
+    result = run_realtime_backtest(history, members, config.backtest_config(), progress,
+                                   references=references)
     return WeeklyForecast(history, result, key, reused)
