@@ -94,7 +94,7 @@ class TrainingSettings:
 @dataclass(frozen=True)
 class EstimateSettings:
     n_samples: int = 500            # draws per estimate
-    parameter_stride_days: int = 2  # β, γ track: one estimate every this many days
+    parameter_stride_days: int = 3  # β, R_t track: one estimate every this many days
     nll_locations: int = 100        # random SF days scored by the NLL table
 
     def __post_init__(self) -> None:
