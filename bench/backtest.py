@@ -7,7 +7,10 @@ data up to that day only; the published forecast is their quantile average with 
 recalibration fitted to past origins' scores only (:mod:`pipeline.ensemble.backtest`).
 Targets I and weekly reported cases, 1–4 weeks, 23 hub quantiles; WIS relative to the COVID-19
 Forecast Hub baseline per target × horizon (never pooled across targets), 50 %/90 % coverage,
-PIT histograms, and the count of invalid values in the published sample paths.
+PIT histograms, and the count of invalid values in the published sample paths. The NF-seeded SMC
+forecaster (``nf-smc``: the weekly run's joint flow seeding a filter on the multi-wave model,
+:mod:`pipeline.ensemble.smc_member`) is scored beside the members, as in the weekly run, and not
+averaged (``--no-smc`` leaves it out).
 
     python -m bench.backtest              # the published forecast (hub baseline, growth-qr,
                                           # nf-growth, nf-real; California's counties pooled)
@@ -33,6 +36,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--quick", action="store_true", help="the last 6 origins only (seconds)")
     p.add_argument("--no-nf", action="store_true", help="members without the NF member")
+    p.add_argument("--no-smc", action="store_true", help="without the NF-seeded SMC forecaster")
     p.add_argument("--data", default=str(SHARED_DATASF), help="DataSF CSV exports directory "
                    "(imported only into an empty cache)")
     p.add_argument("--cdph", default=str(SHARED_CDPH), help="CDPH county downloads (the "
@@ -89,6 +93,29 @@ def _autoets() -> Any:
     return AutoETSMember()
 
 
+def smc_reference(history: Any, config: Any, seed: int) -> tuple[list[Any], float]:
+    """The NF-seeded SMC forecaster at every origin the backtest runs (warm-up included), one
+    batch of filters, with the default forecast's joint flow (trained if absent); seconds."""
+    import dataclasses
+
+    import numpy as np
+
+    from pipeline import forecast as fc
+    from pipeline.ensemble.backtest import backtest_origins
+    from pipeline.ensemble.smc_member import batched_smc_forecasts
+    from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
+    from pipeline.forecast.steps import smc_member
+
+    t0 = time.perf_counter()
+    forecast_config = fc.resolve_config("default", seed=seed)
+    models = train_or_reuse_models(forecast_config, simulate_training_data(forecast_config))
+    origins = backtest_origins(history, dataclasses.replace(config, first_origin=None))
+    scored = batched_smc_forecasts(smc_member(models, forecast_config), history, origins,
+                                   config.horizons, np.asarray(config.levels),
+                                   forecast_config.step_seed("smc") + 1)
+    return [scored], time.perf_counter() - t0
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
     import dataclasses
@@ -120,14 +147,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     chosen = build_weekly_members(weekly, default_store_root(), reference, history, SF_COUNTY)
     members, model_key, reused = chosen.members, chosen.model_key, chosen.reused
     t_members = time.perf_counter() - t0
-    result = run_realtime_backtest(history, members, config)
+    references, t_smc = [], 0.0
+    if not args.no_smc:
+        references, t_smc = smc_reference(history, config, args.seed)
+    result = run_realtime_backtest(history, members, config, references=references)
     summary = summarize(result)
     variants = {} if args.quick else design_variants(history, members, config)
     out = {
         **summary,
         "variants": variants,
-        "seconds": {"members": round(t_members, 2), "backtest": round(result.seconds, 2),
-                    "total": round(t_members + result.seconds, 2)},
+        "seconds": {"members": round(t_members, 2), "nf_smc": round(t_smc, 2),
+                    "backtest": round(result.seconds, 2),
+                    "total": round(t_members + t_smc + result.seconds, 2)},
         "flow_model": {"key": model_key, "reused": reused},
         "data": {"first_day": str(history.dates[0].date()), "last_day": str(history.origin.date()),
                  "population": history.population,

@@ -54,7 +54,7 @@ def test_help_shows_choices_and_no_python_type_names(cli):
     train = cli("train", "--help").output
     assert "<mlp|transformer|transformer-ke|mamba>" in train and "<paper|fast>" in train
     assert "<forward|backward>" in train and "<nflows|zuko>" in train
-    assert "sir-sf-joint>" in train
+    assert "sir-sf-joint|sf-waves-joint>" in train
     assert "<sir-single|sir-multi|sir-sf>" in cli("smc", "filter", "--help").output
     forecast = cli("forecast", "--help").output
     assert "<default|tiny>" in forecast and "<live|cache|import>" in forecast
@@ -178,7 +178,7 @@ def test_estimate_and_rollout_accept_the_forecast_checkpoints(cli, forecast_stor
 
     forward = forecast_store / "forward" / "model.pt"
     extra = load_checkpoint(forward).meta.extra
-    assert extra["preset"]["dataset"]["name"] == "sir-sf"  # the same metadata `train` writes
+    assert extra["preset"]["dataset"]["name"] == "sf-waves"  # the same metadata `train` writes
     assert extra["preset"]["dataset"]["direction"] == "forward"
     window = tmp_path / "window.csv"
     _sf_like_csv(window)
@@ -187,7 +187,8 @@ def test_estimate_and_rollout_accept_the_forecast_checkpoints(cli, forecast_stor
                  "--out", str(out), "--samples", "50")
     assert result.exit_code == 0, result.output
     samples = pd.read_csv(out)
-    assert list(samples.columns) == ["sample", "S", "I", "R", "beta", "gamma"] and len(samples) == 50
+    # the forecast's joint flows estimate (S, I, R, beta); gamma is the conversion's fixed 1/7
+    assert list(samples.columns) == ["sample", "S", "I", "R", "beta"] and len(samples) == 50
     summary = pd.read_csv(tmp_path / "est_summary.csv")
     assert summary["date"].iloc[0] == "2022-01-31"  # one day after the window's last date
     rolled = cli("rollout", "--checkpoint", str(forecast_store / "backward" / "model.pt"),

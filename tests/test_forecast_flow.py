@@ -70,7 +70,10 @@ def test_outputs_exist_with_real_numbers(good_run):
     params = pd.read_csv(out / "parameter_estimates.csv")
     assert set(params["component"]) == {"S", "I", "R", "beta", "gamma", "Rt"}
     assert (params["q0.025"] <= params["q0.5"]).all() and (params["q0.5"] <= params["q0.975"]).all()
-    assert np.isfinite(params[["mean", "std"]].to_numpy()).all() and (params["std"] > 0).all()
+    estimated = params[params["component"] != "gamma"]
+    assert np.isfinite(params[["mean", "std"]].to_numpy()).all() and (estimated["std"] > 0).all()
+    # γ is the conversion's 1/7 per day on every day, not an estimate
+    np.testing.assert_allclose(params.loc[params["component"] == "gamma", "q0.5"], 1 / 7)
 
     nll = pd.read_csv(out / "nll_table.csv")
     assert list(nll["direction"]) == ["forward", "backward"] and np.isfinite(nll["mean_nll"]).all()
@@ -92,7 +95,8 @@ def test_outputs_exist_with_real_numbers(good_run):
     by_target = q.pivot_table(index=["horizon", "level"], columns="target", values="value")
     np.testing.assert_allclose(by_target["cases"], by_target["I"] * SF_POPULATION_2020_CENSUS, rtol=1e-9)
     members = pd.read_csv(out / "member_forecasts.csv")
-    assert set(members["forecaster"]) == {"autoets", "nf-growth", "hub-baseline",
+    # nf-smc: the NF-seeded SMC on the same model, scored beside the members, not averaged
+    assert set(members["forecaster"]) == {"autoets", "nf-growth", "hub-baseline", "nf-smc",
                                           "ensemble-uncalibrated"}
 
     # the hubverse file of the same forecast, valid under hub-config/tasks.json
@@ -114,7 +118,7 @@ def test_outputs_exist_with_real_numbers(good_run):
     assert set(skill["cases"]) == {"h1", "h2", "h3", "h4", "all"}
     assert all(v is not None and np.isfinite(v) and v > 0 for v in skill["cases"].values())
     scores = pd.read_csv(out / "backtest_scores.csv")
-    assert set(scores["forecaster"]) == {"autoets", "nf-growth", "hub-baseline",
+    assert set(scores["forecaster"]) == {"autoets", "nf-growth", "hub-baseline", "nf-smc",
                                          "ensemble-uncalibrated", "published"}
     assert scores["origin_date"].max() < ORIGIN     # the latest origin has no truth yet
     np.testing.assert_allclose(scores["wis"], scores[["dispersion", "overprediction",
@@ -242,7 +246,7 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     assert results.reference_date == EXPECTED_REFERENCE_DATE and not results.stale
     assert set(results.rollouts) == {(d, w) for d in ("forward", "backward") for w in (7, 28)}
     assert all(isinstance(r, RolloutResult) for r in results.rollouts.values())
-    assert tuple(results.future.samples.shape) == (200, 28, 5)
+    assert tuple(results.future.samples.shape) == (200, 28, 4)    # S, I, R, beta
     assert isinstance(results.smc.result, SMCResult) and len(results.smc.dates) == 28
     assert isinstance(results.weekly, WeeklyForecast)
     assert str(results.weekly.origin.date()) == ORIGIN

@@ -86,33 +86,30 @@ def test_failed_build_leaves_no_entry(tmp_path):
 
 
 def test_forecast_models_are_the_training_presets():
-    """pipeline.training.presets is the single source of the weekly models' settings: the default forecast
-    is sir-sf-joint × transformer × fast with only the iteration count shortened; tiny only
-    shrinks; the filters and rollouts take their noise from the same (sir-sf) prior."""
-    import dataclasses
-
+    """pipeline.training.presets is the single source of the weekly models' settings: the default
+    forecast is sf-waves-joint × MLP × fast; tiny only shrinks; both train on the flow member's
+    own multi-wave prior (one model of the epidemic), with γ fixed at 1/L."""
     from pipeline.forecast import resolve_config
     from pipeline.training.presets import get_preset
 
     default = resolve_config("default")
     for direction in ("forward", "backward"):
         ours = default.resolved.presets[direction]
-        theirs = get_preset("sir-sf-joint", "transformer", recipe="fast", direction=direction,
+        theirs = get_preset("sf-waves-joint", "mlp", recipe="fast", direction=direction,
                             seed=ours.train.seed, dataset_seed=ours.dataset.seed)
-        assert ours.estimator == theirs.estimator and ours.kinetic == theirs.kinetic
-        assert ours.dataset == theirs.dataset and ours.dataset.direction == direction
-        assert ours.train == dataclasses.replace(theirs.train,
-                                                 iterations=default.training.iterations)
-    assert default.resolved.window == 5  # the paper's R
-    prior = default.resolved.prior
-    assert prior.name == "sir-sf" and prior.obs_sigma == 5e-4
+        assert ours == theirs and ours.dataset.direction == direction
+    assert default.resolved.window == 14
+    assert default.resolved.prior is default.weekly.growth.prior    # the member's prior
+    assert default.resolved.gamma == 1 / 7
 
-    tiny = resolve_config("tiny").resolved.presets["forward"]
-    mlp = get_preset("sir-sf-joint", "mlp", recipe="fast", seed=tiny.train.seed,
+    tiny_config = resolve_config("tiny")
+    tiny = tiny_config.resolved.presets["forward"]
+    mlp = get_preset("sf-waves-joint", "mlp", recipe="fast", seed=tiny.train.seed,
                      dataset_seed=tiny.dataset.seed, n_trajectories=16)
     assert tiny.estimator == mlp.estimator and tiny.dataset == mlp.dataset
     assert (tiny.train.iterations, tiny.train.batch_size, tiny.train.eval_every) == (30, 256, 10)
     assert tiny.train.lr == mlp.train.lr and tiny.train.schedule == mlp.train.schedule
+    assert tiny_config.resolved.prior is tiny_config.weekly.growth.prior
 
 
 def test_forecast_model_key_follows_encoder_recipe_and_seed():

@@ -65,7 +65,15 @@ def test_paper_numbers():
         paper_joint, target_transform="sir-log-ratio",
         flow=dataclasses.replace(paper_joint.flow, features=4))
     assert all(get_preset(name, "mlp").estimator.target_transform == "identity"
-               for name in PRESET_NAMES if name != "sir-sf-joint")
+               for name in PRESET_NAMES if name not in ("sir-sf-joint", "sf-waves-joint"))
+    # The product's joint model: (S, I, R, beta) on the multi-wave prior, two weeks of S/I/R
+    # read with I on a log scale; the paper's presets read their windows as they are.
+    waves = get_preset("sf-waves-joint", "mlp").estimator
+    assert (waves.features, waves.window, waves.flow.features) == (4, 14, 3)
+    assert (waves.target_transform, waves.context_transform) == ("sir-log-ratio",
+                                                                 "sir-log-infectious")
+    assert all(get_preset(name, "mlp").estimator.context_transform == "identity"
+               for name in PRESET_NAMES if name != "sf-waves-joint")
     assert sf.dataset.name == "sir-sf" and sf.train.context_noise_sigma == 0.0
     ke = get_preset("sir-multi", "transformer-ke").kinetic
     assert ke.path_length > 0 and ke.intermediate_nll > 0 and ke.nll == 1.0
@@ -93,11 +101,13 @@ def test_bad_names_are_rejected(kwargs, match):
 
 
 @pytest.mark.parametrize("name,dataset", [("sir-joint", "sir-multi"), ("sir-sf-joint", "sir-sf"),
+                                          ("sf-waves-joint", "sf-waves"),
                                           ("vehicle-sparse", "vehicle-sparse"),
                                           ("vehicle", "vehicle-dropout")])
 def test_preset_shapes_match_the_datasets(name, dataset):
     preset = get_preset(name, "mlp")
-    ds = build_dataset(dataset, target=preset.dataset.target, n_trajectories=3)
+    ds = build_dataset(dataset, target=preset.dataset.target, window=preset.dataset.window,
+                       n_trajectories=3)
     assert ds.context.shape[1:] == (preset.estimator.window, preset.estimator.context_channels)
     assert ds.target.shape[1] == preset.estimator.features
     # The model's context layout is the dataset's: t_obs channel for vehicles only.

@@ -12,7 +12,7 @@ from pipeline.cli import app
 from pipeline.cli.choices import Backend, Direction, Encoder, Recipe, TrainPreset, finite, value
 
 _PRESET_HELP = ("vehicle, vehicle-sparse, sir-single, sir-multi, sir-joint (paper set-ups), "
-                "sir-sf-joint (the SF forecast's); see docs/training.md")
+                "sir-sf-joint, sf-waves-joint (the SF forecast's); see docs/training.md")
 
 
 @app.command("train")

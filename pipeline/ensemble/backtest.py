@@ -263,8 +263,11 @@ def publish(history: EpiHistory, current: dict[str, QuantileForecast], members: 
 
 def run_realtime_backtest(history: EpiHistory, members: Sequence[Member],
                           config: BacktestConfig = BacktestConfig(),
-                          progress: ProgressReporter | None = None) -> BacktestResult:
-    """The real-time backtest over ``config``'s origins (module docstring)."""
+                          progress: ProgressReporter | None = None, *,
+                          references: Sequence[Member] = ()) -> BacktestResult:
+    """The real-time backtest over ``config``'s origins (module docstring). ``references``:
+    further forecasters scored beside the members (e.g. the NF-seeded SMC member) that the
+    published ensemble does not average."""
     progress = progress or SilentProgress()
     started = time.perf_counter()
     names = [m.name for m in members]
@@ -272,8 +275,8 @@ def run_realtime_backtest(history: EpiHistory, members: Sequence[Member],
         raise BacktestError(f"members need distinct names, got {names}")
     if PUBLISHED in names or UNCALIBRATED in names:
         raise BacktestError(f"member names {PUBLISHED!r}/{UNCALIBRATED!r} are reserved")
-    references: list[Member] = [r for r in (HubBaseline(), AutoETSMember())
-                                if r.name not in names]
+    scored: list[Member] = [r for r in (HubBaseline(), AutoETSMember(), *references)
+                            if r.name not in names]
     levels = np.asarray(config.levels, dtype=np.float64)
     origins = backtest_origins(history, config)
     run_origins = (backtest_origins(history, dataclasses.replace(config, first_origin=None))
@@ -288,7 +291,7 @@ def run_realtime_backtest(history: EpiHistory, members: Sequence[Member],
         seen = history.up_to(origin)
         seed = origin_seed(config.seed, origin)
         current = {m.name: m.forecast(seen, config.horizons, levels, seed)
-                   for m in (*members, *references)}
+                   for m in (*members, *scored)}
         pub, uncal, weights = publish(seen, current, names, past, config)
         current[UNCALIBRATED], current[PUBLISHED] = uncal, pub
         new_rows = score_forecasts(list(current.values()),

@@ -159,9 +159,11 @@ def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
 
 def forecast_weekly(history: EpiHistory, config: WeeklyConfig, store_root: Path,
                     reference: Mapping[str, EpiHistory] | None = None, place: str | None = None,
-                    progress: ProgressReporter | None = None) -> WeeklyForecast:
+                    progress: ProgressReporter | None = None, *,
+                    references: Sequence[Member] = ()) -> WeeklyForecast:
     """Build the members (training or reusing their models), then forecast every Saturday origin
-    in real time."""
+    in real time; ``references`` are scored beside the members, not averaged."""
     chosen = build_weekly_members(config, store_root, reference, history, place, progress)
-    result = run_realtime_backtest(history, chosen.members, config.backtest_config(), progress)
+    result = run_realtime_backtest(history, chosen.members, config.backtest_config(), progress,
+                                   references=references)
     return WeeklyForecast(history, result, chosen.model_key, chosen.reused)

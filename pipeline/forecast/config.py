@@ -16,8 +16,7 @@ from pipeline.ensemble.nf_member import GrowthModelConfig
 from pipeline.ensemble.weekly import WeeklyConfig
 from pipeline.errors import ConfigError
 from pipeline.names import DIRECTIONS, Direction
-from pipeline.systems.sir import SIRPrior
-from pipeline.systems.waves import WavePrior
+from pipeline.systems.waves import WavePrior, recovery_rate
 from pipeline.training.presets import TrainingPreset, get_preset
 
 DataSourceKind = Literal["live", "cache", "import"]
@@ -72,28 +71,31 @@ class DataSourceConfig:
 class TrainingSettings:
     """The joint models: one named training preset (:func:`pipeline.training.presets.get_preset`,
     ``preset`` × ``encoder`` × ``recipe``, one per direction) — the single source of the dataset,
-    estimator and optimiser settings. The optional sizes only shrink it (None = the preset's), so
-    the ``tiny`` forecast is the same model family at toy size."""
+    estimator and optimiser settings. They train on the multi-wave prior of the published
+    forecast's flow member (``ForecastConfig.weekly.growth.prior``): one model of the epidemic.
+    The optional sizes only shrink it (None = the preset's), so the ``tiny`` forecast is the same
+    model family at toy size."""
 
-    preset: str = "sir-sf-joint"   # the paper's sir-joint prior does not cover SF
+    preset: str = "sf-waves-joint"
     recipe: str = "fast"
-    encoder: str = "transformer"   # the paper's SF runs use the transformer
+    # An MLP over two weeks of S/I/R: the transformer took 594 s of a 706 s run to train and,
+    # on this 14-row window, has nothing to attend to that the MLP misses (docs/models.md).
+    encoder: str = "mlp"
     n_trajectories: int | None = None
-    horizon_days: int | None = None
     iterations: int | None = None
     batch_size: int | None = None
     eval_every: int | None = None
 
     def __post_init__(self) -> None:
         _require_positive("TrainingSettings", n_trajectories=self.n_trajectories,
-                          horizon_days=self.horizon_days, iterations=self.iterations,
+                          iterations=self.iterations,
                           batch_size=self.batch_size, eval_every=self.eval_every)
 
 
 @dataclass(frozen=True)
 class EstimateSettings:
     n_samples: int = 500            # draws per estimate
-    parameter_stride_days: int = 2  # β, γ track: one estimate every this many days
+    parameter_stride_days: int = 3  # β, R_t track: one estimate every this many days
     nll_locations: int = 100        # random SF days scored by the NLL table
 
     def __post_init__(self) -> None:
@@ -105,33 +107,39 @@ class EstimateSettings:
 @dataclass(frozen=True)
 class RolloutSettings:
     windows: tuple[int, ...] = (7, 28)
-    # Rolling rollouts cover the whole history (~740 days x 4 views): sampling the MAF inverse
-    # for anchors x paths rows dominates a cached run, so 64 paths (enough for 2-sigma bands)
-    # keep the weekly run near a minute; the future paths use ``future_paths``.
-    paths: int = 64
+    # Rolling rollouts cover the whole history (~740 days x 4 views), one flow call per day for
+    # every anchor x path; the future paths use ``future_paths``.
+    paths: int = 128
     forecast_days: int = 28         # the paper's rollout forecast past the last observed day
     future_paths: int = 200
+    # Correlation of a path's flow noise from one day to the next (inference.rollout): with
+    # fresh noise every day a path forgets which transmission rate it drew, and 28-day bands
+    # covered 76 % of the prior's own synthetic paths at the 90 % level; 0.5 makes them cover
+    # 89 % (bench/rollouts_sf.py measures both, on synthetic paths with a known truth).
+    noise_persistence: float = 0.5
 
     def __post_init__(self) -> None:
         if any(w < 1 for w in self.windows):
             raise ConfigError(f"RolloutSettings.windows={self.windows} must all be >= 1")
+        if not 0.0 <= self.noise_persistence <= 1.0:
+            raise ConfigError(f"RolloutSettings.noise_persistence={self.noise_persistence} "
+                              "must lie in [0, 1]")
         _require_positive("RolloutSettings", paths=self.paths, forecast_days=self.forecast_days,
                           future_paths=self.future_paths)
 
 
 @dataclass(frozen=True)
 class SMCSettings:
+    """The NF-seeded filter on the multi-wave model (:mod:`pipeline.inference.hybrid`): its
+    particle count and the days it filters; its forecast member is scored in the backtest."""
+
     particles: int = 1000
     days: int = 56                  # observations the seeded filter runs over
-    # SIR process noise of the NF-seeded filter, per sqrt(day): a fifth of the prior's
-    # observation noise, so the filter follows SF's I (median 8e-4) instead of diffusing it; the
-    # paper's 1e-3 was sized for sir-multi's I of ~0.1.
-    process_sigma: float = 1e-4
+    member_particles: int = 500     # per origin, in the backtest's batch of filters
 
     def __post_init__(self) -> None:
-        _require_positive("SMCSettings", particles=self.particles, days=self.days)
-        if self.process_sigma < 0:
-            raise ConfigError(f"SMCSettings.process_sigma={self.process_sigma} must be >= 0")
+        _require_positive("SMCSettings", particles=self.particles, days=self.days,
+                          member_particles=self.member_particles)
 
 
 @dataclass(frozen=True)
@@ -145,15 +153,21 @@ class OutputSettings:
 
 @dataclass(frozen=True)
 class ResolvedTraining:
-    """The training presets of both directions and the SIR prior they train on."""
+    """The training presets of both directions and the multi-wave prior they train on (the
+    flow member's)."""
 
     presets: dict[Direction, TrainingPreset]
-    prior: SIRPrior
+    prior: WavePrior
 
     @property
     def window(self) -> int:
-        """R, the context length (the paper's five observations)."""
+        """R, the context length in days."""
         return int(self.presets["forward"].dataset.window)
+
+    @property
+    def gamma(self) -> float:
+        """γ = 1/L per day, fixed by the S/I/R conversion's infectious window (not estimated)."""
+        return recovery_rate(self.prior)
 
 
 @dataclass(frozen=True)
@@ -181,13 +195,11 @@ class ForecastConfig:
     @cached_property
     def resolved(self) -> ResolvedTraining:
         presets: dict[Direction, TrainingPreset] = {d: self._training_preset(d) for d in DIRECTIONS}
-        prior = presets["forward"].dataset.system_config()
-        if not isinstance(prior, SIRPrior):
-            raise ConfigError(f"training preset {self.training.preset!r} does not train on an "
-                              "SIR prior; the SF forecast needs one")
-        if self.training.horizon_days is not None:
-            prior = dataclasses.replace(prior, horizon_days=self.training.horizon_days)
-        return ResolvedTraining(presets=presets, prior=prior)
+        if presets["forward"].dataset.system != "waves":
+            raise ConfigError(f"training preset {self.training.preset!r} does not train on the "
+                              "multi-wave prior (sf-waves); the SF forecast's joint models "
+                              "share that prior with its flow member")
+        return ResolvedTraining(presets=presets, prior=self.weekly.growth.prior)
 
     def _training_preset(self, direction: Direction) -> TrainingPreset:
         settings = self.training
@@ -212,27 +224,25 @@ class ForecastConfig:
         """What determines the trained joint models (the model-store key is built from this)."""
         presets = self.resolved.presets
         return {"presets": {d: presets[d].to_dict() for d in DIRECTIONS},
-                "horizon_days": self.training.horizon_days}
+                "prior": dataclasses.asdict(self.resolved.prior)}
 
     def as_dict(self) -> dict[str, object]:
         return dataclasses.asdict(self)
 
 
 FORECAST_PRESETS: dict[str, ForecastConfig] = {
-    # The product: sir-sf-joint × transformer × fast recipe on the full sir-sf ensemble (2,000
-    # trajectories × 150 days). The recipe's 6,000 iterations per direction (~75–90 ms per
-    # batch-512 transformer step on one core) would take ~18 min for the pair; 2,500 with the
-    # same cosine schedule fit the 15-minute from-scratch budget (docs/orchestration.md).
-    "default": ForecastConfig(preset="default", training=TrainingSettings(iterations=2_500)),
-    # Seconds, for tests and smoke runs: same preset family with the MLP encoder, a small
-    # ensemble, a short horizon, few iterations, samples, particles and backtest origins.
+    # The product: sf-waves-joint × MLP × fast recipe on 2,000 trajectories of the flow
+    # member's multi-wave prior (docs/forecasting.md "One model of the epidemic").
+    "default": ForecastConfig(preset="default"),
+    # Seconds, for tests and smoke runs: same preset family with a small ensemble, a short
+    # prior, few iterations, samples, particles and backtest origins.
     "tiny": ForecastConfig(
         preset="tiny",
-        training=TrainingSettings(encoder="mlp", n_trajectories=16, horizon_days=160,
-                                  iterations=30, batch_size=256, eval_every=10),
+        training=TrainingSettings(n_trajectories=16, iterations=30, batch_size=256,
+                                  eval_every=10),
         estimates=EstimateSettings(n_samples=128, parameter_stride_days=7, nll_locations=20),
         rollouts=RolloutSettings(paths=16, future_paths=200),
-        smc=SMCSettings(particles=200, days=28),
+        smc=SMCSettings(particles=200, days=28, member_particles=100),
         weekly=WeeklyConfig(growth=GrowthModelConfig(n_trajectories=120, iterations=30,
                                                      batch_size=256, prior=WavePrior(days=140)),
                             finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),

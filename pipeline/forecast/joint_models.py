@@ -1,9 +1,8 @@
-"""Steps 2–3: the synthetic ``sir-sf`` ensemble cut into forward and backward windows whose target
-is the joint (S, I, R, β, γ), and the pair of joint estimators trained on it — or reused from the
+"""Steps 2–3: a synthetic ensemble of the multi-wave prior — the published forecast's flow member
+trains on the same prior (:mod:`pipeline.systems.waves`) — seen through the S/I/R conversion and
+cut into forward and backward windows whose target is the joint (S, I, R, β); γ = 1/L is fixed
+by the conversion's window. Then the pair of joint estimators trained on it, or reused from the
 model store (:mod:`pipeline.training.model_store`, key = training config + training-data hash).
-
-The SIR prior is fitted to the SF series (:mod:`pipeline.systems.sir`); the paper's ``sir-multi``
-prior sits far from SF (docs/systems.md).
 """
 from __future__ import annotations
 
@@ -18,9 +17,10 @@ from pipeline.io import sha256_bytes
 from pipeline.models.estimator import ConditionalEstimator
 from pipeline.names import DIRECTIONS, Direction
 from pipeline.progress import ProgressReporter
-from pipeline.systems.sir import simulate_ensemble
+from pipeline.systems.waves import simulate_waves
 from pipeline.training.checkpoints import LoadedCheckpoint, load_checkpoint
-from pipeline.training.datasets import dataset_sha256, train_validation_split, windows_from_sir
+from pipeline.training.datasets import (WindowedDataset, train_validation_split,
+                                        windows_from_waves)
 from pipeline.training.fit import fit_preset
 from pipeline.training.model_store import ModelStore, StoreEntry, default_store_root, model_key
 from pipeline.training.presets import ENCODER_CHOICES
@@ -28,24 +28,34 @@ from pipeline.training.presets import ENCODER_CHOICES
 log = logging.getLogger(__name__)
 
 
+# Bump when the windows cut from an ensemble change: the data part of the model-store key is the
+# ensemble's hash with this tag (the windows are a deterministic function of both).
+WINDOWS_VERSION = "sf-waves-windows-1"
+
+
 def simulate_training_data(config: ForecastConfig,
                            progress: ProgressReporter | None = None) -> TrainingData:
-    """One synthetic ensemble (the preset's dataset, ``horizon_days`` override applied) cut into
-    the forward and backward windows of the two presets, each split into train/validation."""
-    presets, prior = config.resolved.presets, config.resolved.prior
-    ensemble = simulate_ensemble(prior, prior.n_trajectories, seed=presets["forward"].dataset.seed,
-                                 progress=progress)
-    splits, hashes = {}, []
-    for direction in DIRECTIONS:
-        preset = presets[direction]
-        ds = windows_from_sir(ensemble, direction=direction, target=preset.dataset.target,
-                              window=preset.dataset.window,
-                              val_fraction=preset.dataset.val_fraction)
-        hashes.append(dataset_sha256(ds))
-        # Standardization in the coordinates the model's flow works in (its target transform).
-        splits[direction] = train_validation_split(ds, preset.estimator.target_transform)
-    return TrainingData(splits=splits, data_sha256=sha256_bytes("|".join(hashes).encode()),
-                        n_trajectories=ensemble.n_trajectories)
+    """One synthetic ensemble of the flow member's prior (the preset's size and seed) and its
+    hash. The forward and backward windows are cut from it only when a model is trained
+    (:func:`training_windows`): a run that reuses its models skips that work."""
+    dataset = config.resolved.presets["forward"].dataset
+    ensemble = simulate_waves(config.resolved.prior, dataset.trajectories, seed=dataset.seed)
+    if progress is not None:
+        progress.advance(1, trajectories=dataset.trajectories)
+    digest = sha256_bytes(WINDOWS_VERSION.encode() + ensemble.cases.tobytes()
+                          + ensemble.log_beta.tobytes() + ensemble.susceptible.tobytes())
+    return TrainingData(ensemble=ensemble, seed=dataset.seed, data_sha256=digest,
+                        n_trajectories=dataset.trajectories)
+
+
+def training_windows(config: ForecastConfig, data: TrainingData, direction: Direction
+                     ) -> tuple[WindowedDataset, WindowedDataset]:
+    """(train, validation) windows of ``direction``, standardized in the coordinates of the
+    model's flow (its target transform)."""
+    preset = config.resolved.presets[direction]
+    ds = windows_from_waves(data.ensemble, direction=direction, window=preset.dataset.window,
+                            val_fraction=preset.dataset.val_fraction, seed=data.seed)
+    return train_validation_split(ds, preset.estimator.target_transform)
 
 
 def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain: bool = False,
@@ -65,7 +75,7 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
 
 def _train_direction(config: ForecastConfig, data: TrainingData, direction: Direction,
                      out_dir: Path, progress: ProgressReporter | None) -> float:
-    train_ds, val_ds = data.splits[direction]
+    train_ds, val_ds = training_windows(config, data, direction)
     result = fit_preset(config.resolved.presets[direction], train_ds, val_ds, out_dir,
                         progress=progress, extra={"forecast_preset": config.preset})
     log.info("trained %s model: best validation NLL %.3f at iteration %d (%s)", direction,

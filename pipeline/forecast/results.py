@@ -21,7 +21,7 @@ from pipeline.inference.estimate import Estimator
 from pipeline.inference.rollout import RolloutResult
 from pipeline.inference.smc import SMCResult
 from pipeline.names import JOINT_NAMES, Direction
-from pipeline.training.datasets import WindowedDataset
+from pipeline.systems.waves import WaveEnsemble
 
 
 @dataclass(frozen=True)
@@ -33,11 +33,13 @@ class SIRArrays:
     dates: pd.DatetimeIndex
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrainingData:
-    """Forward and backward (train, validation) windowed datasets and their combined hash."""
+    """The synthetic ensemble the joint models train on (its windows are cut when a model is
+    trained: ``forecast.joint_models.training_windows``) and its hash."""
 
-    splits: dict[Direction, tuple[WindowedDataset, WindowedDataset]]
+    ensemble: WaveEnsemble
+    seed: int
     data_sha256: str
     n_trajectories: int
 
@@ -70,7 +72,7 @@ class LatestEstimates:
 @dataclass(frozen=True)
 class FuturePaths:
     dates: pd.DatetimeIndex
-    samples: Tensor          # (P, H, 5): S, I, R, beta, gamma
+    samples: Tensor          # (P, H, 4): S, I, R, beta (gamma is the fixed 1/L)
     reference_date: dt.date
 
 

@@ -86,10 +86,10 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     future = run("future-paths", future_paths, models, arrays, config)
     parameters = run("beta-gamma-estimates", parameter_track, models, arrays, config)
     nll = run("nll-table", nll_with_cached_variants, models, data, arrays, config)
-    smc = run("nf-seeded-smc", seeded_smc, models, arrays, config)
+    smc = run("nf-seeded-smc", seeded_smc, models, series, sir, arrays, config)
     run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles", len(smc.dates),
                     float(smc.result.ess.min()), config.smc.particles)
-    weekly = run("weekly-forecast", weekly_forecast, series, sir, config,
+    weekly = run("weekly-forecast", weekly_forecast, series, sir, models, config,
                  progress=progress("weekly-forecast"))
     run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
                     weekly.origin.date(), published_skill(weekly))

@@ -8,16 +8,23 @@
 6. :func:`parameter_track` — β, γ and R_t over time (posterior quantiles per day).
 7. :func:`nll_table` — the paper's Table 5: mean NLL of the observed state under the flow's state
    marginal at random days along the SF trajectory (forward / backward).
-8. :func:`seeded_smc` — the paper's hybrid (:func:`pipeline.inference.hybrid.nf_seeded_smc`).
+8. :func:`seeded_smc` — the paper's hybrid on the multi-wave model
+   (:func:`pipeline.inference.hybrid.nf_seeded_wave_smc`).
 9. :func:`weekly_forecast` — the published forecast of weekly cases and I (an ensemble of a flow
    member and AutoETS, :mod:`pipeline.ensemble`) at the latest Saturday, with the same method's
    real-time backtest over every earlier Saturday.
 
-Reading of the paper: the context window R = 5 ("five-observation context"). Every random step
-draws from a generator seeded by ``ForecastConfig.seed`` plus a fixed per-step offset, so the same
-seed, data and model give the same numbers.
+One model of the epidemic: the joint flows are trained on the flow member's multi-wave prior seen
+through the S/I/R conversion, so they estimate (S, I, R, β) with γ = 1/L fixed by the
+conversion's window (appended to every draw as a constant, so R_t = β·S/γ per sample); the SMC
+filters the same prior's dynamics. The context window is R = 14 days (the product's, not the
+paper's five observations). Every random step draws from a generator seeded by
+``ForecastConfig.seed`` plus a fixed per-step offset, so the same seed, data and model give the
+same numbers.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pandas as pd
@@ -26,6 +33,8 @@ from torch import Tensor
 
 from pipeline.data.series import SFSeries
 from pipeline.data.sir_transform import SIRSeries
+from pipeline.ensemble.backtest import backtest_origins
+from pipeline.ensemble.smc_member import NFSeededSMCMember, batched_smc_forecasts
 from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
@@ -35,10 +44,11 @@ from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, S
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
                                          sample_conditional)
-from pipeline.inference.hybrid import HybridConfig, nf_seeded_smc
+from pipeline.inference.hybrid import WaveSMCConfig, nf_seeded_wave_smc
 from pipeline.inference.rollout import RolloutConfig, rollout, rolling_rollout
 from pipeline.inference.smc import DEFAULT_QUANTILES
 from pipeline.names import DIRECTIONS, JOINT_NAMES, Direction
+from pipeline.training.datasets import WAVE_TARGET_FEATURES
 from pipeline.progress import ProgressReporter
 from pipeline.training.model_store import default_store_root
 
@@ -64,14 +74,22 @@ def _last_window(sir: SIRArrays, r: int, target_time: float) -> ObservationWindo
     return ObservationWindow(times=sir.times[-r:], values=sir.values[-r:], target_time=target_time)
 
 
+def with_fixed_gamma(draws: Tensor, gamma: float) -> Tensor:
+    """(..., 4) draws of (S, I, R, β) -> (..., 5) with γ appended: the conversion's 1/L, the
+    same for every draw (not estimated: :mod:`pipeline.systems.waves`)."""
+    return torch.cat([draws, torch.full_like(draws[..., :1], gamma)], dim=-1)
+
+
 def _draws_at(models: TrainedModels, sir: SIRArrays, targets: np.ndarray, direction: Direction,
               config: ForecastConfig, seed: int) -> Tensor:
-    """(len(targets), n_samples, 5) joint draws at the given day indices, one flow call."""
+    """(len(targets), n_samples, 5) joint draws (γ fixed) at the given day indices, one flow
+    call."""
     r = config.resolved.window
     windows = [_window_at(sir, int(t), direction, r) for t in targets]
     context, mask = batch_window_context(windows, direction, r)
-    return sample_conditional(models.by_direction(direction), context, mask,
-                              config.estimates.n_samples, seed).double()
+    draws = sample_conditional(models.by_direction(direction), context, mask,
+                               config.estimates.n_samples, seed).double()
+    return with_fixed_gamma(draws, config.resolved.gamma)
 
 
 def latest_estimates(models: TrainedModels, sir: SIRArrays,
@@ -86,10 +104,10 @@ def latest_estimates(models: TrainedModels, sir: SIRArrays,
         est = estimate(models.by_direction(direction),
                        _last_window(sir, r, targets[direction]), direction,
                        n_samples=config.estimates.n_samples, seed=config.step_seed("latest"),
-                       names=JOINT_NAMES, window_length=r)
+                       names=WAVE_TARGET_FEATURES, window_length=r)
         dates[direction] = str((sir.dates[0] + pd.Timedelta(days=targets[direction])).date())
-        samples[direction] = est.samples
-        rows += _summary_rows(est.samples.double(), direction, dates[direction])
+        samples[direction] = with_fixed_gamma(est.samples.double(), config.resolved.gamma)
+        rows += _summary_rows(samples[direction], direction, dates[direction])
     return LatestEstimates(pd.DataFrame(rows), samples, dates)
 
 
@@ -101,18 +119,25 @@ def _summary_rows(samples: Tensor, direction: Direction, date: str) -> list[dict
             for d, name in enumerate(JOINT_NAMES)]
 
 
+def rollout_settings(config: ForecastConfig, n_paths: int, seed: int) -> RolloutConfig:
+    """The rollouts' sampling: the flows predict the *observed* S/I/R (the conversion's), so a
+    path feeds back its own draws as they are (no added noise); each path keeps a share of its
+    flow noise from day to day (``RolloutSettings.noise_persistence``)."""
+    return RolloutConfig(n_paths=n_paths, feedback_noise_sigma=0.0, seed=seed,
+                         noise_persistence=config.rollouts.noise_persistence)
+
+
 def rollouts(models: TrainedModels, sir: SIRArrays, config: ForecastConfig,
              progress: ProgressReporter | None = None) -> Rollouts:
     """Rolling rollouts re-anchored every W days (W in ``rollouts.windows``), fw and bw."""
     out: Rollouts = {}
     for direction in DIRECTIONS:
         for every in config.rollouts.windows:
-            settings = RolloutConfig(n_paths=config.rollouts.paths,
-                                     feedback_noise_sigma=config.resolved.prior.obs_sigma,
-                                     seed=config.step_seed("rollout") + every)
+            settings = rollout_settings(config, config.rollouts.paths,
+                                        config.step_seed("rollout") + every)
             out[(direction, every)] = rolling_rollout(
                 models.by_direction(direction), sir.times, sir.values, every, direction,
-                settings, names=JOINT_NAMES, window_length=config.resolved.window,
+                settings, names=WAVE_TARGET_FEATURES, window_length=config.resolved.window,
                 progress=progress)
     return out
 
@@ -121,11 +146,9 @@ def future_paths(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) 
     """Forward sample paths for ``rollouts.forecast_days`` days after the last observed day."""
     r, days = config.resolved.window, config.rollouts.forecast_days
     window = _last_window(sir, r, float(sir.times[-1]) + 1.0)
-    settings = RolloutConfig(n_paths=config.rollouts.future_paths,
-                             feedback_noise_sigma=config.resolved.prior.obs_sigma,
-                             seed=config.step_seed("future"))
+    settings = rollout_settings(config, config.rollouts.future_paths, config.step_seed("future"))
     result = rollout(models.forward, window, days, 1.0, "forward", settings,
-                     names=JOINT_NAMES, window_length=r)
+                     names=WAVE_TARGET_FEATURES, window_length=r)
     dates = pd.date_range(sir.dates[-1] + pd.Timedelta(days=1), periods=days, freq="D")
     return FuturePaths(dates, result.samples, sir.dates[-1].date())
 
@@ -137,7 +160,8 @@ def parameter_track(models: TrainedModels, sir: SIRArrays,
     Long table: direction, date, component, mean, std, q0.025, q0.05, q0.25, q0.5, q0.75,
     q0.95, q0.975; one flow call per direction for all days at once. Component ``Rt`` is the
     effective reproduction number β·S/γ computed per joint sample (its posterior, not a ratio of
-    medians); the report's intervals are the 50 % and 90 % ones.
+    medians); γ is the conversion's fixed 1/L (its rows are that constant); the report's
+    intervals are the 50 % and 90 % ones.
     """
     r, n, stride = config.resolved.window, len(sir.times), config.estimates.parameter_stride_days
     frames = []
@@ -189,33 +213,50 @@ def nll_table_variants(models: TrainedModels, variants: dict[str, TrainedModels]
     return pd.concat(frames, ignore_index=True)
 
 
-def seeded_smc(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) -> SMCRun:
-    """NF-seeded SMC over the last ``smc.days`` days: flow draws at the first day seed it."""
-    r, prior = config.resolved.window, config.resolved.prior
-    start = max(r, len(sir.times) - config.smc.days)
-    # The filter's model is the training prior's: its noise, and beta (and gamma) drifting as
-    # fast as the prior's walk. Static parameters (jitter 0) cannot follow a wave's turn: on the
-    # last 56 SF days the particles then collapsed (median ESS 1 of 1,000, 9 % of I inside the
-    # 3-sigma band) against median ESS 437 and 88 % with the walk's jitter.
-    settings = HybridConfig(n_particles=config.smc.particles, seed=config.step_seed("smc"),
-                            obs_sigma=prior.obs_sigma, process_sigma=config.smc.process_sigma,
-                            param_jitter=prior.beta_walk_sigma,
-                            # the report's 50 %/90 % bands need these levels recorded
-                            quantiles=tuple(sorted({*DEFAULT_QUANTILES, *REPORT_LEVELS})),
-                            invalid_draws="refuse")
-    hybrid = nf_seeded_smc(models.forward, _window_at(sir, start, "forward", r),
-                           sir.times[start:], sir.values[start:], settings)
-    return SMCRun(result=hybrid.smc, dates=sir.dates[start:])
+def seeded_smc(models: TrainedModels, series: SFSeries, sir_series: SIRSeries, sir: SIRArrays,
+               config: ForecastConfig) -> SMCRun:
+    """NF-seeded SMC over the last ``smc.days`` days on the multi-wave model: draws of the
+    forward joint flow at the first day seed the filter, which then follows the reported cases
+    (:func:`pipeline.inference.hybrid.nf_seeded_wave_smc`)."""
+    r, days = config.resolved.window, config.smc.days
+    start = len(sir.times) - days
+    context, mask = batch_window_context([_window_at(sir, start, "forward", r)], "forward", r)
+    history = sf_history(series, sir_series)
+    settings = WaveSMCConfig(n_particles=config.smc.particles, seed=config.step_seed("smc"),
+                             # the report's 50 %/90 % bands need these levels recorded
+                             quantiles=tuple(sorted({*DEFAULT_QUANTILES, *REPORT_LEVELS})))
+    run = nf_seeded_wave_smc(models.forward, context, mask,
+                             torch.as_tensor(history.cases, dtype=torch.float64)[None],
+                             torch.tensor([float(history.population)]), days,
+                             config.resolved.prior, settings)
+    return SMCRun(result=run.smc, dates=sir.dates[start:])
 
 
-def weekly_forecast(series: SFSeries, sir: SIRSeries, config: ForecastConfig,
+def smc_member(models: TrainedModels, config: ForecastConfig) -> NFSeededSMCMember:
+    """The NF-seeded SMC forecast member on the run's forward joint flow."""
+    return NFSeededSMCMember(models.forward, config.resolved.window, config.resolved.prior,
+                             n_particles=config.smc.member_particles,
+                             filter_days=config.smc.days)
+
+
+def weekly_forecast(series: SFSeries, sir: SIRSeries, models: TrainedModels,
+                    config: ForecastConfig,
                     progress: ProgressReporter | None = None) -> WeeklyForecast:
     """The published forecast at the latest Saturday and the same method's real-time forecasts
     at every earlier Saturday (:mod:`pipeline.ensemble.weekly`), with California's counties
-    from the CDPH cache as the pooled members' reference places. The flows come from the model
-    store."""
-    return forecast_weekly(sf_history(series, sir), config.weekly_config(), default_store_root(),
-                           load_reference_histories(config.data), SF_COUNTY, progress)
+    from the CDPH cache as the pooled members' reference places; the flows come from the model
+    store. The NF-seeded SMC member is scored beside them at every origin (one batch of
+    filters) but not averaged into the published forecast (docs/forecasting.md)."""
+    history = sf_history(series, sir)
+    weekly = config.weekly_config()
+    backtest = weekly.backtest_config()
+    origins = backtest_origins(history, dataclasses.replace(backtest, first_origin=None))
+    scored = batched_smc_forecasts(smc_member(models, config), history, origins,
+                                   backtest.horizons, np.asarray(backtest.levels),
+                                   config.step_seed("smc") + 1)
+    return forecast_weekly(history, weekly, default_store_root(),
+                           load_reference_histories(config.data), SF_COUNTY, progress,
+                           references=(scored,) if scored.forecasts else ())
 
 
 def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:

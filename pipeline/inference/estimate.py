@@ -375,6 +375,11 @@ class ModelInfo:
         from pipeline.systems import sir, vehicle
 
         config = DatasetConfig(name=name, direction=direction, target=target, window=window)
+        if config.system == "waves":   # the weekly forecast's joint flows: observed S/I/R, no
+            # added observation noise (they predict the observed state), γ fixed (not a target)
+            observed = tuple(sir.COMPARTMENTS)
+            return cls(dataset=name, direction=direction, observed_names=observed,
+                       target_names=(*observed, "beta"), obs_sigma=0.0, window=window)
         system = config.system_config()
         if config.system == "sir":
             observed = tuple(sir.COMPARTMENTS)

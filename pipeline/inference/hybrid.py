@@ -20,6 +20,8 @@ runs with ``refuse``: an invalid draw then means a wrong model, and is an error,
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -31,9 +33,11 @@ from pipeline.errors import ConfigError
 from pipeline.inference.estimate import Estimator, ObservationWindow, sample_conditional, target_dim, \
     window_context, context_window_length
 from pipeline.progress import ProgressReporter
-from pipeline.inference.smc import DEFAULT_QUANTILES, SMCConfig, SMCResult, seeded_filter
+from pipeline.inference.smc import (DEFAULT_QUANTILES, SMCConfig, SMCResult, owned_planar,
+                                    seeded_filter)
 from pipeline.inference.smc_models import DEFAULT_OBS_SIGMA, DEFAULT_PROCESS_SIGMA, SIRParamsModel, \
-    project_to_simplex
+    WaveRenewalModel, project_to_simplex, reporting_pattern
+from pipeline.systems.waves import WavePrior
 
 
 
@@ -145,3 +149,119 @@ def nf_seeded_smc(estimator: Estimator, window: ObservationWindow, times: np.nda
                            times=torch.as_tensor(times), progress=progress)
     return HybridResult(times=times, seed_particles=particles, clamped_fraction=clamped,
                         smc=result)
+
+
+# -- NF-seeded SMC on the multi-wave model (the weekly forecast's) -----------------------------
+
+@dataclass(frozen=True)
+class WaveSMCConfig:
+    """Particles, seed, resampling threshold, recorded quantiles, and how many recent days the
+    reporting dispersion is estimated from."""
+
+    n_particles: int = 1000
+    seed: int = 0
+    ess_threshold: float = 0.5
+    quantiles: tuple[float, ...] = DEFAULT_QUANTILES
+    pattern_days: int = 56
+
+    def __post_init__(self) -> None:
+        if self.n_particles < 2:
+            raise ConfigError(f"WaveSMCConfig.n_particles={self.n_particles} must be >= 2")
+        if self.pattern_days < 14:
+            raise ConfigError(f"WaveSMCConfig.pattern_days={self.pattern_days} must be >= 14")
+
+
+@dataclass(frozen=True, eq=False)
+class WaveSMCRun:
+    """F filters over the last T days: the result, the model, and the seed draws ``(F, N, 4)``
+    of (S, I, R, β)."""
+
+    smc: SMCResult
+    model: WaveRenewalModel
+    seed_draws: Tensor
+
+
+def _static_prior_draws(prior: WavePrior, shape: tuple[int, int],
+                        generator: torch.Generator) -> Tensor:
+    """(F, N, 4) = μ, θ, σ, ι per particle from the prior's ranges (as ``simulate_waves``)."""
+    u = torch.rand((4, *shape), generator=generator, dtype=torch.float64)
+
+    def uniform(bounds: tuple[float, float], k: int) -> Tensor:
+        return bounds[0] + (bounds[1] - bounds[0]) * u[k]
+
+    log_import = (math.log(prior.importation[0])
+                  + (math.log(prior.importation[1]) - math.log(prior.importation[0])) * u[3])
+    mu = torch.log(uniform(prior.reproduction_mean, 0) / prior.window_days)
+    return torch.stack([mu, uniform(prior.reversion_per_day, 1),
+                        uniform(prior.volatility_per_day, 2), log_import.exp()], dim=-1)
+
+
+def nf_seeded_wave_smc(estimator: Estimator, context: Tensor, mask: Tensor,
+                       daily_cases: Tensor, population: Tensor, filter_days: int,
+                       prior: WavePrior, config: WaveSMCConfig = WaveSMCConfig(), *,
+                       progress: ProgressReporter | None = None) -> WaveSMCRun:
+    """F independent NF-seeded filters on :class:`WaveRenewalModel`.
+
+    ``daily_cases (F, T)``: each history's reported cases; the filter runs over the last
+    ``filter_days`` days (T ≥ ``filter_days`` + 2L), observing each day's L-day sum (N·I);
+    ``context``/``mask``: the forward joint flow's raw windows for the first filtered day (the
+    days before it), one per filter; ``population (F,)``. The flow's (S, I, R, β) draws seed
+    the particles; the last L days' new cases are the particle's I spread over its window in
+    the shape the reports of the L days before had (weekday pattern divided out); μ, θ, σ, ι
+    are drawn from ``prior``. The reporting dispersion comes from the last
+    ``config.pattern_days`` days of ``daily_cases``.
+    """
+    cases = torch.as_tensor(daily_cases, dtype=torch.float64)
+    num_filters, length = cases.shape
+    lag = prior.window_days
+    if length < filter_days + 2 * lag:
+        raise ConfigError(f"NF-seeded SMC: {length} days of cases, need filter_days "
+                          f"{filter_days} + {2 * lag}")
+    if target_dim(estimator) != 4:
+        raise ConfigError("the multi-wave NF-seeded SMC needs the joint (S, I, R, beta) flow; the "
+                          f"estimator predicts {target_dim(estimator)} components")
+    factors, dispersion = reporting_pattern(cases, min(config.pattern_days, length))
+    draws = sample_conditional(estimator, context, mask, config.n_particles,
+                               config.seed).double()                          # (F, N, 4)
+    check_valid_draws(draws)
+    generator = torch.Generator().manual_seed(config.seed + 1)
+    start = length - filter_days
+    position = (torch.arange(start - lag, start) - length) % 7
+    before = (cases[:, start - lag:start] + 0.5) / factors[:, position]
+    shape = before / before.sum(1, keepdim=True)                              # (F, L)
+    particles = torch.cat([draws, draws[..., 1:2] * shape[:, None, :],
+                           _static_prior_draws(prior, (num_filters, config.n_particles), generator),
+                           draws.new_zeros((*draws.shape[:2], 1))], dim=-1)
+    model = WaveRenewalModel(population=torch.as_tensor(population, dtype=torch.float64)
+                             .reshape(-1, 1), dispersion=dispersion[:, None], window_days=lag,
+                             jump_rate=prior.jump_rate_per_day, jump_sd=prior.jump_sd)
+    cumulative = torch.cat([cases.new_zeros((num_filters, 1)), cases.cumsum(1)], dim=1)
+    window_sums = cumulative[:, lag:] - cumulative[:, :-lag]                 # days L-1 … T-1
+    observations = window_sums[:, -filter_days:, None]
+    smc_config = SMCConfig(num_particles=config.n_particles, ess_threshold=config.ess_threshold,
+                           seed=config.seed + 2, quantiles=config.quantiles)
+    result = seeded_filter(particles, observations, model, smc_config,
+                           times=torch.arange(filter_days, dtype=torch.float64),
+                           progress=progress)
+    return WaveSMCRun(smc=result, model=model, seed_draws=draws)
+
+
+def forecast_weekly_reports(run: WaveSMCRun, weeks: int, seed: int) -> Tensor:
+    """``(F, N, weeks)`` cases reported in each of the next ``weeks`` L-day weeks after the
+    filters' last day (N·I at each week's end): the filtered particles, resampled by weight,
+    simulated forward with the model's own dynamics (jumps at the prior's rate) and reporting."""
+    generator = torch.Generator().manual_seed(seed)
+    result = run.smc
+    model = dataclasses.replace(run.model, proposal_jump_rate=run.model.jump_rate)
+    weights = result.log_weights.exp()
+    ancestors = torch.multinomial(weights, weights.shape[1], replacement=True,
+                                  generator=generator)                       # (F, N)
+    x = owned_planar(torch.gather(result.particles, 1,
+                                  ancestors[..., None].expand(-1, -1, result.particles.shape[-1])),
+                     torch.float64)
+    totals = []
+    for day in range(1, weeks * model.window_days + 1):
+        x = model.transition(x, float(day), 1.0, generator)
+        if day % model.window_days == 0:
+            totals.append(model.sample_window_reports(x, generator))
+    return torch.stack(totals, dim=-1)

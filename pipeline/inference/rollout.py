@@ -39,6 +39,7 @@ Design:
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -58,15 +59,20 @@ BAND_QUANTILES: tuple[float, ...] = (0.02275, 0.15866, 0.5, 0.84134, 0.97725)
 
 @dataclass(frozen=True)
 class RolloutConfig:
-    """``n_paths`` sample paths; ``feedback_noise_sigma`` (see module doc); ``seed``."""
+    """``n_paths`` sample paths; ``feedback_noise_sigma`` and ``noise_persistence`` (see
+    module doc); ``seed``."""
 
     n_paths: int = 200
     feedback_noise_sigma: float = 0.0
     seed: int = 0
+    noise_persistence: float = 0.0
 
     def __post_init__(self) -> None:
         if self.n_paths < 1:
             raise ConfigError(f"RolloutConfig.n_paths={self.n_paths} must be >= 1")
+        if not 0.0 <= self.noise_persistence <= 1.0:
+            raise ConfigError(f"RolloutConfig.noise_persistence={self.noise_persistence} must "
+                              "lie in [0, 1]")
         if not self.feedback_noise_sigma >= 0:
             raise ConfigError(f"RolloutConfig.feedback_noise_sigma={self.feedback_noise_sigma} "
                               "must be >= 0")
@@ -146,11 +152,15 @@ def propagate_paths(estimator: Estimator, anchor_times: Tensor, anchor_values: T
     targets = target_times.double().repeat_interleave(paths, dim=0)                     # (S·P, H)
     absolute_time = uses_absolute_time(estimator)
     out = torch.empty((batch, horizon, dim), dtype=torch.float32)
+    rho = config.noise_persistence
+    eps = draw_noise((batch, 1, eps_dim), generator)
     with torch.no_grad():
         for step in range(horizon):
             t_target = targets[:, step]
             context = assemble_context(values, times, mask, t_target, absolute_time)
-            eps = draw_noise((batch, 1, eps_dim), generator)
+            if step > 0:
+                fresh = draw_noise((batch, 1, eps_dim), generator)
+                eps = fresh if rho == 0.0 else rho * eps + math.sqrt(1.0 - rho * rho) * fresh
             draw = estimator.noise_to_data(eps, context, mask)[:, 0]                 # (S·P, D)
             out[:, step] = draw
             fed_back = draw[:, :n_obs].double()

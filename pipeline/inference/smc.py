@@ -226,14 +226,14 @@ def run_filter(model: StateSpaceModel, observations: Tensor, config: SMCConfig =
     n = config.num_particles
 
     if initial_particles is None:
-        x = _owned_planar(model.initial(num_filters, n, generator), dtype)
+        x = owned_planar(model.initial(num_filters, n, generator), dtype)
     else:
         expected = (num_filters, n, len(model.state_names))
         given = torch.as_tensor(initial_particles)
         if tuple(given.shape) != expected:
             raise ConfigError(f"initial_particles must have shape (F, N, D) = {expected}, got "
                               f"{tuple(given.shape)}")
-        x = _owned_planar(given, dtype)    # a copy: the caller's tensor is never modified
+        x = owned_planar(given, dtype)    # a copy: the caller's tensor is never modified
     observations = observations.to(dtype)
     # Which rows carry any observation: decided once, so pure propagation steps cost no update.
     has_observation = ~torch.isnan(observations).all(dim=-1)                   # (F, T)
@@ -290,7 +290,7 @@ def run_filter(model: StateSpaceModel, observations: Tensor, config: SMCConfig =
                      log_weights=log_w.to(_RESULT_DTYPE), num_particles=n)
 
 
-def _owned_planar(x: Tensor, dtype: torch.dtype) -> Tensor:
+def owned_planar(x: Tensor, dtype: torch.dtype) -> Tensor:
     """A fresh planar (F, N, D) copy of ``x`` in ``dtype`` (the filter may write into it)."""
     out = planar_empty(x.shape[0], x.shape[1], x.shape[2], dtype)
     out.copy_(x)

@@ -569,3 +569,176 @@ def _pyro_mean(smc: Any) -> Tensor:
     # estimator of the filtering mean as ours up to resampling noise.
     weights = torch.softmax(smc.state._log_weights, dim=0).to(torch.float64)
     return weights @ smc.state["x"]
+
+
+# -- the multi-wave renewal model (the weekly forecast's epidemic model) -----------------------
+
+_LOG_FLOOR = 1e-300
+
+
+def negative_binomial_log_prob(count: Tensor, mean: Tensor, dispersion: Tensor) -> Tensor:
+    """log NB(count | mean, dispersion k) (variance mean + mean²/k), broadcasting; mean > 0."""
+    k = dispersion
+    log_total = torch.log(k + mean)
+    return (torch.lgamma(count + k) - torch.lgamma(k) - torch.lgamma(count + 1.0)
+            + k * (torch.log(k) - log_total) + count * (torch.log(mean) - log_total))
+
+
+@dataclass(frozen=True, eq=False)
+class WaveRenewalModel:
+    """The multi-wave prior (:mod:`pipeline.systems.waves`) as a state-space model, in the S/I/R
+    conversion's coordinates — the model the joint flows and the flow member are trained on.
+
+    Particles (F, N, D): ``S, I, R, beta`` (S/I/R as the conversion has them, β per observed
+    susceptible, R_t = β S L), the last L days' new cases ``n_lag{L-1} … n_lag0`` (shares of N;
+    I is their sum), each particle's static prior draws ``log_beta_mean`` (μ), ``reversion``
+    (θ), ``volatility`` (σ), ``importation`` (ι), and ``proposal_log_weight`` (below). One day
+    (dt = 1): log β ← log β + θ(μ − log β) + σε + J (J ~ N(0, jump_sd²) with probability
+    ``jump_rate``), new = S(1 − exp(−β I − ι)), the window moves on by a day, S ← S − new,
+    R = 1 − S − I: the prior's step with the window as the infectious period (γ = 1/L) and no
+    waning (the conversion's S never rises).
+
+    Observation (F, 1): the cases reported in the L days ending that day, N·I of the S/I/R
+    series. The L-day sum of NB(k) daily reports is NB(N·I, L·k) (equal days; their weekday
+    pattern sums out of a whole week). Each daily report enters L overlapping sums, so each sum's
+    log-likelihood is counted at weight 1/L (a composite likelihood): every report informs the
+    filter once, and no weekday factors are needed. (Daily counts with estimated weekday factors
+    left 2 of 1,000 particles on SF's 2022-01-10, where the factor was off for that week.)
+
+    Jumps are rare in the prior (``jump_rate``, 1 in 120 days) but they are how a wave turns; the
+    filter proposes them more often (``proposal_jump_rate``) and corrects by the ratio of the two
+    probabilities (importance weights, so the filter still targets the same posterior). The
+    correction is the last state component, written by ``transition`` and added by
+    ``observation_log_prob``; with ``proposal_jump_rate = jump_rate`` (forecasting) it is 0.
+    """
+
+    default_dtype: ClassVar[torch.dtype] = torch.float64
+
+    population: Tensor            # (F, 1) people
+    dispersion: Tensor            # (F, 1) k of the daily reports
+    window_days: int = 7
+    jump_rate: float = 1.0 / 120.0
+    jump_sd: float = 0.5
+    proposal_jump_rate: float = 0.1
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        lags = tuple(f"n_lag{k}" for k in range(self.window_days - 1, -1, -1))
+        return ("S", "I", "R", "beta", *lags, "log_beta_mean", "reversion", "volatility",
+                "importation", "proposal_log_weight")
+
+    @property
+    def observation_names(self) -> tuple[str, ...]:
+        return ("window_cases",)
+
+    @property
+    def lag_slice(self) -> slice:
+        return slice(4, 4 + self.window_days)
+
+    def initial(self, num_filters: int, num_particles: int, generator: torch.Generator) -> Tensor:
+        raise ConfigError("WaveRenewalModel has no prior of its own: the joint flow's draws seed "
+                          "it (pipeline.inference.hybrid.nf_seeded_wave_smc)")
+
+    def transition(self, x: Tensor, t: float, dt: float, generator: torch.Generator) -> Tensor:
+        if abs(dt - 1.0) > 1e-9:
+            raise ConfigError(f"WaveRenewalModel steps whole days; got dt={dt}")
+        num_filters, num_particles, dim = x.shape
+        planes = x.transpose(1, 2)                                       # (F, D, N)
+        out = planar_empty(num_filters, num_particles, dim, x.dtype)
+        new_planes = out.transpose(1, 2)
+        lags = self.lag_slice
+        static = slice(lags.stop, lags.stop + 4)
+        mu, theta, sigma, iota = planes[:, static].unbind(1)
+        noise = standard_normal((2, num_filters, num_particles), generator, x.dtype)
+        jumped = torch.rand((num_filters, num_particles), generator=generator,
+                            dtype=x.dtype) < self.proposal_jump_rate
+        log_beta = torch.log(planes[:, 3])
+        log_beta = (log_beta + theta * (mu - log_beta) + sigma * noise[0]
+                    + jumped.to(x.dtype) * self.jump_sd * noise[1])
+        beta = torch.exp(log_beta)
+        susceptible, infectious = planes[:, 0], planes[:, 1]
+        new = susceptible * -torch.expm1(-(beta * infectious + iota))
+        new_planes[:, lags.start:lags.stop - 1] = planes[:, lags.start + 1:lags.stop]
+        new_planes[:, lags.stop - 1] = new
+        susceptible = susceptible - new
+        infectious = new_planes[:, lags].sum(1)
+        new_planes[:, 0], new_planes[:, 1] = susceptible, infectious
+        new_planes[:, 2] = (1.0 - susceptible) - infectious
+        new_planes[:, 3] = beta
+        new_planes[:, static] = planes[:, static]
+        if self.proposal_jump_rate == self.jump_rate:
+            new_planes[:, -1] = 0.0
+        else:
+            new_planes[:, -1] = torch.where(
+                jumped, math.log(self.jump_rate / self.proposal_jump_rate),
+                math.log((1.0 - self.jump_rate) / (1.0 - self.proposal_jump_rate)))
+        return out
+
+    def window_dispersion(self, like: Tensor) -> Tensor:
+        """(F, 1) dispersion of an L-day sum of reports: L·k."""
+        return self.window_days * self.dispersion.to(like)
+
+    def observation_log_prob(self, x: Tensor, observation: Tensor) -> Tensor:
+        cases = observation[:, :1]
+        seen = ~torch.isnan(cases)
+        mean = (x[..., 1] * self.population.to(x)).clamp(min=1e-9)
+        log_p = negative_binomial_log_prob(torch.where(seen, cases, torch.zeros_like(cases)),
+                                           mean, self.window_dispersion(x))
+        return torch.where(seen, log_p / self.window_days, torch.zeros_like(log_p)) + x[..., -1]
+
+    def sample_window_reports(self, x: Tensor, generator: torch.Generator) -> Tensor:
+        """(F, N) cases reported in the L days of particles ``x``'s window: NB(N·I, L·k) as a
+        gamma–Poisson draw."""
+        mean = (x[..., 1] * self.population.to(x)).clamp(min=1e-9)
+        k = self.window_dispersion(x).expand_as(mean)
+        return torch.poisson(_gamma(k, generator) * (mean / k), generator=generator)
+
+
+def _gamma(shape: Tensor, generator: torch.Generator) -> Tensor:
+    """Gamma(shape, 1) draws with an explicit generator (Marsaglia–Tsang, shape ≥ 1 via the
+    boost Γ(a) = Γ(a + 1)·U^(1/a) for a < 1), vectorized; torch's own gamma sampler takes no
+    generator."""
+    boost = shape < 1.0
+    a = torch.where(boost, shape + 1.0, shape)
+    d = a - 1.0 / 3.0
+    c = 1.0 / torch.sqrt(9.0 * d)
+    out = torch.empty_like(a)
+    pending = torch.ones_like(a, dtype=torch.bool)
+    while bool(pending.any()):
+        z = torch.randn(a.shape, generator=generator, dtype=a.dtype)
+        u = torch.rand(a.shape, generator=generator, dtype=a.dtype)
+        v = (1.0 + c * z) ** 3
+        ok = (v > 0) & (torch.log(u.clamp(min=_LOG_FLOOR))
+                        < 0.5 * z * z + d - d * v + d * torch.log(v.clamp(min=_LOG_FLOOR)))
+        take = pending & ok
+        out = torch.where(take, d * v, out)
+        pending = pending & ~ok
+    u = torch.rand(a.shape, generator=generator, dtype=a.dtype)
+    return torch.where(boost, out * u.clamp(min=_LOG_FLOOR) ** (1.0 / shape), out)
+
+
+def reporting_pattern(cases: Tensor, fit_days: int = 56) -> tuple[Tensor, Tensor]:
+    """Weekday factors and the NB dispersion of daily reports, from ``cases (F, T)`` alone.
+
+    Each day's count over its centred 7-day mean, over the last ``fit_days`` days with a whole
+    centred week; per weekday the geometric mean, normalised to mean 1: factors ``(F, 7)``,
+    entry j the factor of days T − 7 + j, T + j, … (the last day is j = 6). Dispersion k by
+    moments of the residuals, var = m + m²/k, clipped to [5, 1000]: ``(F,)``.
+    """
+    c = cases.double()
+    num_filters, length = c.shape
+    if length < 14:
+        raise ConfigError(f"reporting_pattern needs at least 14 days, got {length}")
+    kernel = torch.ones((1, 1, 7), dtype=torch.float64) / 7.0
+    centred = torch.nn.functional.conv1d(c[:, None], kernel)[:, 0]         # days 3 … T−4
+    start = max(0, centred.shape[1] - fit_days)
+    mean = centred[:, start:]
+    observed = c[:, 3 + start: 3 + start + mean.shape[1]]
+    log_ratio = torch.log((observed + 0.5) / (mean + 0.5))
+    position = (torch.arange(3 + start, 3 + start + mean.shape[1]) - length) % 7
+    factors = torch.stack([log_ratio[:, position == j].mean(1) for j in range(7)], dim=1).exp()
+    factors = factors / factors.mean(1, keepdim=True)
+    expected = mean * factors[:, position]
+    excess = ((observed - expected) ** 2 - expected).mean(1)
+    k = (expected ** 2).mean(1) / excess.clamp(min=1e-9)
+    return factors, k.clamp(5.0, 1000.0)

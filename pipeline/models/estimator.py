@@ -31,6 +31,8 @@ import torch
 from torch import Tensor, nn
 
 from pipeline.errors import ConfigError
+from pipeline.models.context_transforms import (apply_context_transform,
+                                                check_context_transform)
 from pipeline.models.encoders import EncoderConfig, build_encoder, check_window
 from pipeline.models.maf import ConditionalFlow, FlowConfig, FlowTrajectory, build_flow
 from pipeline.models.standardization import STATS_FIELDS, Standardization
@@ -61,11 +63,15 @@ class EstimatorConfig:
     flow: FlowConfig | None = None
     absolute_time: bool = False
     target_transform: str = IDENTITY
+    # The coordinates raw windows are read in (pipeline.models.context_transforms); configs
+    # saved before it existed load as "identity".
+    context_transform: str = IDENTITY
 
     def __post_init__(self) -> None:
         for name in ("features", "context_channels", "window"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"EstimatorConfig.{name}={getattr(self, name)}: must be >= 1")
+        check_context_transform(self.context_transform, self.context_channels)
         if self.absolute_time and self.context_channels < 3:
             raise ConfigError(f"EstimatorConfig: absolute_time needs two time channels after at "
                               f"least one observed value, context_channels="
@@ -92,6 +98,7 @@ class EstimatorConfig:
 def make_estimator_config(features: int, context_channels: int, window: int,
                           encoder: EncoderConfig = EncoderConfig(), *,
                           absolute_time: bool = False, target_transform: str = IDENTITY,
+                          context_transform: str = IDENTITY,
                           **flow_options: Any) -> EstimatorConfig:
     """EstimatorConfig whose FlowConfig takes D_flow and E from ``features``,
     ``target_transform`` and ``encoder``; ``flow_options`` are the other FlowConfig fields
@@ -100,7 +107,7 @@ def make_estimator_config(features: int, context_channels: int, window: int,
     flow = FlowConfig(features=flow_features, context_features=encoder.embedding_features,
                       **flow_options)
     return EstimatorConfig(features, context_channels, window, encoder, flow, absolute_time,
-                           target_transform)
+                           target_transform, context_transform)
 
 
 def _stats_tensors(stats: StatsLike) -> dict[str, Tensor]:
@@ -220,8 +227,14 @@ class ConditionalEstimator(nn.Module):
         return self.flow.layer_outputs(target, self.embed(context, mask))
 
     # --- original units ----------------------------------------------------------------------
+    @property
+    def context_transform(self) -> str:
+        """The coordinates raw windows are read in (``EstimatorConfig.context_transform``)."""
+        return self.config.context_transform if self.config is not None else IDENTITY
+
     def _embed_raw(self, context: Tensor, mask: Tensor | None) -> Tensor:
         mask = _full_mask(context) if mask is None else mask
+        context = apply_context_transform(self.context_transform, context)
         return self.embed(self.standardize_context(context, mask), mask)
 
     def log_prob(self, target: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:

@@ -16,7 +16,7 @@ import pandas as pd
 from numpy.typing import ArrayLike
 
 ESS_COLLAPSE_FRACTION = 0.05      # ESS below 5 % of the particles: a handful carry the estimate
-ROLLOUT_OVERSHOOT = 3.0           # a rollout median this many times the observed peak of I
+ROLLOUT_OVERSHOOT = 2.0           # a rollout median this many times the observed peak of I
 PRIOR_WIDTH_FRACTION = 0.9        # a 90 % interval this wide, relative to the prior range
 OLD_DATA_DAYS = 7
 

@@ -275,10 +275,12 @@ def _quantile_panel(ax: Axes, d: NDArray, q: NDArray, color: str) -> None:
 def parameter_figure(dates: Sequence[dt.date] | ArrayLike, beta_q: ArrayLike, gamma_q: ArrayLike,
                      rt_q: ArrayLike | None = None, *,
                      beta_prior: tuple[float, float] | None = None,
-                     gamma_prior: tuple[float, float] | None = None) -> bytes:
+                     gamma_prior: tuple[float, float] | None = None,
+                     gamma_fixed: float | None = None) -> bytes:
     """β, γ and R_t = β·S/γ over time: posterior median, 50 % and 90 % intervals; optional
     prior ranges. Each ``*_q`` is ``(T, 5)`` at :data:`LEVELS`; ``rt_q`` is the posterior of the
-    ratio (per joint sample), not a ratio of medians.
+    ratio (per joint sample), not a ratio of medians. ``gamma_fixed``: γ is a stated constant
+    (its panel says so and draws the line).
     """
     d = _dates(dates)
     b = _quantile_columns(beta_q, len(d), "beta_q")
@@ -287,7 +289,9 @@ def parameter_figure(dates: Sequence[dt.date] | ArrayLike, beta_q: ArrayLike, ga
     fig, axes = _figure(2.15 * rows, rows, 1, sharex=True)
     panels = ((axes[0, 0], b, "transmission rate β", "β (per day)", OKABE_ITO["vermilion"],
                beta_prior),
-              (axes[1, 0], g, "recovery rate γ", "γ (per day)", OKABE_ITO["blue"], gamma_prior))
+              (axes[1, 0], g, "recovery rate γ" if gamma_fixed is None else
+               f"recovery rate γ = {gamma_fixed:.4g} per day (fixed by the conversion's window)",
+               "γ (per day)", OKABE_ITO["blue"], gamma_prior))
     for ax, q, title, ylabel, color, prior in panels:
         _quantile_panel(ax, d, q, color)
         if prior is not None:

@@ -136,6 +136,8 @@ class Headline:
     rt: RtEstimate
     skill: tuple[Skill, ...]
     n_paths: int
+    # the NF-seeded SMC forecaster's relative WIS on weekly cases (all horizons), when scored
+    smc_relative_wis: float | None = None
 
     @property
     def infectious_now_people(self) -> float:
@@ -270,11 +272,20 @@ def published_weekly(results: ForecastResults) -> WeeklyForecast:
     return results.weekly
 
 
+SMC_FORECASTER = "nf-smc"
+
+
+def _smc_relative_wis(weekly: WeeklyForecast) -> float | None:
+    cases = weekly.summary()["by_target"]["cases"]
+    return cases[SMC_FORECASTER]["relative_wis_vs_baseline"]["all"] if SMC_FORECASTER in cases \
+        else None
+
+
 def compute_headline(results: ForecastResults) -> Headline:
     weekly = published_weekly(results)
     history = weekly.history
     latest = weekly.latest
-    return Headline(
+    return Headline(smc_relative_wis=_smc_relative_wis(weekly),
         origin=weekly.origin.date(), last_data_day=history.dates[-1].date(),
         population=int(history.population), infectious_now=float(history.I[-1]),
         origin_week_cases=origin_week_cases(weekly), horizons=_horizons(weekly),
@@ -328,6 +339,12 @@ def facts_frame(h: Headline) -> pd.DataFrame:
                        f"sample of the joint flow's forward estimate"
                        + (f" ({h.rt.n_dropped} of {h.rt.n_samples} samples with γ ≤ 0 left "
                           "out)" if h.rt.n_dropped else ""),
+        "one model": "R_t, β, the rollouts and the NF-seeded SMC come from joint flows trained "
+                     "on the multi-wave prior of the published forecast's flow member (γ = 1/7 "
+                     "per day, fixed by the 7-day window)"
+                     + (f"; the SMC's own four-week forecast scores {_fmt_ratio(h.smc_relative_wis)}"
+                        " relative WIS on weekly cases in the backtest and is not averaged in"
+                        if h.smc_relative_wis is not None else ""),
     }
     return pd.DataFrame({"value": list(facts.values())},
                         index=pd.Index(list(facts), name="growth"))

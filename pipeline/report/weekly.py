@@ -60,6 +60,7 @@ FORECASTERS = {  # the published forecast first, the references last
     "growth-qr": "growth regression pooled over counties (growth-qr)",
     "nf-growth": "conditional-flow member (nf-growth)",
     "nf-real": "flow fine-tuned on real counties (nf-real)",
+    "nf-smc": "NF-seeded SMC (nf-smc; scored, not averaged)",
     "hub-baseline": "hub baseline",
     "autoets": "AutoETS (reference)",
 }
@@ -351,33 +352,45 @@ def rollout_section(results: ForecastResults) -> Section:
     return Section.weekly(SectionKey.ROLLOUTS, items, alerts=alerts)
 
 
+ONE_MODEL = (
+    "One model of the epidemic: the forward and backward joint flows behind β, R_t, the state "
+    "estimates and the rollouts are trained on the multi-wave prior that also trains the "
+    "published forecast's flow member (SIRS with a drifting, jumping transmission rate, seen "
+    "through the same 7-day S/I/R conversion as the SF data), and the NF-seeded SMC filters that "
+    "prior's own dynamics from the flow's draws. γ = 1/7 per day is not estimated: the "
+    "conversion removes every case after exactly 7 days. R_t = β·S/γ on page 1 is the forward "
+    "flow's; the SMC's four-week forecast is scored in the backtest beside the members "
+    "(“nf-smc”) and enters the published forecast only if it earns weight there.")
+
+
 def parameter_section(results: ForecastResults) -> Section:
     dates, wide = _long_to_arrays(results.parameters, "forward")
-    prior = results.config.resolved.prior
-    priors: dict[str, tuple[float, float]] = {"beta": prior.beta, "gamma": prior.gamma}
+    resolved = results.config.resolved
+    gamma = resolved.gamma
+    beta_prior = resolved.prior.beta_range
     rt = _q(wide["Rt"]) if "Rt" in wide else None
     png = figures.parameter_figure(dates, _q(wide["beta"]), _q(wide["gamma"]), rt,
-                                   beta_prior=priors["beta"], gamma_prior=priors["gamma"])
+                                   beta_prior=beta_prior, gamma_fixed=gamma)
     names = {"beta": "β (per day)", "gamma": "γ (per day)", "Rt": "R_t = β·S/γ"}
     rows = {names[c]: [wide[c]["q0.5"].iloc[-1],
                        fmt_range(wide[c]["q0.25"].iloc[-1], wide[c]["q0.75"].iloc[-1], _g3),
                        fmt_range(wide[c]["q0.05"].iloc[-1], wide[c]["q0.95"].iloc[-1], _g3),
-                       fmt_range(*priors[c], _g3) if c in priors else "—"]
-            for c in names if c in wide}
+                       fmt_range(*beta_prior, _g3) if c == "beta" else "—"]
+            for c in names if c in wide and c != "gamma"}
+    rows[names["gamma"]] = [gamma, "fixed", f"1/{resolved.prior.window_days} (the window)", "—"]
     table = pd.DataFrame(list(rows.values()), index=pd.Index(list(rows), name="parameter"),
                          columns=["median", "50% interval", "90% interval", "prior range"])
-    alerts = [a for a in (checks.prior_not_updated(
-        label, wide[c]["q0.05"].to_numpy(), wide[c]["q0.95"].to_numpy(), priors[c], dates)
-        for c, label in (("beta", "β"), ("gamma", "γ"))) if a]
+    alert = checks.prior_not_updated("β", wide["beta"]["q0.05"].to_numpy(),
+                                     wide["beta"]["q0.95"].to_numpy(), beta_prior, dates)
     return Section.weekly(SectionKey.PARAMETERS, [
-        _fig(png, "Joint estimates of the transmission rate β, the recovery rate γ and "
-                  f"R_t = β·S/γ (per joint sample) from the {results.config.resolved.window} "
-                  "observations before each day: median, 50% and 90% intervals; dotted lines: "
-                  "range of the synthetic training prior (for β its starting range: β drifts "
-                  "in the prior, and the estimate is the β in effect on the day).",
-             "Time series of beta, gamma and R_t with 50% and 90% intervals"),
+        _fig(png, "Joint estimates of the transmission rate β (per observed susceptible) and "
+                  f"R_t = β·S/γ (per joint sample) from the {resolved.window} days of S/I/R "
+                  "before each day: median, 50% and 90% intervals; dotted lines: the prior's "
+                  "starting range of β (β drifts in the prior, and the estimate is the β in "
+                  "effect on the day). γ = 1/7 per day is fixed by the conversion's window.",
+             "Time series of beta and R_t with 50% and 90% intervals, gamma fixed"),
         TableItem(table, f"β, γ and R_t on {dates[-1].date()} (latest estimated day).",
-                  decimals=4)], alerts=alerts)
+                  decimals=4)], intro=ONE_MODEL, alerts=[alert] if alert else [])
 
 
 def _g3(x: float) -> str:
@@ -410,9 +423,11 @@ def smc_section(results: ForecastResults) -> Section:
                                   collapse_fraction=checks.ESS_COLLAPSE_FRACTION)
     alert = checks.ess_collapse(ess, n, dates)
     return Section.weekly(SectionKey.SMC, [_fig(
-        png, f"Bootstrap particle filter ({n:,} particles) seeded with flow samples at "
-             f"{dates[0].date()}: filtered median, 50% and 90% weighted-quantile bands; bottom: "
-             "effective sample size.",
+        png, f"Particle filter ({n:,} particles) on the multi-wave prior's renewal dynamics, "
+             f"seeded with the forward joint flow's (S, I, R, β) draws at {dates[0].date()} and "
+             "following the cases reported in each 7-day window: filtered median, 50% and 90% "
+             "weighted-quantile bands; bottom: effective sample size. The same filter, run at "
+             "every past Saturday, is the backtest's “nf-smc” forecaster.",
         "Particle filter estimates of S, I, R with 50% and 90% bands and effective sample "
         "size")], alerts=[alert] if alert else [])
 

@@ -57,6 +57,12 @@ class WavePrior:
     weekday_sd: tuple[float, float] = (0.0, 0.3)
     dispersion: tuple[float, float] = (10.0, 1000.0)       # k, log-uniform
 
+    @property
+    def beta_range(self) -> tuple[float, float]:
+        """The transmission rate's starting range, R at day 0 over L (per susceptible)."""
+        return (self.reproduction_start[0] / self.window_days,
+                self.reproduction_start[1] / self.window_days)
+
     def __post_init__(self) -> None:
         if self.days <= self.burn_in_days:
             raise ConfigError(f"WavePrior.days={self.days} must exceed burn_in_days="
@@ -137,3 +143,66 @@ def simulate_waves(prior: WavePrior, n_trajectories: int, seed: int) -> WaveEnse
     keep = slice(prior.burn_in_days, days)
     return WaveEnsemble(cases=cases[:, keep].astype(np.int64), infections=infections[:, keep],
                         susceptible=susceptibles[:, keep], log_beta=log_betas[:, keep], prior=prior)
+
+
+# ----------------------------------------------------------------------------- S/I/R view
+#
+# The joint state/parameter flows and the NF-seeded SMC see this prior through the S/I/R
+# conversion of :mod:`pipeline.data.sir_transform` applied to its reported cases, so they model
+# the same quantities the SF series holds: I_t = the cases reported in the last L days over N,
+# R_t = the cases reported before that (plus the cases reported before the series started) over
+# N, S_t = 1 − I_t − R_t. The recovery rate is γ = 1/L by construction (the window removes every
+# case after exactly L days), so it is stated, not estimated. The transmission rate reported
+# with it is the one these coordinates imply: R_t = β_t S_t^true L is the reproduction number
+# of the simulated epidemic, and β^obs_t = R_t / (L S_t) the rate per *observed* susceptible,
+# so that R_t = β^obs S / γ holds in the coordinates every report shows.
+
+REMOVED_BEFORE_RANGE = (1e-6, 0.15)   # cases reported before the first day, as a share of N
+
+
+def recovery_rate(prior: WavePrior) -> float:
+    """γ = 1/L per day: the conversion's fixed infectious window, not a free parameter."""
+    return 1.0 / prior.window_days
+
+
+def observed_sir(cases: NDArray[np.integer] | NDArray[np.floating], population: int,
+                 window_days: int, removed_before: NDArray[np.float64] | float = 0.0
+                 ) -> NDArray[np.float64]:
+    """``(..., T − L + 1, 3)`` S, I, R of daily reported ``cases (..., T)`` as the conversion
+    computes them, from day L − 1 on (the first day with a whole window). ``removed_before``:
+    the share of N reported before day 0 (scalar or ``(...,)``)."""
+    c = np.asarray(cases, dtype=np.float64)
+    cumulative = np.concatenate([np.zeros(c.shape[:-1] + (1,)), np.cumsum(c, axis=-1)], axis=-1)
+    infectious = (cumulative[..., window_days:] - cumulative[..., :-window_days]) / population
+    before = np.asarray(removed_before, dtype=np.float64)[..., None]
+    removed = before + cumulative[..., :-window_days] / population
+    susceptible = (1.0 - infectious) - removed
+    return np.stack([susceptible, infectious, removed], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class WaveSIRView:
+    """A wave ensemble in S/I/R coordinates (module section above): ``sir (M, T', 3)`` the
+    conversion's S/I/R of the reported cases, ``reproduction (M, T')`` R_t = β_t S_t^true L,
+    ``beta (M, T')`` = β^obs_t = R_t / (L S_t), on days ``L − 1 …`` of the ensemble."""
+
+    sir: NDArray[np.float64]
+    reproduction: NDArray[np.float64]
+    beta: NDArray[np.float64]
+    gamma: float
+
+
+def sir_view(ensemble: WaveEnsemble, seed: int) -> WaveSIRView:
+    """The ensemble through the S/I/R conversion; each trajectory draws the share of N reported
+    before its first day (uniform in :data:`REMOVED_BEFORE_RANGE`, from ``seed``): later waves
+    start from a population with earlier cases on record, as SF's do."""
+    prior = ensemble.prior
+    rng = np.random.default_rng(seed)
+    before = rng.uniform(*REMOVED_BEFORE_RANGE, size=ensemble.cases.shape[0])
+    sir = observed_sir(ensemble.cases, prior.population, prior.window_days, before)
+    keep = slice(prior.window_days - 1, None)
+    reproduction = np.exp(ensemble.log_beta[:, keep]) * ensemble.susceptible[:, keep] \
+        * prior.window_days
+    beta = reproduction / (prior.window_days * sir[..., 0])
+    return WaveSIRView(sir=sir, reproduction=reproduction, beta=beta,
+                       gamma=recovery_rate(prior))

@@ -53,7 +53,9 @@ from pipeline.models.standardization import STATS_FIELDS, Standardization, compu
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.systems import sir as sir_system
 from pipeline.names import COMPARTMENTS, DIRECTIONS, PARAMETERS
+from pipeline.models.context_transforms import SIR_LOG_INFECTIOUS, apply_context_transform
 from pipeline.systems import vehicle as vehicle_system
+from pipeline.systems import waves as waves_system
 
 FORMAT = "flowcast.windowed-dataset"
 FORMAT_VERSION = 1
@@ -61,7 +63,12 @@ TARGET_KINDS = ("state", "state+params")
 SPLITS = ("all", "train", "validation")
 SIR_DATASETS = ("sir-single", "sir-multi", "sir-sf")
 VEHICLE_DATASETS = ("vehicle-full", "vehicle-dropout", "vehicle-sparse")
-DATASET_NAMES = SIR_DATASETS + VEHICLE_DATASETS
+# The multi-wave prior (pipeline.systems.waves) seen through the S/I/R conversion: the weekly
+# forecast's joint models train on it (one prior with the forecast's flow member).
+WAVE_DATASETS = ("sf-waves",)
+WAVE_TARGET_FEATURES = (*COMPARTMENTS, "beta")
+WAVE_TRAJECTORIES = 2000
+DATASET_NAMES = SIR_DATASETS + VEHICLE_DATASETS + WAVE_DATASETS
 TIME_FEATURE = "t_obs-t_target"
 ABSOLUTE_TIME_FEATURE = "t_obs"
 DEFAULT_WINDOW = 5
@@ -99,20 +106,28 @@ class DatasetConfig:
             raise ConfigError(f"val_fraction={self.val_fraction} must be in [0, 1)")
         if self.n_trajectories is not None and self.n_trajectories < 1:
             raise ConfigError(f"n_trajectories={self.n_trajectories} must be >= 1")
-        if self.target == "state+params" and self.name not in ("sir-multi", "sir-sf"):
+        if self.target == "state+params" and self.name not in ("sir-multi", "sir-sf",
+                                                               *WAVE_DATASETS):
             raise ConfigError("target 'state+params' needs varying parameters (sir-multi, "
-                              f"sir-sf); {self.name!r} has none to estimate")
+                              f"sir-sf, sf-waves); {self.name!r} has none to estimate")
+        if self.name in WAVE_DATASETS and self.target != "state+params":
+            raise ConfigError(f"{self.name!r} windows have the joint target (S, I, R, beta); "
+                              f"target {self.target!r} is not built")
         if self.absolute_time and self.name in SIR_DATASETS:
             raise ConfigError(f"absolute_time=True for {self.name!r}: SIR windows carry the "
                               "relative time only (an epidemic's start is not observed)")
 
     @property
     def system(self) -> str:
+        if self.name in WAVE_DATASETS:
+            return "waves"
         return "sir" if self.name in SIR_DATASETS else "vehicle"
 
     def system_config(self) -> sir_system.SIRPrior | vehicle_system.VehicleConfig:
         """The SIR prior or vehicle config this dataset simulates (size override applied)."""
         base: sir_system.SIRPrior | vehicle_system.VehicleConfig
+        if self.system == "waves":
+            raise ConfigError(f"{self.name!r} simulates the multi-wave prior: use wave_prior()")
         if self.system == "sir":
             base = sir_system.get_prior(self.name)
         else:
@@ -120,6 +135,21 @@ class DatasetConfig:
         if self.n_trajectories is not None:
             base = dataclasses.replace(base, n_trajectories=self.n_trajectories)
         return base
+
+    def wave_prior(self) -> waves_system.WavePrior:
+        """The multi-wave prior of an ``sf-waves`` dataset (the forecast member's)."""
+        if self.system != "waves":
+            raise ConfigError(f"{self.name!r} is not a multi-wave dataset")
+        return waves_system.WavePrior()
+
+    @property
+    def trajectories(self) -> int:
+        """How many trajectories the dataset simulates."""
+        if self.n_trajectories is not None:
+            return self.n_trajectories
+        if self.system == "waves":
+            return WAVE_TRAJECTORIES
+        return self.system_config().n_trajectories
 
 
 def default_absolute_time(name: str) -> bool:
@@ -321,8 +351,8 @@ def train_validation_split(ds: WindowedDataset, target_transform: str | None = N
 # --------------------------------------------------------------------------- assembling
 
 def _assemble(*, system: str, config_name: str,
-              system_config: sir_system.SIRPrior | vehicle_system.VehicleConfig, seed: int,
-              direction: str,
+              system_config: sir_system.SIRPrior | vehicle_system.VehicleConfig | dict[str, Any],
+              seed: int, direction: str,
               target_kind: str, window: int, val_fraction: float, context_features: tuple[str, ...],
               target_features: tuple[str, ...], n_trajectories: int, n_observed_points: int,
               n_observed_values: int, windows: tuple[Tensor, ...]) -> WindowedDataset:
@@ -338,7 +368,8 @@ def _assemble(*, system: str, config_name: str,
         context_features=context_features, target_features=target_features, window=window,
         seed=seed, val_fraction=val_fraction, split="all", n_trajectories=n_trajectories,
         n_observed_points=n_observed_points, n_observed_values=n_observed_values,
-        config=json.loads(json.dumps(dataclasses.asdict(system_config))),
+        config=json.loads(json.dumps(system_config if isinstance(system_config, dict)
+                                     else dataclasses.asdict(system_config))),
         package_version=pipeline.__version__, format_version=FORMAT_VERSION, data_sha256="")
     return _with_hash(WindowedDataset(context, mask, target, trajectory, target_time, stats, meta))
 
@@ -391,14 +422,61 @@ def windows_from_vehicle(ensemble: vehicle_system.VehicleEnsemble, direction: st
         n_observed_points=n_points, n_observed_values=2 * n_points, windows=windows)
 
 
+def windows_from_waves(ensemble: waves_system.WaveEnsemble, direction: str = "forward",
+                       window: int = DEFAULT_WINDOW, val_fraction: float = DEFAULT_VAL_FRACTION,
+                       seed: int = 0) -> WindowedDataset:
+    """Joint windows of a multi-wave ensemble seen through the S/I/R conversion
+    (:func:`pipeline.systems.waves.sir_view`): context = the R observed S/I/R rows before
+    (forward) or after (backward) the target day, with I on the log scale of
+    ``sir-log-infectious`` (:mod:`pipeline.models.context_transforms`; the models trained on
+    these windows read raw windows through the same transform); target = the observed S, I, R
+    of the target day and β^obs, the transmission rate per observed susceptible (γ = 1/L is
+    fixed by the conversion and not a target). ``seed`` draws each trajectory's earlier
+    reported share and the train/validation split."""
+    view = waves_system.sir_view(ensemble, seed)
+    sir = torch.from_numpy(view.sir)
+    n_traj, n_days = sir.shape[:2]
+    times = torch.arange(n_days, dtype=torch.float64)
+    kept = torch.ones((n_traj, n_days), dtype=torch.bool)
+    beta = torch.from_numpy(view.beta)[..., None]
+    context, mask, target, trajectory, target_time = make_windows(
+        times, sir, kept, sir, beta, direction, window)
+    # A target day with no case reported in its window (I = 0) has no log-ratio; the model's
+    # draws are strictly positive (one case is 1e-6 of SF), so those windows are dropped.
+    keep = (target > 0).all(dim=-1)
+    context, mask, target = context[keep], mask[keep], target[keep]
+    trajectory, target_time = trajectory[keep], target_time[keep]
+    context = apply_context_transform(SIR_LOG_INFECTIOUS, context)
+    prior = dataclasses.asdict(ensemble.prior) | {"n_trajectories": n_traj,
+                                                  "removed_before": list(
+                                                      waves_system.REMOVED_BEFORE_RANGE)}
+    return _assemble(
+        system="waves", config_name="sf-waves", system_config=prior, seed=seed,
+        direction=direction, target_kind="state+params", window=window,
+        val_fraction=val_fraction,
+        context_features=("S_obs", "log_I_obs", "R_obs", TIME_FEATURE),
+        target_features=WAVE_TARGET_FEATURES, n_trajectories=n_traj,
+        n_observed_points=int(kept.sum()), n_observed_values=int(sir.numel()),
+        windows=(context, mask, target, trajectory, target_time))
+
+
 def progress_total(config: DatasetConfig) -> int:
     """Units ``build_dataset`` reports: one per simulation step plus one for windowing."""
+    if config.system == "waves":
+        return 1
     return config.system_config().n_steps + 1
 
 
 def build_dataset_from_config(config: DatasetConfig,
                               progress: ProgressReporter | None = None) -> WindowedDataset:
     reporter = progress or SilentProgress()
+    if config.system == "waves":
+        ensemble = waves_system.simulate_waves(config.wave_prior(), config.trajectories,
+                                               config.seed)
+        ds = windows_from_waves(ensemble, config.direction, config.window, config.val_fraction,
+                                config.seed)
+        reporter.advance(1, windows=len(ds))
+        return ds
     system_config = config.system_config()
     if isinstance(system_config, sir_system.SIRPrior):
         sir_ensemble = sir_system.simulate_ensemble(system_config, seed=config.seed,

@@ -93,6 +93,8 @@ FAST_WARMUP_FRACTION = 0.05
 FAST_FINAL_LR_FRACTION = 0.01
 FAST_ITERATION_FRACTION = 0.6  # of the paper's iterations; the cosine schedule spans them
 FAST_EARLY_STOP_PATIENCE = 15  # evaluations (of every 100 iterations) without improvement
+# The product's joint model reads two weeks of the S/I/R series (docs/models.md).
+SF_WAVES_WINDOW = 14
 
 
 @dataclass(frozen=True)
@@ -113,6 +115,7 @@ class SetUp:
     context_noise_sigma: float
     window: int = 5
     target_transform: str = "identity"
+    context_transform: str = "identity"
 
 
 SETUPS: dict[str, SetUp] = {s.name: s for s in (
@@ -123,6 +126,9 @@ SETUPS: dict[str, SetUp] = {s.name: s for s in (
     SetUp("sir-joint", "sir-multi", "state+params", 5, 4, 10, 6, 6, 10_000, 2048, 1e-3, 0.01),
     SetUp("sir-sf-joint", "sir-sf", "state+params", 5, 4, 10, 6, 6, 10_000, 2048, 1e-3, 0.0,
           target_transform="sir-log-ratio"),
+    SetUp("sf-waves-joint", "sf-waves", "state+params", 4, 4, 5, 64, 32, 5_000, 2048, 1e-3,
+          0.0, window=SF_WAVES_WINDOW, target_transform="sir-log-ratio",
+          context_transform="sir-log-infectious"),
 )}
 PRESET_NAMES: tuple[str, ...] = tuple(SETUPS)
 
@@ -221,7 +227,8 @@ def get_preset(name: str, encoder: str = "transformer", *, recipe: str = DEFAULT
     estimator = make_estimator_config(setup.features, setup.context_channels, setup.window,
                                       _encoder_config(encoder, setup.embedding_features),
                                       absolute_time=bool(dataset.absolute_time),
-                                      target_transform=setup.target_transform, **flow_options)
+                                      target_transform=setup.target_transform,
+                                      context_transform=setup.context_transform, **flow_options)
     return TrainingPreset(name=name, encoder_choice=encoder, recipe=recipe, dataset=dataset,
                           estimator=estimator, train=train_config(setup, recipe, seed),
                           kinetic=_kinetic(encoder))
