@@ -96,8 +96,9 @@ def test_outputs_exist_with_real_numbers(good_run):
     np.testing.assert_allclose(by_target["cases"], by_target["I"] * SF_POPULATION_2020_CENSUS, rtol=1e-9)
     members = pd.read_csv(out / "member_forecasts.csv")
     # nf-smc: the NF-seeded SMC on the same model, scored beside the members, not averaged
-    assert set(members["forecaster"]) == {"autoets", "nf-growth", "hub-baseline", "nf-smc",
-                                          "ensemble-uncalibrated"}
+    # no CDPH counties in this data dir: growth-qr learns from SF alone and nf-real is left out
+    assert set(members["forecaster"]) == {"autoets", "growth-qr", "nf-growth", "hub-baseline",
+                                          "nf-smc", "ensemble-uncalibrated"}
 
     # the hubverse file of the same forecast, valid under hub-config/tasks.json
     from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
@@ -118,8 +119,8 @@ def test_outputs_exist_with_real_numbers(good_run):
     assert set(skill["cases"]) == {"h1", "h2", "h3", "h4", "all"}
     assert all(v is not None and np.isfinite(v) and v > 0 for v in skill["cases"].values())
     scores = pd.read_csv(out / "backtest_scores.csv")
-    assert set(scores["forecaster"]) == {"autoets", "nf-growth", "hub-baseline", "nf-smc",
-                                         "ensemble-uncalibrated", "published"}
+    assert set(scores["forecaster"]) == {"autoets", "growth-qr", "nf-growth", "hub-baseline",
+                                         "nf-smc", "ensemble-uncalibrated", "published"}
     assert scores["origin_date"].max() < ORIGIN     # the latest origin has no truth yet
     np.testing.assert_allclose(scores["wis"], scores[["dispersion", "overprediction",
                                                       "underprediction"]].sum(axis=1))
