@@ -138,16 +138,17 @@ def draw_shares(completeness: NDArray[np.float64], precision: NDArray[np.float64
 
 
 def sample_final_counts(observed: NDArray[np.int64], dates: pd.DatetimeIndex,
-                        shares: NDArray[np.float64], config: NowcastConfig,
-                        rng: np.random.Generator) -> NDArray[np.int64]:
-    """``(K, T)`` final counts ≥ ``observed (T,)`` given the arrived shares ``(K, T)``. The
-    trend is fitted to the last ``trend_days``; older days (nearly complete) are centred on
-    their own count scaled up, c_d / p_d."""
+                        completeness: NDArray[np.float64], shares: NDArray[np.float64],
+                        config: NowcastConfig, rng: np.random.Generator) -> NDArray[np.int64]:
+    """``(K, T)`` final counts ≥ ``observed (T,)`` given the completeness ``(K, T)`` (the
+    trend's offsets: a single day's scatter must not tilt the trend) and the shares that
+    arrived ``(K, T)`` (the thinning of each day). The trend is fitted to the last
+    ``trend_days``; older days (nearly complete) are centred on their own count scaled up."""
     counts = observed.astype(np.float64)
     recent = slice(max(len(dates) - config.trend_days, 0), len(dates))
     design = trend_design(dates, dates[-1])
-    beta, covariance, kappa = fit_trend(counts[recent], shares[:, recent], design[recent],
-                                        config.ridge)
+    beta, covariance, kappa = fit_trend(counts[recent], completeness[:, recent],
+                                        design[recent], config.ridge)
     chol = np.linalg.cholesky(covariance + 1e-10 * np.eye(design.shape[1]))
     drawn = beta + np.einsum("kpq,kq->kp", chol, rng.standard_normal(beta.shape))
     trend = np.exp(np.clip(drawn @ design.T, -50, 30))                      # (K, T) μ_d
@@ -195,7 +196,8 @@ def nowcast_history(history: EpiHistory, model: DelayModel, *, as_of: pd.Timesta
     lags = (as_of - dates).days.to_numpy().astype(np.float64)
     shares = draw_shares(completeness,
                          model.precision(size, lags) if config.thinning_noise else None, rng)
-    samples = sample_final_counts(observed, dates, shares, config, rng)
+    samples = sample_final_counts(observed, dates, np.clip(completeness, 1e-6, 1.0), shares,
+                                  config, rng)
     return Nowcast(dates=dates, observed=observed, samples=samples, completeness=completeness,
                    as_of=as_of)
 
