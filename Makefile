@@ -29,6 +29,12 @@ ARCHIVE ?= ../shared/data/datasf
 ARCHIVE_FILES = -name 'COVID-19_Cases_Over_Time.csv' -o -name 'COVID-19_Deaths_Over_Time.csv' \
                 -o -name 'Covid-19_Tests.csv'
 
+# Archived CDPH county downloads (vintages): the nowcast's delay model is fitted from them and
+# from every CDPH vintage in the cache (pipeline/forecast/nowcasting.py; a missing folder is
+# skipped, and with fewer than two vintages the run drops the last 14 days instead).
+CDPH_ARCHIVE ?= ../shared/data/cdph
+export FLOWCAST_CDPH_ARCHIVE ?= $(CDPH_ARCHIVE)
+
 forecast: venv sysdeps
 	@if [ -d "$(ARCHIVE)" ]; then \
 	  $(VENV)/bin/flowcast data import --if-empty \

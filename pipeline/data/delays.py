@@ -31,6 +31,10 @@ Laplace approximation of the marginal likelihood) compares choices (``bench/nowc
 """
 from __future__ import annotations
 
+import dataclasses
+import io
+import json
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -41,6 +45,7 @@ from numpy.typing import NDArray
 
 from pipeline.data.vintage_pairs import RevisionPairs
 from pipeline.errors import ConfigError, FlowcastError
+from pipeline.io import atomic_write_bytes
 
 if TYPE_CHECKING:
     import torch
@@ -86,6 +91,13 @@ class DelayModelConfig:
         """The bin of every lag 0..max_lag−1."""
         return np.searchsorted(np.asarray(self.bin_edges), np.arange(self.max_lag),
                                side="right").astype(np.int64) - 1
+
+
+def lag_days(dates: pd.DatetimeIndex, as_of: pd.Timestamp) -> NDArray[np.int64]:
+    """Days from each of ``dates`` to ``as_of`` (the lag at which ``as_of`` sees them)."""
+    day_ns = pd.Timedelta(days=1).value
+    stamps = pd.DatetimeIndex(dates).as_unit("ns").to_numpy(dtype=np.int64)
+    return (pd.Timestamp(as_of).value - stamps) // day_ns
 
 
 def effect_design(max_lag: int) -> NDArray[np.float64]:
@@ -332,7 +344,7 @@ class DelayModel:
                             county: str | None, seed: int) -> NDArray[np.float64]:
         """``(n, T)`` completeness of each of ``dates`` as known on ``as_of`` (lag
         ``as_of − date``; 1 beyond ``max_lag``, and for days after ``as_of`` an error)."""
-        lags = (pd.Timestamp(as_of) - pd.DatetimeIndex(dates)).days.to_numpy()
+        lags = lag_days(dates, as_of)
         if (lags < 0).any():
             raise DelayModelError(f"days after the data date {pd.Timestamp(as_of).date()} have "
                                   "no completeness")
@@ -391,8 +403,8 @@ class DelayModel:
         return torch.stack(curves).numpy()
 
 
-def fit_delay_model(pairs: RevisionPairs, config: DelayModelConfig = DelayModelConfig()
-                    ) -> DelayModel:
+def fit_delay_model(pairs: RevisionPairs, config: DelayModelConfig = DelayModelConfig(),
+                    sources: tuple[str, ...] = ()) -> DelayModel:
     """The posterior mode and Laplace covariance of the delay model on ``pairs``."""
     import torch
 
@@ -425,12 +437,13 @@ def fit_delay_model(pairs: RevisionPairs, config: DelayModelConfig = DelayModelC
     optimizer.step(closure)
     mode = theta.detach().clone()
     hessian = torch.autograd.functional.hessian(negative_log_posterior, mode, vectorize=True)
-    hessian = 0.5 * (hessian + hessian.T)
-    covariance = _inverse_positive_definite(hessian.numpy())
+    assert isinstance(hessian, torch.Tensor)
+    symmetric = 0.5 * (hessian + hessian.T)
+    covariance = _inverse_positive_definite(symmetric.numpy())
     return DelayModel(config=config, counties=pairs.counties, eras=pairs.eras,
                       mode=mode.numpy(), covariance=covariance,
                       log_posterior=-float(negative_log_posterior(mode)),
-                      n_observations=len(usable), capped=pairs.capped)
+                      n_observations=len(usable), capped=pairs.capped, sources=sources)
 
 
 def _inverse_positive_definite(hessian: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -441,6 +454,35 @@ def _inverse_positive_definite(hessian: NDArray[np.float64]) -> NDArray[np.float
         raise DelayModelError(f"the delay model's fit is not at a minimum (Hessian eigenvalue "
                               f"{values.min():.3g}); more iterations are needed")
     return (vectors / np.maximum(values, floor)) @ vectors.T
+
+
+def save_delay_model(model: DelayModel, path: str | os.PathLike[str]) -> None:
+    """Write a fitted model (atomically) for :func:`load_delay_model`."""
+    meta = {"config": dataclasses.asdict(model.config), "counties": list(model.counties),
+            "eras": [str(e.date()) for e in model.eras], "log_posterior": model.log_posterior,
+            "n_observations": model.n_observations, "capped": model.capped,
+            "sources": list(model.sources)}
+    buffer = io.BytesIO()
+    np.savez(buffer, mode=model.mode, covariance=model.covariance,
+             meta=np.array(json.dumps(meta)))
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_delay_model(path: str | os.PathLike[str], config: DelayModelConfig) -> DelayModel:
+    """A model written by :func:`save_delay_model` for ``config`` (else ``DelayModelError``)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data["meta"]))
+            mode, covariance = data["mode"], data["covariance"]
+    except (OSError, KeyError, ValueError) as exc:
+        raise DelayModelError(f"cannot read the delay model {path}: {exc}") from exc
+    if meta["config"] != json.loads(json.dumps(dataclasses.asdict(config))):
+        raise DelayModelError(f"the delay model {path} was fitted with another config")
+    return DelayModel(config=config, counties=tuple(meta["counties"]),
+                      eras=tuple(pd.Timestamp(e) for e in meta["eras"]), mode=mode,
+                      covariance=covariance, log_posterior=float(meta["log_posterior"]),
+                      n_observations=int(meta["n_observations"]), capped=int(meta["capped"]),
+                      sources=tuple(meta["sources"]))
 
 
 def log_evidence(pairs: RevisionPairs, config: DelayModelConfig) -> float:

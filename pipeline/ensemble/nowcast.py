@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.data.delays import DelayModel
+from pipeline.data.delays import DelayModel, lag_days
 from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, TargetError
 
 N_TREND_COEFFICIENTS = 2 + 6        # level, slope per week, weekday effects (Monday = 0)
@@ -193,7 +193,7 @@ def nowcast_history(history: EpiHistory, model: DelayModel, *, as_of: pd.Timesta
     rng = np.random.default_rng(seeds[1])
     # a day's scatter depends on its size; its final count is about c / F
     size = observed / np.maximum(completeness.mean(axis=0), 0.05)
-    lags = (as_of - dates).days.to_numpy().astype(np.float64)
+    lags = lag_days(dates, as_of).astype(np.float64)
     shares = draw_shares(completeness,
                          model.precision(size, lags) if config.thinning_noise else None, rng)
     samples = sample_final_counts(observed, dates, np.clip(completeness, 1e-6, 1.0), shares,

@@ -34,10 +34,10 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.ensemble.calibration import quantiles_at
-from pipeline.ensemble.members import Member
-from pipeline.ensemble.nowcast import CompletedHistories
+from pipeline.ensemble.members import Member, quantile_forecast_from_weekly_cases
+from pipeline.ensemble.nowcast import CompletedHistories, Nowcast, complete_histories
 from pipeline.ensemble.panel import BatchMember, member_forecast_arrays
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, TargetError
+from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
 from pipeline.evaluation.scoring import quantiles_from_samples
 
 SATURDAY = 5
@@ -155,14 +155,24 @@ def week_sums(histories: CompletedHistories, ends: Sequence[pd.Timestamp]
         raise TargetError(f"weeks ending {list(ends)} are not all in the history")
     cumulative = np.concatenate([np.zeros((len(histories), 1)),
                                  np.cumsum(histories.cases, axis=1)], axis=1)
-    return cumulative[:, positions + 1] - cumulative[:, positions + 1 - DAYS_PER_WEEK]
+    return np.asarray(cumulative[:, positions + 1] - cumulative[:, positions + 1 - DAYS_PER_WEEK],
+                      dtype=np.float64)
+
+
+def day_index(dates: pd.DatetimeIndex, date: pd.Timestamp) -> int:
+    """The position of ``date`` in ``dates`` (an error naming it when absent)."""
+    pos = int(dates.get_indexer(pd.DatetimeIndex([pd.Timestamp(date)]))[0])
+    if pos < 0:
+        raise TargetError(f"{pd.Timestamp(date).date()} is not a day of the history "
+                          f"({dates[0].date()} … {dates[-1].date()})")
+    return pos
 
 
 def weekday_shares(histories: CompletedHistories, until: pd.Timestamp,
                    weeks: int = WEEKDAY_SHARE_WEEKS) -> NDArray[np.float64]:
     """``(K, 7)`` share of a week's cases on each weekday (Monday = 0) over the ``weeks`` weeks
     ending on ``until``."""
-    end = int(histories.dates.get_loc(pd.Timestamp(until))) + 1
+    end = day_index(histories.dates, until) + 1
     start = max(end - weeks * DAYS_PER_WEEK, 0)
     cases = histories.cases[:, start:end].astype(np.float64) + 0.5
     weekday = histories.dates[start:end].weekday.to_numpy()
@@ -251,6 +261,83 @@ def truncated_forecast(history: EpiHistory, data_date: pd.Timestamp,
     for i, s in enumerate(steps):
         if s <= 0:
             end = weeks.weeks[i].end
-            pos = int(history.dates.get_loc(end))
+            pos = day_index(history.dates, end)
             out[i] = float(history.cases[pos - DAYS_PER_WEEK + 1:pos + 1].sum())
     return out
+
+
+# ------------------------------------------------------------------------- the weekly run
+
+
+@dataclass(frozen=True, eq=False)
+class RunNowcast:
+    """The weekly run's nowcast: the completions, their per-day median (the history the
+    backtest scores against), the round's weeks and where the delay model came from."""
+
+    nowcast: Nowcast
+    completed: CompletedHistories
+    median_history: EpiHistory
+    weeks: HubWeeks
+    delay_model: str
+
+    def week_samples(self, end: pd.Timestamp) -> NDArray[np.float64]:
+        """``(K,)`` final cases of the 7-day week ending ``end`` in each completion."""
+        return week_sums(self.completed, [pd.Timestamp(end)])[:, 0]
+
+    def week_observed(self, end: pd.Timestamp) -> float:
+        """The same week's cases as reported so far."""
+        observed = self.completed.history(0).cases.astype(np.float64).copy()
+        start = day_index(self.completed.dates, self.nowcast.dates[0])
+        observed[start:] = self.nowcast.observed
+        pos = day_index(self.completed.dates, end)
+        return float(observed[pos - DAYS_PER_WEEK + 1:pos + 1].sum())
+
+    def reported_share(self, end: pd.Timestamp) -> NDArray[np.float64]:
+        """``(K,)`` share of the week's final cases reported so far."""
+        return self.week_observed(end) / np.maximum(self.week_samples(end), 1.0)
+
+
+def median_history(history: EpiHistory, nowcast: Nowcast) -> EpiHistory:
+    """``history`` completed with the per-day median of the nowcast (never below reported)."""
+    median = np.maximum(np.rint(np.median(nowcast.samples, axis=0)).astype(np.int64),
+                        nowcast.observed)
+    point = Nowcast(nowcast.dates, nowcast.observed, median[None, :],
+                    nowcast.completeness.mean(axis=0, keepdims=True), nowcast.as_of)
+    return complete_histories(history, point).history(0)
+
+
+@dataclass(frozen=True, eq=False)
+class CompletionMixture:
+    """A weekly member that, at origins from ``active_from`` on (where the data are still being
+    reported), forecasts every completion and publishes their mixture; earlier origins (final
+    data) are forecast as they are. Sample paths: an equal share of each completion's."""
+
+    member: Member
+    completed: CompletedHistories
+    active_from: pd.Timestamp
+    n_mixed: int = 32                  # the first completions are forecast
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
+        if history.origin < self.active_from:
+            return self.member.forecast(history, horizons, levels, seed)
+        forecasts = [self.member.forecast(h, horizons, levels, seed)
+                     for h in self.completed.histories(up_to=history.origin)[:self.n_mixed]]
+        cases = mix_quantiles(np.stack([f.values["cases"] for f in forecasts]), levels)
+        return quantile_forecast_from_weekly_cases(
+            self.name, history.origin, tuple(horizons), levels, cases, history.population,
+            pooled_paths([f.paths for f in forecasts]))
+
+
+def pooled_paths(paths: Sequence[NDArray[np.float64] | None]) -> NDArray[np.float64] | None:
+    """An equal share of every completion's sample paths (None when any has none)."""
+    if any(p is None for p in paths):
+        return None
+    arrays = [p for p in paths if p is not None]
+    n = min(len(p) for p in arrays)
+    per = int(np.ceil(n / len(arrays)))
+    return np.concatenate([p[:per] for p in arrays])[:n]

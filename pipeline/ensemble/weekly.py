@@ -23,6 +23,7 @@ from pipeline.ensemble.backtest import (PUBLISHED, BacktestConfig, BacktestResul
 from pipeline.ensemble.members import Member
 from pipeline.ensemble.nf_member import GrowthModelConfig, NFGrowthMember, \
     train_or_reuse_growth_model
+from pipeline.ensemble.nowcast_forecast import CompletionMixture, RunNowcast
 from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 from pipeline.progress import ProgressReporter
 
@@ -58,6 +59,7 @@ class WeeklyForecast:
     backtest: BacktestResult
     model_key: str | None
     model_reused: bool
+    nowcast: RunNowcast | None = None       # the days still being reported, when nowcast
 
     @property
     def latest(self) -> QuantileForecast:
@@ -94,8 +96,20 @@ def build_weekly_members(config: WeeklyConfig, store_root: Path,
 
 
 def forecast_weekly(history: EpiHistory, config: WeeklyConfig, store_root: Path,
-                    progress: ProgressReporter | None = None) -> WeeklyForecast:
-    """Train or reuse the flow member, then forecast every Saturday origin in real time."""
+                    progress: ProgressReporter | None = None, *,
+                    nowcast: RunNowcast | None = None,
+                    mixture_from: pd.Timestamp | None = None,
+                    mixed_completions: int = 32) -> WeeklyForecast:
+    """Train or reuse the flow member, then forecast every Saturday origin in real time.
+
+    With a ``nowcast`` (``history`` is then its per-day median), every member forecasts each
+    of the first ``mixed_completions`` completions at the origins from ``mixture_from`` on and
+    publishes their mixture
+    (:class:`~pipeline.ensemble.nowcast_forecast.CompletionMixture`)."""
     members, key, reused = build_weekly_members(config, store_root, progress)
+    if nowcast is not None:
+        start = mixture_from or nowcast.completed.first_nowcast_day
+        members = [CompletionMixture(m, nowcast.completed, start, mixed_completions)
+                   for m in members]
     result = run_realtime_backtest(history, members, config.backtest_config(), progress)
-    return WeeklyForecast(history, result, key, reused)
+    return WeeklyForecast(history, result, key, reused, nowcast)

@@ -17,6 +17,7 @@ import pandas as pd
 import requests
 
 from pipeline.forecast.config import ForecastConfig
+from pipeline.forecast.nowcasting import nowcast_recent_days
 from pipeline.forecast.joint_models import (cached_variant_models, simulate_training_data,
                                             train_or_reuse_models)
 from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels, TrainingData
@@ -27,7 +28,7 @@ from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_v
                                      weekly_forecast)
 from pipeline.progress import ProgressReporter, SilentProgress
 
-Step = Literal["fetch-datasf", "convert-to-sir", "simulate-training-data",
+Step = Literal["fetch-datasf", "convert-to-sir", "nowcast-recent-days", "simulate-training-data",
                "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
                "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast"]
 P = ParamSpec("P")
@@ -74,7 +75,11 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     for note in notes:
         (run.logger.warning if stale else run.logger.info)("%s", note)
     sir = run("convert-to-sir", series_to_sir, series)
-    arrays = sir_arrays(sir.frame)
+    recent = run("nowcast-recent-days", nowcast_recent_days, series, sir, config.nowcast,
+                 config.step_seed("nowcast"))
+    run.logger.info("%s", recent.nowcast.delay_model if recent.nowcast else
+                    f"no nowcast: last {config.nowcast.fallback_trailing_days} days dropped")
+    arrays = sir_arrays(recent.sir_frame)
     data = run("simulate-training-data", simulate_training_data, config)
     models = run("train-or-reuse-models", train_or_reuse_models, config, data, retrain=retrain,
                  progress=progress("train-or-reuse-models"))
@@ -87,7 +92,7 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     smc = run("nf-seeded-smc", seeded_smc, models, arrays, config)
     run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles", len(smc.dates),
                     float(smc.result.ess.min()), config.smc.particles)
-    weekly = run("weekly-forecast", weekly_forecast, series, sir, config,
+    weekly = run("weekly-forecast", weekly_forecast, recent, config,
                  progress=progress("weekly-forecast"))
     run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
                     weekly.origin.date(), published_skill(weekly))

@@ -1,5 +1,6 @@
 """Step 1: the SF series from DataSF (live with cache fallback, cache only, or imported CSV
-exports), trimmed of the days still under revision, and its S/I/R proportions."""
+exports), every day up to the last one in the data (the run nowcasts the days still being
+reported: :mod:`pipeline.forecast.nowcasting`), and its S/I/R proportions."""
 from __future__ import annotations
 
 import dataclasses
@@ -109,7 +110,13 @@ def sf_history(series: SFSeries, sir: SIRSeries) -> EpiHistory:
     return history_from_frames(sir.frame, cases, int(sir.provenance.conversion.population))
 
 
-def load_sf_history(source: DataSourceConfig) -> EpiHistory:
-    """The SF history the weekly forecast sees, from ``source`` (live, cache or import)."""
-    series = load_series(source)
+SETTLED_DAYS = 14
+
+
+def load_sf_history(source: DataSourceConfig, drop_days: int = SETTLED_DAYS) -> EpiHistory:
+    """The SF history of the real-time backtest, from ``source`` (live, cache or import): it
+    scores forecasts against this vintage, whose last ``drop_days`` are still being reported,
+    so they are dropped (the weekly run nowcasts them instead)."""
+    series = load_series(dataclasses.replace(source, trailing_days=max(source.trailing_days,
+                                                                       drop_days)))
     return sf_history(series, series_to_sir(series))

@@ -24,13 +24,11 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from pipeline.data.series import SFSeries
-from pipeline.data.sir_transform import SIRSeries
 from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
-from pipeline.forecast.sources import sf_history
+from pipeline.forecast.nowcasting import RecentDays, mixture_start
 from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, SIRArrays,
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
@@ -208,13 +206,18 @@ def seeded_smc(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) ->
     return SMCRun(result=hybrid.smc, dates=sir.dates[start:])
 
 
-def weekly_forecast(series: SFSeries, sir: SIRSeries, config: ForecastConfig,
+def weekly_forecast(recent: RecentDays, config: ForecastConfig,
                     progress: ProgressReporter | None = None) -> WeeklyForecast:
     """The published forecast (ensemble of the flow member and AutoETS, recalibrated) at the
     latest Saturday, and the same method's real-time forecasts at every earlier Saturday
-    (:mod:`pipeline.ensemble.weekly`). The flow member comes from the model store."""
-    return forecast_weekly(sf_history(series, sir), config.weekly_config(), default_store_root(),
-                           progress)
+    (:mod:`pipeline.ensemble.weekly`). The flow member comes from the model store. The days
+    still being reported are nowcast and the forecast mixed over the nowcast's completions
+    (:mod:`pipeline.forecast.nowcasting`)."""
+    nowcast = recent.nowcast
+    start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
+    return forecast_weekly(recent.history, config.weekly_config(), default_store_root(),
+                           progress, nowcast=nowcast, mixture_from=start,
+                           mixed_completions=config.nowcast.completions)
 
 
 def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:
