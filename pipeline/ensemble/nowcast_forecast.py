@@ -9,10 +9,12 @@ is **forecast**, ``(end − origin)/7`` weeks after the origin (1..4 for hub hor
 four weeks the flow member forecasts).
 
 **The days after the origin.** When D is not a Saturday, the current week (hub horizon 0) has
-its first days in the data. Its count is then the nowcast of those days plus the forecast's week
-scaled by the share of a week's cases its other days carry (weekday shares of the completed
-history's last eight weeks; a monotone map of the forecast, so quantiles map exactly).
-``partial_week=False`` ignores those days (the forecast's week as is).
+its first days in the data. By default they are not used: the week is the forecast's week from
+the origin, which the weekly run publishes too. ``partial_week=True`` makes it the nowcast of
+those days plus the forecast's week scaled by the share of a week's cases its other days carry
+(weekday shares of the completed history's last eight weeks; a monotone map of the forecast, so
+quantiles map exactly). Measured on the CDPH vintages (``bench/nowcast.py``) it did worse: those
+days are the least complete, and their nowcast the least certain.
 
 **Mixing.** Each completion k of the nowcast is forecast as a history of its own (one batch);
 the published distribution is their equal mixture: each completion's continuous quantile
@@ -198,7 +200,7 @@ class NowcastForecast:
 def nowcast_then_forecast(histories: CompletedHistories, data_date: pd.Timestamp,
                           forecaster: CompletionForecaster, levels: NDArray[np.float64],
                           seed: int, *, horizons: tuple[int, ...] = HUB_HORIZONS,
-                          partial_week: bool = True) -> NowcastForecast:
+                          partial_week: bool = False) -> NowcastForecast:
     """Every completion forecast from the last Saturday ≤ ``data_date`` (one batch), nowcast
     weeks from the completions' own counts, mixed (module docstring)."""
     weeks = hub_weeks(data_date, horizons)
