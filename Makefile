@@ -33,13 +33,13 @@ ARCHIVE_FILES = -name 'COVID-19_Cases_Over_Time.csv' -o -name 'COVID-19_Deaths_O
 # from every CDPH vintage in the cache (pipeline/forecast/nowcasting.py; a missing folder is
 # skipped, and with fewer than two vintages the run drops the last 14 days instead).
 CDPH_ARCHIVE ?= ../shared/data/cdph
-export FLOWCAST_CDPH_ARCHIVE ?= $(CDPH_ARCHIVE)
 
 forecast: venv sysdeps
 	@if [ -d "$(ARCHIVE)" ]; then \
 	  $(VENV)/bin/flowcast data import --if-empty \
 	    $$(find "$(ARCHIVE)" \( $(ARCHIVE_FILES) \) | sort); fi
 	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
+	  FLOWCAST_CDPH_ARCHIVE=$${FLOWCAST_CDPH_ARCHIVE:-$(CDPH_ARCHIVE)} \
 	  $(VENV)/bin/flowcast forecast $(FORECAST_ARGS)
 
 # The type check first (pyright over pipeline/ and flows/, settings in pyproject.toml): zero errors.
