@@ -161,6 +161,8 @@ class Headline:
     n_paths: int
     nowcast_weeks: tuple[NowcastedWeek, ...] = ()   # weeks in the data, still being reported
     data_date: dt.date | None = None                 # last day in the data (None: no nowcast)
+    # share of each of the last four weeks to the origin already reported (nowcast), newest first
+    reported_weeks: tuple[tuple[dt.date, Interval], ...] = ()
 
     @property
     def infectious_now_people(self) -> float:
@@ -275,6 +277,17 @@ def _horizons(weekly: WeeklyForecast) -> tuple[HorizonForecast, ...]:
     return tuple(out)
 
 
+def _reported_weeks(weekly: WeeklyForecast, n_weeks: int = 4
+                    ) -> tuple[tuple[dt.date, Interval], ...]:
+    """How much of each of the last ``n_weeks`` weeks ending at the origin had been reported by
+    the data date (reported / the nowcast's final cases), newest first."""
+    nowcast = weekly.nowcast
+    if nowcast is None:
+        return ()
+    ends = [weekly.origin - pd.Timedelta(days=7 * k) for k in range(n_weeks)]
+    return tuple((end.date(), Interval.from_samples(nowcast.reported_share(end))) for end in ends)
+
+
 def _nowcast_weeks(weekly: WeeklyForecast) -> tuple[NowcastedWeek, ...]:
     """The round's weeks wholly in the data (hub horizon −1, and 0 on a Saturday), newest
     first: their nowcast and the share reported."""
@@ -345,7 +358,7 @@ def compute_headline(results: ForecastResults) -> Headline:
         origin_week_cases=origin_week_cases(weekly), horizons=_horizons(weekly),
         rt=_rt(results), skill=_skill(weekly),
         n_paths=0 if latest.paths is None else int(latest.paths.shape[0]),
-        nowcast_weeks=_nowcast_weeks(weekly),
+        nowcast_weeks=_nowcast_weeks(weekly), reported_weeks=_reported_weeks(weekly),
         data_date=None if weekly.nowcast is None else history.dates[-1].date())
 
 
@@ -406,6 +419,11 @@ def facts_frame(h: Headline) -> pd.DataFrame:
                        + (f" ({h.rt.n_dropped} of {h.rt.n_samples} samples with γ ≤ 0 left "
                           "out)" if h.rt.n_dropped else ""),
     }
+    if h.reported_weeks:
+        facts["reported so far"] = "; ".join(
+            f"week to {end}: {fmt_prob(x.median)} ({fmt_range(x.lo90, x.hi90, fmt_prob)})"
+            for end, x in h.reported_weeks) + (
+            f" of the nowcast final cases, by {h.data_date} (median, 90% interval)")
     return pd.DataFrame({"value": list(facts.values())},
                         index=pd.Index(list(facts), name="growth"))
 
