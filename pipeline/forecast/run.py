@@ -65,8 +65,9 @@ def _silent(step: Step) -> ProgressReporter:
 def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
                  retrain: bool = False, runner: StepRunner | None = None,
                  session: requests.Session | None = None) -> ForecastResults:
-    """Fetch DataSF → S/I/R → synthetic ensemble → (cached) joint estimators → estimates,
-    rollouts, β/γ, NLL, NF-seeded SMC, and the published forecast with its backtest."""
+    """Fetch DataSF → S/I/R → nowcast of the days still being reported → synthetic ensemble →
+    (cached) joint estimators → estimates, rollouts, β/γ, NLL, NF-seeded SMC, and the published
+    forecast (mixed over the nowcast's completions) with its backtest."""
     run = runner or StepRunner()
     series = run("fetch-datasf", load_series, config.data, session=session)
     stale = data_is_stale(series, config.data.kind)
