@@ -133,11 +133,14 @@ def _hub_tasks() -> dict[str, object] | None:
 
 
 def submission_run_date(results: ForecastResults) -> dt.date:
-    """The run's date for the hub round: the data date, the last day in the data plus any
-    ``trailing_days`` dropped (0: the run nowcasts them), so a re-run on the same data lands in
-    the same round."""
+    """The run's date for the hub round: the data date, the last day the run read plus the days
+    dropped (``trailing_days``, 0 by default; without a nowcast, its fallback's days too), so a
+    re-run on the same data lands in the same round."""
     last = pd.Timestamp(results.sir_frame["date"].iloc[-1]).date()
-    return last + dt.timedelta(days=results.config.data.trailing_days)
+    dropped = results.config.data.trailing_days
+    if results.weekly.nowcast is None:
+        dropped += results.config.nowcast.fallback_trailing_days
+    return last + dt.timedelta(days=dropped)
 
 
 def results_summary(results: ForecastResults) -> dict[str, object]:

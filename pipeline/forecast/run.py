@@ -98,7 +98,7 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
                     weekly.origin.date(), published_skill(weekly))
     return ForecastResults(
-        config=config, sir_frame=sir.frame, vintage=series.vintage.describe(), stale=stale,
+        config=config, sir_frame=recent.sir_frame, vintage=series.vintage.describe(), stale=stale,
         stale_notes=tuple(notes) if stale else (), models=models, latest=latest,
         rollouts=rolled, future=future, parameters=parameters, nll=nll, smc=smc, weekly=weekly,
         data_as_of=series.vintage.data_as_of, timings=dict(run.timings))
