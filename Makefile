@@ -30,9 +30,11 @@ ARCHIVE_FILES = -name 'COVID-19_Cases_Over_Time.csv' -o -name 'COVID-19_Deaths_O
                 -o -name 'Covid-19_Tests.csv'
 
 # Archived CDPH county downloads (six vintages of every California county): the published
-# forecast's pooled members learn from the counties beside San Francisco. They are recorded real
-# vintages whose one revision beyond the policy (Los Angeles 2020-06-21, docs/data.md) was
-# reviewed, hence --accept-revisions; --if-empty imports them only into a cache without CDPH data.
+# forecast's pooled members learn from the counties beside San Francisco, and the nowcast's delay
+# model is fitted from the vintages (pipeline/forecast/nowcasting.py; with fewer than two the run
+# drops the last 14 days instead). They are recorded real vintages whose one revision beyond the
+# policy (Los Angeles 2020-06-21, docs/data.md) was reviewed, hence --accept-revisions;
+# --if-empty imports them only into a cache without CDPH data.
 CDPH_ARCHIVE ?= ../shared/data/cdph
 
 forecast: venv sysdeps
@@ -43,6 +45,7 @@ forecast: venv sysdeps
 	  $(VENV)/bin/flowcast data import --if-empty --accept-revisions \
 	    $$(find "$(CDPH_ARCHIVE)" -name covid19cases_test.csv | sort); fi
 	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
+	  FLOWCAST_CDPH_ARCHIVE=$${FLOWCAST_CDPH_ARCHIVE:-$(CDPH_ARCHIVE)} \
 	  $(VENV)/bin/flowcast forecast $(FORECAST_ARGS)
 
 # The type check first (pyright over pipeline/ and flows/, settings in pyproject.toml): zero errors.

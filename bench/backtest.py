@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         import_cdph_exports(find_vintage_files(args.cdph), if_empty=True, accept_revisions=True)
     source = fc.DataSourceConfig(kind="cache")
     history = load_sf_history(source)
-    reference = load_reference_histories(source)
+    reference = load_reference_histories()
     weekly = dataclasses.replace(fc.resolve_config("default", seed=args.seed).weekly_config(),
                                  include_nf=not args.no_nf)
     config = weekly.backtest_config(scored_only=True)

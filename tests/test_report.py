@@ -530,7 +530,7 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
         pytest.skip(reason)
     from pipeline.ensemble.backtest import hub_frame
     from pipeline.report.headline import (compute_headline, fmt_count, fmt_prob, fmt_range,
-                                          fmt_rt, fmt_share)
+                                          fmt_rt, fmt_share, week_label)
 
     weekly = real_results.weekly
     latest, n = weekly.latest, weekly.history.population
@@ -554,7 +554,8 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
                             f"{weekly.origin.date()}")
     for k, h in enumerate(latest.horizons):
         c, i = latest.values["cases"][k], latest.values["I"][k]
-        week = f"{(weekly.origin + pd.Timedelta(days=7 * h)).date()} (+{h} wk)"
+        week = week_label(headline.horizons[k])
+        assert week.startswith(f"{(weekly.origin + pd.Timedelta(days=7 * h)).date()} (+{h} wk")
         assert (f"{week} {fmt_count(c[at[0.5]])} {fmt_range(c[at[0.25]], c[at[0.75]])} "
                 f"{fmt_range(c[at[0.05]], c[at[0.95]])}") in page1, week
 

@@ -93,7 +93,7 @@ def backtest_command(
                                         last_origin=_date(last, "--to"))
         n_origins = len(backtest_origins(history, config))
         members = build_weekly_members(weekly, default_store_root(),
-                                       load_reference_histories(fc.DataSourceConfig()),
+                                       load_reference_histories(),
                                        history, SF_COUNTY).members
         with rich_progress("backtest", n_origins) as progress:
             result = run_realtime_backtest(history, members, config, progress)

@@ -146,24 +146,34 @@ def member_forecast_arrays(member: Member | BatchMember | BatchTargetsMember | P
         cases = member.forecast_panel(weekly, index, horizons, levels)
         progress.advance(n_c * n_o, member=member.name)
         return {"cases": cases, "I": cases / population}
-    cells = cell_histories(panel, origins)
+    values = forecast_cells(member, cell_histories(panel, origins), horizons, levels, seed,
+                            progress)
+    return {t: v.reshape(n_c, n_o, len(horizons), len(levels)) for t, v in values.items()}
+
+
+def forecast_cells(member: Member | BatchMember | BatchTargetsMember,
+                   cells: Sequence[EpiHistory], horizons: tuple[int, ...],
+                   levels: NDArray[np.float64], seed: int,
+                   progress: ProgressReporter | None = None) -> dict[str, NDArray[np.float64]]:
+    """A member's quantiles ``{target: (B, H, Q)}`` of B histories, each seen alone: in batches
+    when the member can, else one call per history (seeded by its origin)."""
+    progress = progress or SilentProgress()
     if isinstance(member, BatchTargetsMember):
         seeds = [origin_seed(seed, h.origin) for h in cells]
         values = member.forecast_targets_batch(cells, horizons, levels, seeds)
         progress.advance(len(cells), member=member.name)
-        return {t: values[t].reshape(n_c, n_o, len(horizons), len(levels)) for t in TARGETS}
+        return {t: values[t] for t in TARGETS}
     if isinstance(member, BatchMember):
-        cases = member.forecast_batch(cells, horizons, levels, seed).reshape(
-            n_c, n_o, len(horizons), len(levels))
+        cases = member.forecast_batch(cells, horizons, levels, seed)
         progress.advance(len(cells), member=member.name)
-        return {"cases": cases, "I": cases / population}
+        population = np.array([h.population for h in cells], dtype=np.float64)
+        return {"cases": cases, "I": cases / population[:, None, None]}
     forecasts = []
     for history in cells:
         forecasts.append(member.forecast(history, horizons, levels,
                                          origin_seed(seed, history.origin)))
         progress.advance(1, member=member.name)
-    return {t: np.stack([f.values[t] for f in forecasts]).reshape(
-        n_c, n_o, len(horizons), len(levels)) for t in TARGETS}
+    return {t: np.stack([f.values[t] for f in forecasts]) for t in TARGETS}
 
 
 def weekly_grid(panel: Panel, origins: Sequence[pd.Timestamp]

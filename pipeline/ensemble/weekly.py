@@ -27,10 +27,15 @@ from pipeline.ensemble.members import Member
 from pipeline.ensemble.nf_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
 from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, growth_dataset,
                                          train_or_reuse_growth_model)
+from pipeline.ensemble.nowcast_forecast import CompletionMixture, RunNowcast
 from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 from pipeline.progress import ProgressReporter
 
 SATURDAY = 5
+# The hub baseline resamples its differences; 10,000 draws per forecast (reichlab: 100,000) keep
+# the Monte Carlo error of its 1 % quantile under 0.1 percentage points of level, at a tenth of
+# the cost over the thousands of cells of a panel and the nowcast's completions.
+BASELINE_SAMPLES = 10_000
 
 
 @dataclass(frozen=True)
@@ -69,6 +74,7 @@ class WeeklyForecast:
     backtest: BacktestResult
     model_key: str | None
     model_reused: bool
+    nowcast: RunNowcast | None = None       # the days still being reported, when nowcast
 
     @property
     def latest(self) -> QuantileForecast:
@@ -117,16 +123,13 @@ def build_weekly_members(config: WeeklyConfig, store_root: Path,
     worse than the baseline it would be averaged with)."""
     reference = dict(reference or {})
     others = tuple(h for name, h in reference.items() if name != place)
-    members: list[Member] = [HubBaseline(), PooledGrowthMember(others, config.regression)]
+    members: list[Member] = [HubBaseline(HubBaselineConfig(n_samples=BASELINE_SAMPLES)),
+                             PooledGrowthMember(others, config.regression)]
     origins = (backtest_origins(history, config.backtest_config())
                if history is not None else [])
     return _with_flows(members, config, store_root, list(reference.values()), origins, progress)
 
 
-# The hub baseline resamples its differences; 10,000 draws per cell (reichlab: 100,000) keep the
-# Monte Carlo error of its 1 % quantile under 0.1 percentage points of level, at a tenth of the
-# cost over the thousands of cells of a panel.
-PANEL_BASELINE_SAMPLES = 10_000
 
 
 def build_panel_members(places: Sequence[EpiHistory], origins: Sequence[pd.Timestamp],
@@ -135,7 +138,7 @@ def build_panel_members(places: Sequence[EpiHistory], origins: Sequence[pd.Times
     """The same members for a panel of places forecast together (the cross-county backtest):
     growth-qr pools the panel itself, nf-real is refitted on the panel's windows."""
     members: list[Member] = [
-        HubBaseline(HubBaselineConfig(n_samples=PANEL_BASELINE_SAMPLES)),
+        HubBaseline(HubBaselineConfig(n_samples=BASELINE_SAMPLES)),
         PooledGrowthMember((), config.regression)]
     return _with_flows(members, config, store_root, list(places), list(origins), progress)
 
@@ -160,10 +163,23 @@ def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
 def forecast_weekly(history: EpiHistory, config: WeeklyConfig, store_root: Path,
                     reference: Mapping[str, EpiHistory] | None = None, place: str | None = None,
                     progress: ProgressReporter | None = None, *,
-                    references: Sequence[Member] = ()) -> WeeklyForecast:
+                    references: Sequence[Member] = (),
+                    nowcast: RunNowcast | None = None,
+                    mixture_from: pd.Timestamp | None = None,
+                    mixed_completions: int = 32) -> WeeklyForecast:
     """Build the members (training or reusing their models), then forecast every Saturday origin
-    in real time; ``references`` are scored beside the members, not averaged."""
+    in real time; ``references`` are scored beside the members, not averaged.
+
+    With a ``nowcast`` (``history`` is then its per-day median), every member forecasts each
+    of the first ``mixed_completions`` completions at the origins from ``mixture_from`` on and
+    publishes their mixture
+    (:class:`~pipeline.ensemble.nowcast_forecast.CompletionMixture`)."""
     chosen = build_weekly_members(config, store_root, reference, history, place, progress)
-    result = run_realtime_backtest(history, chosen.members, config.backtest_config(), progress,
+    members = chosen.members
+    if nowcast is not None:
+        start = mixture_from or nowcast.completed.first_nowcast_day
+        members = [CompletionMixture(m, nowcast.completed, start, mixed_completions)
+                   for m in members]
+    result = run_realtime_backtest(history, members, config.backtest_config(), progress,
                                    references=references)
-    return WeeklyForecast(history, result, chosen.model_key, chosen.reused)
+    return WeeklyForecast(history, result, chosen.model_key, chosen.reused, nowcast)

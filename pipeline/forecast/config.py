@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
 
+from pipeline.data.delays import DelayModelConfig
 from pipeline.ensemble.nf_finetune import FineTuneConfig
 from pipeline.ensemble.nf_member import GrowthModelConfig
 from pipeline.ensemble.weekly import WeeklyConfig
@@ -21,11 +22,12 @@ from pipeline.training.presets import TrainingPreset, get_preset
 
 DataSourceKind = Literal["live", "cache", "import"]
 SeedStep = Literal["simulate", "train_forward", "train_backward", "latest", "rollout", "future",
-                   "params", "nll", "smc", "weekly", "train_growth"]
+                   "params", "nll", "smc", "weekly", "train_growth", "nowcast"]
 # Per-step seed offsets: changing one step's draws never shifts another's.
 _SEED_OFFSETS: dict[SeedStep, int] = {
     "simulate": 0, "train_forward": 11, "train_backward": 12, "latest": 21, "rollout": 31,
-    "future": 41, "params": 51, "nll": 61, "smc": 71, "weekly": 91, "train_growth": 92}
+    "future": 41, "params": 51, "nll": 61, "smc": 71, "weekly": 91, "train_growth": 92,
+    "nowcast": 93}
 
 
 def _require_positive(owner: str, **values: int | None) -> None:
@@ -51,7 +53,9 @@ class DataSourceConfig:
     task_retry_delay_s: float = 10.0
     base_url: str | None = None    # a DataSF mirror/proxy; None: $FLOWCAST_DATASF_BASE_URL or DataSF
     fetch_deadline_s: float = 300.0  # per dataset, every page and retry (wall clock)
-    trailing_days: int = 14        # the last days, still under revision, are dropped
+    # days dropped from the end of every dataset; 0: the run keeps every day and nowcasts the
+    # ones still being reported (NowcastSettings); without a nowcast it falls back to 14
+    trailing_days: int = 0
 
     @property
     def task_timeout_s(self) -> float:
@@ -65,6 +69,34 @@ class DataSourceConfig:
             raise ConfigError("data source 'import' needs import_paths (DataSF CSV exports)")
         if self.trailing_days < 0:
             raise ConfigError(f"DataSourceConfig.trailing_days={self.trailing_days} must be >= 0")
+
+
+@dataclass(frozen=True)
+class NowcastSettings:
+    """The nowcast of the days still being reported (``pipeline.forecast.nowcasting``).
+
+    ``completions``: K nowcast samples of the recent days, each forecast, mixed (the nowcast
+    itself draws ``nowcast_samples``, for its own quantiles and the hub file); the delay model
+    is fitted (and cached) from every CDPH vintage in the data cache plus the CDPH downloads in
+    ``archive`` folders (default ``$FLOWCAST_CDPH_ARCHIVE``, colon-separated). With fewer than
+    two vintages there is no delay model: the run drops ``fallback_trailing_days`` instead, as
+    it did before, and says so."""
+
+    enabled: bool = True
+    completions: int = 32
+    nowcast_samples: int = 256
+    archive: tuple[str, ...] = ()
+    fallback_trailing_days: int = 14
+    mixture_weeks: int = 4          # origins this many weeks back (and later) use completions
+    delay: DelayModelConfig = field(default_factory=DelayModelConfig)
+
+    def __post_init__(self) -> None:
+        _require_positive("NowcastSettings", completions=self.completions,
+                          mixture_weeks=self.mixture_weeks)
+        if self.nowcast_samples < self.completions:
+            raise ConfigError("NowcastSettings.nowcast_samples must be >= completions")
+        if self.fallback_trailing_days < 0:
+            raise ConfigError("NowcastSettings.fallback_trailing_days must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -184,6 +216,7 @@ class ForecastConfig:
     # The published forecast: an ensemble of the flow member (its own model) and AutoETS, with
     # its real-time backtest over every Saturday origin (pipeline.ensemble.weekly).
     weekly: WeeklyConfig = field(default_factory=WeeklyConfig)
+    nowcast: NowcastSettings = field(default_factory=NowcastSettings)
     outputs: OutputSettings = field(default_factory=OutputSettings)
 
     def __post_init__(self) -> None:
@@ -247,6 +280,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
                                                      batch_size=256, prior=WavePrior(days=140)),
                             finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),
                             n_paths=100),
+        nowcast=NowcastSettings(completions=8, nowcast_samples=100),
         data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,
                               task_retry_delay_s=0.0)),
 }

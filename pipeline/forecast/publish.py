@@ -17,8 +17,8 @@ from pipeline.ensemble.weekly import WeeklyForecast
 from pipeline.forecast.results import ForecastResults
 from pipeline.forecast.steps import published_skill
 from pipeline.io import atomic_write_json, atomic_write_text
-from pipeline.outputs.hubverse import (Submission, SubmissionConfig, load_tasks_config,
-                                       write_model_output)
+from pipeline.outputs.hubverse import (NowcastWeek, Submission, SubmissionConfig,
+                                       load_tasks_config, write_model_output)
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 from pipeline.report.weekly import build_forecast_report
 from pipeline.report.headline import compute_headline
@@ -96,13 +96,36 @@ def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
 
 def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date, *,
                      max_samples: int = 200) -> Submission:
-    """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``,
-    validated against the repository's ``hub-config/tasks.json`` when it is there."""
+    """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``
+    (with the nowcast of the weeks in the data), validated against the repository's
+    ``hub-config/tasks.json`` when it is there."""
     paths = weekly.latest.paths
     n_paths = 0 if paths is None else int(paths.shape[0])
+    n = min(max_samples, n_paths)
     return write_model_output(weekly.latest, population=weekly.history.population,
                               run_date=run_date, hub_dir=hub_dir, tasks=_hub_tasks(),
-                              config=SubmissionConfig(n_samples=min(max_samples, n_paths)))
+                              config=SubmissionConfig(n_samples=n),
+                              nowcasts=nowcast_weeks(weekly, n))
+
+
+def nowcast_weeks(weekly: WeeklyForecast, n_samples: int) -> list[NowcastWeek]:
+    """The nowcast weeks of the round: quantiles of their final cases and ``n_samples``
+    samples ordered like the published paths' first week (a larger nowcast goes with a larger
+    forecast: the comonotone pairing, as the ensemble's copula pairs weeks)."""
+    nowcast, paths = weekly.nowcast, weekly.latest.paths
+    if nowcast is None or paths is None or n_samples == 0:
+        return []
+    first_week = paths[:n_samples, 0, 1]
+    ranks = np.argsort(np.argsort(first_week, kind="stable"), kind="stable")
+    levels = (ranks + 0.5) / n_samples
+    out = []
+    for week in nowcast.weeks.weeks:
+        if week.kind != "nowcast":
+            continue
+        samples = nowcast.week_samples(week.end)
+        out.append(NowcastWeek(week.end.date(), np.quantile(samples, weekly.latest.levels),
+                               np.quantile(samples, levels)))
+    return out
 
 
 def _hub_tasks() -> dict[str, object] | None:
@@ -110,11 +133,14 @@ def _hub_tasks() -> dict[str, object] | None:
 
 
 def submission_run_date(results: ForecastResults) -> dt.date:
-    """The run's date for the hub round: the data's cut-off, the last kept day plus the
-    ``trailing_days`` dropped as still under revision (today, for a live run on fresh data), so a
+    """The run's date for the hub round: the data date, the last day the run read plus the days
+    dropped (``trailing_days``, 0 by default; without a nowcast, its fallback's days too), so a
     re-run on the same data lands in the same round."""
     last = pd.Timestamp(results.sir_frame["date"].iloc[-1]).date()
-    return last + dt.timedelta(days=results.config.data.trailing_days)
+    dropped = results.config.data.trailing_days
+    if results.weekly.nowcast is None:
+        dropped += results.config.nowcast.fallback_trailing_days
+    return last + dt.timedelta(days=dropped)
 
 
 def results_summary(results: ForecastResults) -> dict[str, object]:

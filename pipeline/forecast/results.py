@@ -121,7 +121,7 @@ class CountySkill:
 @dataclass(frozen=True)
 class ForecastResults:
     config: ForecastConfig
-    sir_frame: pd.DataFrame
+    sir_frame: pd.DataFrame     # the S/I/R the run read (days being reported: nowcast median)
     vintage: str
     stale: bool
     stale_notes: tuple[str, ...]

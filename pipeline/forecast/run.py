@@ -18,6 +18,7 @@ import requests
 
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.county_skill import county_skill
+from pipeline.forecast.nowcasting import nowcast_recent_days
 from pipeline.forecast.joint_models import (cached_variant_models, simulate_training_data,
                                             train_or_reuse_models)
 from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels, TrainingData
@@ -28,7 +29,7 @@ from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_v
                                      weekly_forecast)
 from pipeline.progress import ProgressReporter, SilentProgress
 
-Step = Literal["fetch-datasf", "convert-to-sir", "simulate-training-data",
+Step = Literal["fetch-datasf", "convert-to-sir", "nowcast-recent-days", "simulate-training-data",
                "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
                "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast",
                "county-skill"]
@@ -66,8 +67,9 @@ def _silent(step: Step) -> ProgressReporter:
 def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
                  retrain: bool = False, runner: StepRunner | None = None,
                  session: requests.Session | None = None) -> ForecastResults:
-    """Fetch DataSF → S/I/R → synthetic ensemble → (cached) joint estimators → estimates,
-    rollouts, β/γ, NLL, NF-seeded SMC, and the published forecast with its backtest."""
+    """Fetch DataSF → S/I/R → nowcast of the days still being reported → synthetic ensemble →
+    (cached) joint estimators → estimates, rollouts, β/γ, NLL, NF-seeded SMC, and the published
+    forecast (mixed over the nowcast's completions) with its backtest."""
     run = runner or StepRunner()
     series = run("fetch-datasf", load_series, config.data, session=session)
     stale = data_is_stale(series, config.data.kind)
@@ -76,7 +78,11 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     for note in notes:
         (run.logger.warning if stale else run.logger.info)("%s", note)
     sir = run("convert-to-sir", series_to_sir, series)
-    arrays = sir_arrays(sir.frame)
+    recent = run("nowcast-recent-days", nowcast_recent_days, series, sir, config.nowcast,
+                 config.step_seed("nowcast"))
+    run.logger.info("%s", recent.nowcast.delay_model if recent.nowcast else
+                    f"no nowcast: last {config.nowcast.fallback_trailing_days} days dropped")
+    arrays = sir_arrays(recent.sir_frame)
     data = run("simulate-training-data", simulate_training_data, config)
     models = run("train-or-reuse-models", train_or_reuse_models, config, data, retrain=retrain,
                  progress=progress("train-or-reuse-models"))
@@ -86,16 +92,16 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     future = run("future-paths", future_paths, models, arrays, config)
     parameters = run("beta-gamma-estimates", parameter_track, models, arrays, config)
     nll = run("nll-table", nll_with_cached_variants, models, data, arrays, config)
-    smc = run("nf-seeded-smc", seeded_smc, models, series, sir, arrays, config)
+    smc = run("nf-seeded-smc", seeded_smc, models, recent.history, arrays, config)
     run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles", len(smc.dates),
                     float(smc.result.ess.min()), config.smc.particles)
-    weekly = run("weekly-forecast", weekly_forecast, series, sir, models, config,
+    weekly = run("weekly-forecast", weekly_forecast, recent, models, config,
                  progress=progress("weekly-forecast"))
     run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
                     weekly.origin.date(), published_skill(weekly))
     counties = run("county-skill", county_skill, config, progress=progress("county-skill"))
     return ForecastResults(
-        config=config, sir_frame=sir.frame, vintage=series.vintage.describe(), stale=stale,
+        config=config, sir_frame=recent.sir_frame, vintage=series.vintage.describe(), stale=stale,
         stale_notes=tuple(notes) if stale else (), models=models, latest=latest,
         rollouts=rolled, future=future, parameters=parameters, nll=nll, smc=smc, weekly=weekly,
         data_as_of=series.vintage.data_as_of, timings=dict(run.timings), county_skill=counties)

@@ -1,5 +1,6 @@
 """Step 1: the SF series from DataSF (live with cache fallback, cache only, or imported CSV
-exports), trimmed of the days still under revision, and its S/I/R proportions."""
+exports), every day up to the last one in the data (the run nowcasts the days still being
+reported: :mod:`pipeline.forecast.nowcasting`), and its S/I/R proportions."""
 from __future__ import annotations
 
 import dataclasses
@@ -112,26 +113,31 @@ def sf_history(series: SFSeries, sir: SIRSeries) -> EpiHistory:
     return history_from_frames(sir.frame, cases, int(sir.provenance.conversion.population))
 
 
-def load_reference_histories(source: DataSourceConfig,
-                             min_population: int = REFERENCE_MIN_POPULATION
-                             ) -> dict[str, EpiHistory]:
+SETTLED_DAYS = 14
+
+
+def load_reference_histories(min_population: int = REFERENCE_MIN_POPULATION,
+                             drop_days: int = SETTLED_DAYS) -> dict[str, EpiHistory]:
     """California's counties with at least ``min_population`` people, by name, from the latest
-    cached CDPH vintage without its last ``source.trailing_days`` days (as the cross-county
-    backtest cuts them): the places the published forecast's pooled members learn from. Empty,
-    with a warning, when the cache holds no CDPH data (the members then learn from the
-    forecast's own series alone)."""
+    cached CDPH vintage without its last ``drop_days`` days, still being reported (the
+    cross-county backtest cuts the same days): the places the published forecast's pooled
+    members learn from. Empty, with a warning, when the cache holds no CDPH data (the members
+    then learn from the forecast's own series alone)."""
     try:
         vintage = load_cdph_vintage(offline=True)
     except OfflineError as exc:
         log.warning("no CDPH county data in the cache (%s): the pooled members learn from the "
                     "San Francisco series alone; `flowcast data import` the CDPH files", exc)
         return {}
-    last = vintage.as_of - pd.Timedelta(days=source.trailing_days)
+    last = vintage.as_of - pd.Timedelta(days=drop_days)
     return {c: history_from_county(vintage.county(c)).up_to(last)
             for c in vintage.counties_with_population(min_population)}
 
 
-def load_sf_history(source: DataSourceConfig) -> EpiHistory:
-    """The SF history the weekly forecast sees, from ``source`` (live, cache or import)."""
-    series = load_series(source)
+def load_sf_history(source: DataSourceConfig, drop_days: int = SETTLED_DAYS) -> EpiHistory:
+    """The SF history of the real-time backtest, from ``source`` (live, cache or import): it
+    scores forecasts against this vintage, whose last ``drop_days`` are still being reported,
+    so they are dropped (the weekly run nowcasts them instead)."""
+    series = load_series(dataclasses.replace(source, trailing_days=max(source.trailing_days,
+                                                                       drop_days)))
     return sf_history(series, series_to_sir(series))

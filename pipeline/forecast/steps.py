@@ -31,15 +31,15 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from pipeline.data.series import SFSeries
-from pipeline.data.sir_transform import SIRSeries
 from pipeline.ensemble.backtest import backtest_origins
 from pipeline.ensemble.smc_member import NFSeededSMCMember, batched_smc_forecasts
+from pipeline.ensemble.targets import EpiHistory
 from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
-from pipeline.forecast.sources import SF_COUNTY, load_reference_histories, sf_history
+from pipeline.forecast.nowcasting import RecentDays, mixture_start
+from pipeline.forecast.sources import SF_COUNTY, load_reference_histories
 from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, SIRArrays,
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
@@ -213,15 +213,15 @@ def nll_table_variants(models: TrainedModels, variants: dict[str, TrainedModels]
     return pd.concat(frames, ignore_index=True)
 
 
-def seeded_smc(models: TrainedModels, series: SFSeries, sir_series: SIRSeries, sir: SIRArrays,
+def seeded_smc(models: TrainedModels, history: EpiHistory, sir: SIRArrays,
                config: ForecastConfig) -> SMCRun:
     """NF-seeded SMC over the last ``smc.days`` days on the multi-wave model: draws of the
     forward joint flow at the first day seed the filter, which then follows the reported cases
-    (:func:`pipeline.inference.hybrid.nf_seeded_wave_smc`)."""
+    of ``history`` (the nowcast's median where days are still being reported;
+    :func:`pipeline.inference.hybrid.nf_seeded_wave_smc`)."""
     r, days = config.resolved.window, config.smc.days
     start = len(sir.times) - days
     context, mask = batch_window_context([_window_at(sir, start, "forward", r)], "forward", r)
-    history = sf_history(series, sir_series)
     settings = WaveSMCConfig(n_particles=config.smc.particles, seed=config.step_seed("smc"),
                              # the report's 50 %/90 % bands need these levels recorded
                              quantiles=tuple(sorted({*DEFAULT_QUANTILES, *REPORT_LEVELS})))
@@ -239,24 +239,27 @@ def smc_member(models: TrainedModels, config: ForecastConfig) -> NFSeededSMCMemb
                              filter_days=config.smc.days)
 
 
-def weekly_forecast(series: SFSeries, sir: SIRSeries, models: TrainedModels,
-                    config: ForecastConfig,
+def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastConfig,
                     progress: ProgressReporter | None = None) -> WeeklyForecast:
     """The published forecast at the latest Saturday and the same method's real-time forecasts
     at every earlier Saturday (:mod:`pipeline.ensemble.weekly`), with California's counties
     from the CDPH cache as the pooled members' reference places; the flows come from the model
-    store. The NF-seeded SMC member is scored beside them at every origin (one batch of
-    filters) but not averaged into the published forecast (docs/forecasting.md)."""
-    history = sf_history(series, sir)
+    store. The days still being reported are nowcast and the forecast mixed over the nowcast's
+    completions (:mod:`pipeline.forecast.nowcasting`). The NF-seeded SMC member is scored beside
+    the members at every origin (one batch of filters) but not averaged into the published
+    forecast (docs/forecasting.md)."""
+    history, nowcast = recent.history, recent.nowcast
     weekly = config.weekly_config()
     backtest = weekly.backtest_config()
     origins = backtest_origins(history, dataclasses.replace(backtest, first_origin=None))
     scored = batched_smc_forecasts(smc_member(models, config), history, origins,
                                    backtest.horizons, np.asarray(backtest.levels),
                                    config.step_seed("smc") + 1)
-    return forecast_weekly(history, weekly, default_store_root(),
-                           load_reference_histories(config.data), SF_COUNTY, progress,
-                           references=(scored,) if scored.forecasts else ())
+    start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
+    return forecast_weekly(history, weekly, default_store_root(), load_reference_histories(),
+                           SF_COUNTY, progress, references=(scored,) if scored.forecasts else (),
+                           nowcast=nowcast, mixture_from=start,
+                           mixed_completions=config.nowcast.completions)
 
 
 def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:

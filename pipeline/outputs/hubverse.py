@@ -19,8 +19,11 @@ value``, validated by :func:`validate_model_output` against ``hub-config/tasks.j
   infectious window is one week).
 * values are non-negative by construction; a forecast holding a negative or non-finite value is
   refused, never clipped.
-* hub horizons whose target week is observed already, or is not one of the forecast's weeks, are
-  left out with a logged reason (:attr:`Submission.omitted`).
+* a hub week that lies wholly in the data (horizon −1, and 0 when the data end on a Saturday)
+  is filled from the nowcast of its final count (:class:`NowcastWeek`: the days still being
+  reported, ``pipeline.ensemble.nowcast``), its samples aligned with the forecast's paths;
+* hub horizons whose target week is observed with no nowcast given, or is not one of the
+  forecast's weeks, are left out with a logged reason (:attr:`Submission.omitted`).
 
 ``output_type_id`` is written as text (quantile levels as ``0.025``, sample ids as ``17``) as
 hubverse does for mixed output types.
@@ -33,7 +36,7 @@ import json
 import logging
 import os
 import re
-from collections.abc import Hashable, Mapping
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,6 +109,17 @@ class SubmissionConfig:
         return f"{self.team_abbr}-{self.model_abbr}"
 
 
+@dataclass(frozen=True, eq=False)
+class NowcastWeek:
+    """A hub week that lies wholly in the data but is still being reported: the nowcast of its
+    final weekly cases — quantiles at the hub levels and samples aligned with the forecast's
+    sample paths (sample i belongs to path i)."""
+
+    end: dt.date
+    quantiles: np.ndarray
+    samples: np.ndarray
+
+
 @dataclass(frozen=True)
 class Submission:
     """What :func:`write_model_output` wrote, and which horizons it left out and why."""
@@ -145,6 +159,18 @@ def _horizon_index(forecast: QuantileForecast, end: dt.date) -> tuple[int | None
     return forecast.horizons.index(weeks), ""
 
 
+def _check_nowcast(week: NowcastWeek, config: SubmissionConfig) -> None:
+    if week.quantiles.shape != (len(config.quantile_levels),) or \
+            week.samples.shape[0] < config.n_samples:
+        raise HubFormatError(f"the nowcast of the week ending {week.end} needs "
+                             f"{len(config.quantile_levels)} quantiles and {config.n_samples} "
+                             f"samples, got {week.quantiles.shape} and {week.samples.shape}")
+    for values in (week.quantiles, week.samples):
+        if not np.all(np.isfinite(values)) or (values < 0).any():
+            raise HubFormatError(f"the nowcast of the week ending {week.end} holds NaN, inf or "
+                                 "negative values; refusing to write a submission")
+
+
 def _check_forecast(forecast: QuantileForecast, population: float,
                     config: SubmissionConfig) -> None:
     if not np.allclose(forecast.levels, config.quantile_levels, rtol=0, atol=1e-12):
@@ -164,12 +190,17 @@ def _check_forecast(forecast: QuantileForecast, population: float,
 
 
 def submission_frame(forecast: QuantileForecast, *, population: float, reference_date: dt.date,
-                     config: SubmissionConfig = SubmissionConfig()
+                     config: SubmissionConfig = SubmissionConfig(),
+                     nowcasts: Sequence[NowcastWeek] = ()
                      ) -> tuple[pd.DataFrame, dict[int, str]]:
     """The model-output rows of the published weekly forecast (its quantiles exactly, and its
     sample paths: I at the week's end and the week's cases N·I, the conversion's 7-day window),
-    and the hub horizons left out with reasons. Raises ``HubFormatError`` if none is left."""
+    the ``nowcasts`` of weeks already in the data, and the hub horizons left out with reasons.
+    Raises ``HubFormatError`` if none is left."""
     _check_forecast(forecast, population, config)
+    by_end = {w.end: w for w in nowcasts}
+    for week in nowcasts:
+        _check_nowcast(week, config)
     assert forecast.paths is not None
     level_ids = [format_level(lv) for lv in config.quantile_levels]
     sample_ids = [str(k + 1) for k in range(config.n_samples)]
@@ -178,13 +209,19 @@ def submission_frame(forecast: QuantileForecast, *, population: float, reference
     for horizon in config.horizons:
         end = reference_date + dt.timedelta(weeks=horizon)
         index, reason = _horizon_index(forecast, end)
-        if index is None:
+        if end in by_end:
+            cases = by_end[end].samples[: config.n_samples]
+            draws = {TARGET_WEEKLY_CASES: cases, TARGET_I_PROP: cases / population}
+            quantiles = {TARGET_WEEKLY_CASES: by_end[end].quantiles,
+                         TARGET_I_PROP: by_end[end].quantiles / population}
+        elif index is None:
             omitted[horizon] = reason
             continue
-        infectious = forecast.paths[: config.n_samples, index, 1]
-        draws = {TARGET_WEEKLY_CASES: infectious * population, TARGET_I_PROP: infectious}
-        quantiles = {TARGET_WEEKLY_CASES: forecast.values["cases"][index],
-                     TARGET_I_PROP: forecast.values["I"][index]}
+        else:
+            infectious = forecast.paths[: config.n_samples, index, 1]
+            draws = {TARGET_WEEKLY_CASES: infectious * population, TARGET_I_PROP: infectious}
+            quantiles = {TARGET_WEEKLY_CASES: forecast.values["cases"][index],
+                         TARGET_I_PROP: forecast.values["I"][index]}
         for target in HUBVERSE_TARGETS:
             task = {"reference_date": reference_date.isoformat(), "target": target,
                     "horizon": horizon, "location": config.location,
@@ -206,13 +243,16 @@ def submission_frame(forecast: QuantileForecast, *, population: float, reference
 def write_model_output(forecast: QuantileForecast, *, population: float, run_date: dt.date,
                        hub_dir: str | os.PathLike[str],
                        config: SubmissionConfig = SubmissionConfig(),
-                       tasks: Mapping[str, Any] | None = None) -> Submission:
-    """Write the hubverse model-output CSV of the published weekly ``forecast`` for the round of
-    ``run_date`` (the Saturday ending its epiweek). With ``tasks`` (a parsed ``tasks.json``) the
-    file is validated against it before it replaces anything."""
+                       tasks: Mapping[str, Any] | None = None,
+                       nowcasts: Sequence[NowcastWeek] = ()) -> Submission:
+    """Write the hubverse model-output CSV of the published weekly ``forecast`` (and the
+    ``nowcasts`` of weeks in the data) for the round of ``run_date`` (the Saturday ending its
+    epiweek; the run date is the last day in the data). With ``tasks`` (a parsed
+    ``tasks.json``) the file is validated against it before it replaces anything."""
     reference_date = reference_date_for(run_date)
     frame, omitted = submission_frame(forecast, population=population,
-                                      reference_date=reference_date, config=config)
+                                      reference_date=reference_date, config=config,
+                                      nowcasts=nowcasts)
     for horizon, reason in omitted.items():
         log.info("hub submission %s: horizon %d left out: %s", reference_date, horizon, reason)
     path = model_output_path(hub_dir, reference_date, config.model_id)

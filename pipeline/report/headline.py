@@ -93,13 +93,36 @@ class Interval:
 
 @dataclass(frozen=True)
 class HorizonForecast:
-    """One forecast week: cases reported that week, I at its end, P(cases above this week's)."""
+    """One forecast week: cases reported that week, I at its end, P(cases above this week's);
+    ``kind``: ``current week`` (holds the data date), ``forecast`` (after it)."""
 
     horizon: int
     target_end: dt.date
     cases: Interval
     infectious: Interval          # I as a share of the population
     p_growing: float              # P(cases that week > cases of the week ending at the origin)
+    kind: str = "forecast"
+
+
+@dataclass(frozen=True)
+class NowcastedWeek:
+    """A week in the data still being reported: its nowcast (final cases) and how much of it
+    had been reported by the data date."""
+
+    target_end: dt.date
+    cases: Interval
+    reported: float               # cases reported so far
+    reported_share: Interval      # reported / final, over the nowcast's samples
+    hub_horizon: int
+
+    def text(self) -> str:
+        return (f"{fmt_count(self.cases.median)} cases (50%: "
+                f"{fmt_range(self.cases.lo50, self.cases.hi50)}; 90%: "
+                f"{fmt_range(self.cases.lo90, self.cases.hi90)}) in the week ending "
+                f"{self.target_end}, of which {fmt_count(self.reported)} "
+                f"({fmt_prob(self.reported_share.median)}, 90%: "
+                f"{fmt_range(self.reported_share.lo90, self.reported_share.hi90, fmt_prob)}) "
+                "had been reported")
 
 
 @dataclass(frozen=True)
@@ -138,6 +161,10 @@ class Headline:
     n_paths: int
     # the NF-seeded SMC forecaster's relative WIS on weekly cases (all horizons), when scored
     smc_relative_wis: float | None = None
+    nowcast_weeks: tuple[NowcastedWeek, ...] = ()   # weeks in the data, still being reported
+    data_date: dt.date | None = None                 # last day in the data (None: no nowcast)
+    # share of each of the last four weeks to the origin already reported (nowcast), newest first
+    reported_weeks: tuple[tuple[dt.date, Interval], ...] = ()
 
     @property
     def infectious_now_people(self) -> float:
@@ -159,11 +186,29 @@ class Headline:
         return {k: clean(v) for k, v in asdict(self).items()} | {"infectious_now_people": self.infectious_now_people,
                                       "text": self.one_line()}
 
+    def nowcast_sentence(self) -> str:
+        """The lead's first sentence: the current week (nowcast of its days in the data and
+        forecast of the rest) and the nowcast of the week before."""
+        if not self.nowcast_weeks or self.data_date is None:
+            return ""
+        current = next((f for f in self.horizons if f.kind == "current week"), None)
+        parts = []
+        if current is not None:
+            days = (self.data_date - (current.target_end - dt.timedelta(days=6))).days + 1
+            parts.append(f"Nowcast of the current week (ending {current.target_end}; data to "
+                         f"{self.data_date}, {days} of its 7 days, the rest forecast): "
+                         f"{fmt_count(current.cases.median)} cases (50%: "
+                         f"{fmt_range(current.cases.lo50, current.cases.hi50)}; 90%: "
+                         f"{fmt_range(current.cases.lo90, current.cases.hi90)}).")
+        for week in self.nowcast_weeks:
+            parts.append(f"Nowcast: {week.text()}.")
+        return " ".join(parts) + " "
+
     def sentence(self) -> str:
-        """The lead an epidemiologist can quote."""
+        """The lead an epidemiologist can quote (it opens with the nowcast, when there is one)."""
         first, last = self.horizons[0], self.horizons[-1]
         rt = self.rt.value
-        return (f"About {fmt_count(self.infectious_now_people)} people in San Francisco are "
+        return self.nowcast_sentence() + (f"About {fmt_count(self.infectious_now_people)} people in San Francisco are "
                 f"infectious ({fmt_share(self.infectious_now)} of the population: the cases "
                 f"reported in the 7 days to {self.last_data_day}). Weekly reported cases are "
                 f"forecast at {fmt_count(first.cases.median)} (90% interval "
@@ -218,15 +263,48 @@ def _horizons(weekly: WeeklyForecast) -> tuple[HorizonForecast, ...]:
         raise ReportError("the published forecast has no sample paths (P(growing) needs them)")
     population = float(weekly.history.population)
     this_week = origin_week_cases(weekly)
+    last_day = weekly.history.dates[-1]
     out = []
     for k, h in enumerate(latest.horizons):
         # weekly cases of a path = N·I at the week's end (the conversion's window is 7 days)
         path_cases = latest.paths[:, k, 1] * population
+        end = latest.origin + pd.Timedelta(days=7 * int(h))
+        current = end - pd.Timedelta(days=6) <= last_day <= end
         out.append(HorizonForecast(
-            horizon=int(h), target_end=(latest.origin + pd.Timedelta(days=7 * int(h))).date(),
+            horizon=int(h), target_end=end.date(),
             cases=Interval.from_quantiles(latest.levels, latest.values["cases"][k]),
             infectious=Interval.from_quantiles(latest.levels, latest.values["I"][k]),
-            p_growing=float(np.mean(path_cases > this_week))))
+            p_growing=float(np.mean(path_cases > this_week)),
+            kind="current week" if current else "forecast"))
+    return tuple(out)
+
+
+def _reported_weeks(weekly: WeeklyForecast, n_weeks: int = 4
+                    ) -> tuple[tuple[dt.date, Interval], ...]:
+    """How much of each of the last ``n_weeks`` weeks ending at the origin had been reported by
+    the data date (reported / the nowcast's final cases), newest first."""
+    nowcast = weekly.nowcast
+    if nowcast is None:
+        return ()
+    ends = [weekly.origin - pd.Timedelta(days=7 * k) for k in range(n_weeks)]
+    return tuple((end.date(), Interval.from_samples(nowcast.reported_share(end))) for end in ends)
+
+
+def _nowcast_weeks(weekly: WeeklyForecast) -> tuple[NowcastedWeek, ...]:
+    """The round's weeks wholly in the data (hub horizon −1, and 0 on a Saturday), newest
+    first: their nowcast and the share reported."""
+    nowcast = weekly.nowcast
+    if nowcast is None:
+        return ()
+    out = []
+    for week in sorted(nowcast.weeks.weeks, key=lambda w: -w.horizon):
+        if week.kind != "nowcast":
+            continue
+        out.append(NowcastedWeek(
+            target_end=week.end.date(), cases=Interval.from_samples(nowcast.week_samples(week.end)),
+            reported=nowcast.week_observed(week.end),
+            reported_share=Interval.from_samples(nowcast.reported_share(week.end)),
+            hub_horizon=week.horizon))
     return tuple(out)
 
 
@@ -290,7 +368,9 @@ def compute_headline(results: ForecastResults) -> Headline:
         population=int(history.population), infectious_now=float(history.I[-1]),
         origin_week_cases=origin_week_cases(weekly), horizons=_horizons(weekly),
         rt=_rt(results), skill=_skill(weekly),
-        n_paths=0 if latest.paths is None else int(latest.paths.shape[0]))
+        n_paths=0 if latest.paths is None else int(latest.paths.shape[0]),
+        nowcast_weeks=_nowcast_weeks(weekly), reported_weeks=_reported_weeks(weekly),
+        data_date=None if weekly.nowcast is None else history.dates[-1].date())
 
 
 # ----------------------------------------------------------------------------- tables
@@ -308,15 +388,25 @@ def _pct(x: float) -> str:
     return fmt_share(x).removesuffix("%")
 
 
+def week_label(f: HorizonForecast) -> str:
+    """A forecast week's row label: its end, the horizon, and ``current`` for the week holding
+    the data date (nowcast weeks are labelled ``nowcast``)."""
+    return f"{f.target_end} (+{f.horizon} wk{', current' if f.kind == 'current week' else ''})"
+
+
 def forecast_frame(h: Headline) -> pd.DataFrame:
     """The page-1 table: rows (quantity, week ending), columns median, 50 % and 90 % interval;
     I in people with its share of the population in brackets."""
     cases, infectious = "weekly reported cases", "infectious people I·N (share of population)"
     rows: list[list[str]] = []
     keys: list[tuple[str, str]] = []
+    for w in reversed(h.nowcast_weeks):
+        keys.append((cases, f"{w.target_end} (nowcast, {fmt_prob(w.reported_share.median)} in)"))
+        rows.append([fmt_count(w.cases.median), fmt_range(w.cases.lo50, w.cases.hi50),
+                     fmt_range(w.cases.lo90, w.cases.hi90)])
     for label in (cases, infectious):
         for f in h.horizons:
-            keys.append((label, f"{f.target_end} (+{f.horizon} wk)"))
+            keys.append((label, week_label(f)))
             rows.append([fmt_count(f.cases.median), fmt_range(f.cases.lo50, f.cases.hi50),
                          fmt_range(f.cases.lo90, f.cases.hi90)] if label == cases
                         else _people_share(f.infectious, h.population))
@@ -346,6 +436,11 @@ def facts_frame(h: Headline) -> pd.DataFrame:
                         " relative WIS on weekly cases in the backtest and is not averaged in"
                         if h.smc_relative_wis is not None else ""),
     }
+    if h.reported_weeks:
+        facts["reported so far"] = "; ".join(
+            f"week to {end}: {fmt_prob(x.median)} ({fmt_range(x.lo90, x.hi90, fmt_prob)})"
+            for end, x in h.reported_weeks) + (
+            f" of the nowcast final cases, by {h.data_date} (median, 90% interval)")
     return pd.DataFrame({"value": list(facts.values())},
                         index=pd.Index(list(facts), name="growth"))
 

@@ -1,0 +1,343 @@
+"""Nowcast, then forecast, from the data date: which weeks are nowcast, which are forecast, and
+the forecast's predictive distribution mixed over the nowcast's completions.
+
+**Weeks.** The data date D is the last day in the data. The hub round's reference date is the
+Saturday ending D's epiweek (D itself on a Saturday); the origin is the last Saturday ≤ D. Hub
+horizon h is the epiweek ending ``reference + 7h``: a week ending on or before the origin lies
+wholly in the data and is **nowcast** (its final count from the nowcast's samples); a later week
+is **forecast**, ``(end − origin)/7`` weeks after the origin (1..4 for hub horizons 0..3, the
+four weeks the flow member forecasts).
+
+**The days after the origin.** When D is not a Saturday, the current week (hub horizon 0) has
+its first days in the data. By default they are not used: the week is the forecast's week from
+the origin, which the weekly run publishes too. ``partial_week=True`` makes it the nowcast of
+those days plus the forecast's week scaled by the share of a week's cases its other days carry
+(weekday shares of the completed history's last eight weeks; a monotone map of the forecast, so
+quantiles map exactly). Measured on the CDPH vintages (``bench/nowcast.py``) it did worse: those
+days are the least complete, and their nowcast the least certain.
+
+**Mixing.** Each completion k of the nowcast is forecast as a history of its own (one batch);
+the published distribution is their equal mixture: each completion's continuous quantile
+function (:func:`pipeline.ensemble.calibration.quantiles_at`) is read at the same stratified
+levels, the draws are pooled and the hub quantiles taken from the pool — the average of the
+CDFs, not of the quantiles.
+
+:class:`CompletionForecaster` is the small protocol behind which any weekly forecaster is
+plugged in (AutoETS in the benchmark; the published ensemble in the weekly run).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.ensemble.calibration import quantiles_at
+from pipeline.ensemble.members import Member, quantile_forecast_from_weekly_cases
+from pipeline.ensemble.nowcast import CompletedHistories, Nowcast, complete_histories
+from pipeline.ensemble.panel import BatchMember, forecast_cells
+from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
+from pipeline.evaluation.scoring import quantiles_from_samples
+
+SATURDAY = 5
+HUB_HORIZONS: tuple[int, ...] = (-1, 0, 1, 2, 3)
+MIX_LEVELS = 200
+WEEKDAY_SHARE_WEEKS = 8
+WeekKind = Literal["nowcast", "forecast"]
+
+
+class CompletionForecaster(Protocol):
+    """Weekly case quantiles ``(B, H, Q)`` of B histories at weekly steps ``horizons`` after
+    each history's last day (its origin)."""
+
+    @property
+    def name(self) -> str: ...
+
+    def __call__(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                 levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]: ...
+
+
+@dataclass(frozen=True)
+class MemberForecaster:
+    """A weekly :class:`~pipeline.ensemble.members.Member` (or a batch member) as a
+    :class:`CompletionForecaster`."""
+
+    member: Member | BatchMember
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    def __call__(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                 levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
+        return forecast_cells(self.member, histories, horizons, levels, seed)["cases"]
+
+
+# --------------------------------------------------------------------------------- weeks
+
+
+def last_saturday(date: pd.Timestamp) -> pd.Timestamp:
+    """The last Saturday on or before ``date``."""
+    d = pd.Timestamp(date).normalize()
+    return d - pd.Timedelta(days=(d.weekday() - SATURDAY) % DAYS_PER_WEEK)
+
+
+def reference_date(data_date: pd.Timestamp) -> pd.Timestamp:
+    """The Saturday ending the epiweek (Sunday–Saturday) that holds ``data_date``."""
+    d = pd.Timestamp(data_date).normalize()
+    return d + pd.Timedelta(days=(SATURDAY - d.weekday()) % DAYS_PER_WEEK)
+
+
+@dataclass(frozen=True)
+class HubWeek:
+    """One hub horizon: its week's last day, nowcast or forecast, and (forecast) the step in
+    weeks after the origin."""
+
+    horizon: int
+    end: pd.Timestamp
+    kind: WeekKind
+    step: int            # weeks after the origin (≤ 0: a nowcast week)
+
+
+@dataclass(frozen=True)
+class HubWeeks:
+    """The weeks of a round with data up to ``data_date`` (module docstring)."""
+
+    data_date: pd.Timestamp
+    origin: pd.Timestamp
+    reference: pd.Timestamp
+    weeks: tuple[HubWeek, ...]
+
+    @property
+    def forecast_steps(self) -> tuple[int, ...]:
+        return tuple(w.step for w in self.weeks if w.kind == "forecast")
+
+    @property
+    def known_days_after_origin(self) -> int:
+        """Days of the current week in the data (0 when the data end on a Saturday)."""
+        return int((self.data_date - self.origin).days)
+
+
+def hub_weeks(data_date: pd.Timestamp, horizons: tuple[int, ...] = HUB_HORIZONS) -> HubWeeks:
+    """Nowcast and forecast weeks of the round whose data end on ``data_date``."""
+    d = pd.Timestamp(data_date).normalize()
+    origin, ref = last_saturday(d), reference_date(d)
+    weeks = []
+    for h in horizons:
+        end = ref + pd.Timedelta(days=DAYS_PER_WEEK * h)
+        step = int((end - origin).days // DAYS_PER_WEEK)
+        weeks.append(HubWeek(h, end, "nowcast" if step <= 0 else "forecast", step))
+    return HubWeeks(d, origin, ref, tuple(weeks))
+
+
+# --------------------------------------------------------------------------------- mixing
+
+
+def mix_quantiles(quantiles: NDArray[np.float64], levels: NDArray[np.float64],
+                  n_levels: int = MIX_LEVELS) -> NDArray[np.float64]:
+    """The equal mixture of K forecasts ``(K, ..., Q)`` as quantiles ``(..., Q)``: stratified
+    draws of each component's quantile function, pooled."""
+    u = (np.arange(n_levels) + 0.5) / n_levels
+    draws = quantiles_at(levels, quantiles, np.broadcast_to(u, quantiles.shape[:-1]
+                                                            + (n_levels,)))     # (K, ..., M)
+    pooled = np.moveaxis(draws, 0, -2).reshape(*quantiles.shape[1:-1], -1)
+    return quantiles_from_samples(pooled, levels)
+
+
+def week_sums(histories: CompletedHistories, ends: Sequence[pd.Timestamp]
+              ) -> NDArray[np.float64]:
+    """``(K, W)`` cases of the 7-day weeks ending on ``ends`` in every completion."""
+    positions = histories.dates.get_indexer(pd.DatetimeIndex(list(ends)))
+    if (positions < DAYS_PER_WEEK - 1).any():
+        raise TargetError(f"weeks ending {list(ends)} are not all in the history")
+    cumulative = np.concatenate([np.zeros((len(histories), 1)),
+                                 np.cumsum(histories.cases, axis=1)], axis=1)
+    return np.asarray(cumulative[:, positions + 1] - cumulative[:, positions + 1 - DAYS_PER_WEEK],
+                      dtype=np.float64)
+
+
+def day_index(dates: pd.DatetimeIndex, date: pd.Timestamp) -> int:
+    """The position of ``date`` in ``dates`` (an error naming it when absent)."""
+    pos = int(dates.get_indexer(pd.DatetimeIndex([pd.Timestamp(date)]))[0])
+    if pos < 0:
+        raise TargetError(f"{pd.Timestamp(date).date()} is not a day of the history "
+                          f"({dates[0].date()} … {dates[-1].date()})")
+    return pos
+
+
+def weekday_shares(histories: CompletedHistories, until: pd.Timestamp,
+                   weeks: int = WEEKDAY_SHARE_WEEKS) -> NDArray[np.float64]:
+    """``(K, 7)`` share of a week's cases on each weekday (Monday = 0) over the ``weeks`` weeks
+    ending on ``until``."""
+    end = day_index(histories.dates, until) + 1
+    start = max(end - weeks * DAYS_PER_WEEK, 0)
+    cases = histories.cases[:, start:end].astype(np.float64) + 0.5
+    weekday = histories.dates[start:end].weekday.to_numpy()
+    totals = np.stack([cases[:, weekday == w].sum(axis=1) for w in range(DAYS_PER_WEEK)], axis=1)
+    return totals / totals.sum(axis=1, keepdims=True)
+
+
+# ------------------------------------------------------------------------------ the forecast
+
+
+@dataclass(frozen=True, eq=False)
+class NowcastForecast:
+    """Quantiles ``(H, Q)`` of weekly cases at the hub weeks ``weeks`` (nowcast or forecast),
+    per completion ``(K, H, Q)`` too (hub files' sample paths and diagnostics)."""
+
+    weeks: HubWeeks
+    levels: NDArray[np.float64]
+    quantiles: NDArray[np.float64]
+    per_completion: NDArray[np.float64]
+    forecaster: str
+
+
+def nowcast_then_forecast(histories: CompletedHistories, data_date: pd.Timestamp,
+                          forecaster: CompletionForecaster, levels: NDArray[np.float64],
+                          seed: int, *, horizons: tuple[int, ...] = HUB_HORIZONS,
+                          partial_week: bool = False) -> NowcastForecast:
+    """Every completion forecast from the last Saturday ≤ ``data_date`` (one batch), nowcast
+    weeks from the completions' own counts, mixed (module docstring)."""
+    weeks = hub_weeks(data_date, horizons)
+    if histories.dates[-1] != weeks.data_date:
+        raise TargetError(f"the completed histories end {histories.dates[-1].date()}, the data "
+                          f"date is {weeks.data_date.date()}")
+    k, q = len(histories), len(levels)
+    per = np.empty((k, len(weeks.weeks), q))
+    steps = weeks.forecast_steps
+    if steps:
+        forecast = forecaster(histories.histories(up_to=weeks.origin), steps, levels, seed)
+        forecast = _with_known_days(forecast, histories, weeks, partial_week)
+        for j, w in enumerate(x for x in weeks.weeks if x.kind == "forecast"):
+            per[:, weeks.weeks.index(w)] = forecast[:, j]
+    nowcast_weeks = [w for w in weeks.weeks if w.kind == "nowcast"]
+    if nowcast_weeks:
+        sums = week_sums(histories, [w.end for w in nowcast_weeks])          # (K, W)
+        for j, w in enumerate(nowcast_weeks):
+            per[:, weeks.weeks.index(w)] = sums[:, j, None]
+    return NowcastForecast(weeks, np.asarray(levels, dtype=np.float64),
+                           mix_quantiles(per, levels), per, forecaster.name)
+
+
+def _with_known_days(forecast: NDArray[np.float64], histories: CompletedHistories,
+                     weeks: HubWeeks, partial_week: bool) -> NDArray[np.float64]:
+    """The current week (step 1) as its known days' nowcast plus the forecast of the rest."""
+    known = weeks.known_days_after_origin
+    if not partial_week or known == 0 or 1 not in weeks.forecast_steps:
+        return forecast
+    shares = weekday_shares(histories, weeks.origin)                            # (K, 7)
+    days = (weeks.origin + pd.Timedelta(days=d) for d in range(1, known + 1))
+    weekday = np.array([d.weekday() for d in days])
+    rest = 1.0 - shares[:, weekday].sum(axis=1)                                  # (K,)
+    tail = histories.cases[:, -known:].sum(axis=1).astype(np.float64)
+    out = forecast.copy()
+    j = weeks.forecast_steps.index(1)
+    out[:, j] = tail[:, None] + rest[:, None] * forecast[:, j]
+    return out
+
+
+def truncated_forecast(history: EpiHistory, data_date: pd.Timestamp,
+                       forecaster: CompletionForecaster, levels: NDArray[np.float64],
+                       seed: int, *, drop_days: int,
+                       horizons: tuple[int, ...] = HUB_HORIZONS) -> NDArray[np.float64]:
+    """Quantiles ``(H, Q)`` at the hub weeks of ``data_date`` without a nowcast: the data
+    after ``data_date − drop_days`` are dropped (today's run drops 14), the origin is the last
+    Saturday ≤ the last day kept and the forecast runs as many weeks as the hub weeks need; a
+    week ending on or before that origin is its count as reported (the truncated data as is)."""
+    weeks = hub_weeks(data_date, horizons)
+    kept = history.up_to(weeks.data_date - pd.Timedelta(days=drop_days))
+    origin = last_saturday(kept.origin)
+    seen = kept.up_to(origin)
+    steps = [int((w.end - origin).days // DAYS_PER_WEEK) for w in weeks.weeks]
+    ahead = tuple(s for s in steps if s > 0)
+    out = np.empty((len(steps), len(levels)))
+    if ahead:
+        forecast = forecaster([seen], ahead, levels, seed)[0]
+        for j, s in enumerate(ahead):
+            out[steps.index(s)] = forecast[j]
+    for i, s in enumerate(steps):
+        if s <= 0:
+            end = weeks.weeks[i].end
+            pos = day_index(history.dates, end)
+            out[i] = float(history.cases[pos - DAYS_PER_WEEK + 1:pos + 1].sum())
+    return out
+
+
+# ------------------------------------------------------------------------- the weekly run
+
+
+@dataclass(frozen=True, eq=False)
+class RunNowcast:
+    """The weekly run's nowcast: the completions, their per-day median (the history the
+    backtest scores against), the round's weeks and where the delay model came from."""
+
+    nowcast: Nowcast
+    completed: CompletedHistories
+    median_history: EpiHistory
+    weeks: HubWeeks
+    delay_model: str
+
+    def week_samples(self, end: pd.Timestamp) -> NDArray[np.float64]:
+        """``(K,)`` final cases of the 7-day week ending ``end`` in each completion."""
+        return week_sums(self.completed, [pd.Timestamp(end)])[:, 0]
+
+    def week_observed(self, end: pd.Timestamp) -> float:
+        """The same week's cases as reported so far."""
+        observed = self.completed.history(0).cases.astype(np.float64).copy()
+        start = day_index(self.completed.dates, self.nowcast.dates[0])
+        observed[start:] = self.nowcast.observed
+        pos = day_index(self.completed.dates, end)
+        return float(observed[pos - DAYS_PER_WEEK + 1:pos + 1].sum())
+
+    def reported_share(self, end: pd.Timestamp) -> NDArray[np.float64]:
+        """``(K,)`` share of the week's final cases reported so far."""
+        return self.week_observed(end) / np.maximum(self.week_samples(end), 1.0)
+
+
+def median_history(history: EpiHistory, nowcast: Nowcast) -> EpiHistory:
+    """``history`` completed with the per-day median of the nowcast (never below reported)."""
+    median = np.maximum(np.rint(np.median(nowcast.samples, axis=0)).astype(np.int64),
+                        nowcast.observed)
+    point = Nowcast(nowcast.dates, nowcast.observed, median[None, :],
+                    nowcast.completeness.mean(axis=0, keepdims=True), nowcast.as_of)
+    return complete_histories(history, point).history(0)
+
+
+@dataclass(frozen=True, eq=False)
+class CompletionMixture:
+    """A weekly member that, at origins from ``active_from`` on (where the data are still being
+    reported), forecasts every completion and publishes their mixture; earlier origins (final
+    data) are forecast as they are. Sample paths: an equal share of each completion's."""
+
+    member: Member
+    completed: CompletedHistories
+    active_from: pd.Timestamp
+    n_mixed: int = 32                  # the first completions are forecast
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
+        if history.origin < self.active_from:
+            return self.member.forecast(history, horizons, levels, seed)
+        forecasts = [self.member.forecast(h, horizons, levels, seed)
+                     for h in self.completed.histories(up_to=history.origin)[:self.n_mixed]]
+        cases = mix_quantiles(np.stack([f.values["cases"] for f in forecasts]), levels)
+        return quantile_forecast_from_weekly_cases(
+            self.name, history.origin, tuple(horizons), levels, cases, history.population,
+            pooled_paths([f.paths for f in forecasts]))
+
+
+def pooled_paths(paths: Sequence[NDArray[np.float64] | None]) -> NDArray[np.float64] | None:
+    """An equal share of every completion's sample paths (None when any has none)."""
+    if any(p is None for p in paths):
+        return None
+    arrays = [p for p in paths if p is not None]
+    n = min(len(p) for p in arrays)
+    per = int(np.ceil(n / len(arrays)))
+    return np.concatenate([p[:per] for p in arrays])[:n]

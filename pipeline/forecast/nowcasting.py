@@ -1,0 +1,147 @@
+"""The weekly run's nowcast: the delay model from the CDPH vintages (fitted once per set of
+vintages, cached), the nowcast of the SF series' last days, and the completions the published
+forecast is mixed over.
+
+San Francisco's DataSF series has no report-date column and the project holds one DataSF
+vintage, so its delays cannot be fitted from DataSF itself. CDPH's episode-date cases for San
+Francisco match DataSF's weekly sums (median ratio 0.99), so the CDPH delay model is SF's prior:
+SF is nowcast as a *new county* of it (the pooled curve with the between-county spread), with
+reports arriving around the data date (the latest era, extrapolated by the random walk). Lags
+count from DataSF's own "data as of" stamp when it gives one (DataSF publishes a day only some
+days after it: the export of 2022-03-21 ends on 2022-03-16), else from the last day in the data.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline.data.cache import data_dir
+from pipeline.data.cdph import CDPHVintage, find_vintage_files
+from pipeline.data.cdph_source import cached_vintages, validate_cdph_exports
+from pipeline.data.delays import (DelayModel, DelayModelError, fit_delay_model,
+                                  load_delay_model, save_delay_model)
+from pipeline.data.series import DataVintage, SFSeries
+from pipeline.data.sir_transform import SIRSeries
+from pipeline.data.vintage_pairs import revision_pairs
+from pipeline.ensemble.nowcast import NowcastConfig, complete_histories, nowcast_history
+from pipeline.ensemble.nowcast_forecast import RunNowcast, hub_weeks, last_saturday, \
+    median_history
+from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory
+from pipeline.forecast.config import NowcastSettings
+from pipeline.forecast.sources import sf_history
+from pipeline.io import sha256_bytes
+
+ARCHIVE_ENV = "FLOWCAST_CDPH_ARCHIVE"
+MODELS_DIR = "delay-models"
+
+log = logging.getLogger(__name__)
+
+
+def archive_folders(settings: NowcastSettings) -> tuple[str, ...]:
+    """``settings.archive``, else ``$FLOWCAST_CDPH_ARCHIVE`` (colon-separated)."""
+    if settings.archive:
+        return settings.archive
+    return tuple(p for p in os.environ.get(ARCHIVE_ENV, "").split(os.pathsep) if p)
+
+
+def delay_vintages(settings: NowcastSettings) -> list[CDPHVintage]:
+    """Every CDPH vintage the cache holds, plus the validated downloads in the archive folders
+    (one per date; the cache's copy first)."""
+    chosen: dict[pd.Timestamp, CDPHVintage] = {v.as_of: v for v in cached_vintages()}
+    for folder in archive_folders(settings):
+        files = find_vintage_files(folder) if Path(folder).is_dir() else []
+        for checked in validate_cdph_exports(files):
+            chosen.setdefault(checked.vintage.as_of, checked.vintage)
+    return [chosen[d] for d in sorted(chosen)]
+
+
+def _model_key(vintages: Sequence[CDPHVintage], settings: NowcastSettings) -> str:
+    identity = {"config": asdict(settings.delay),
+                "vintages": [[str(v.as_of.date()), len(v.frame), int(v.frame["cases"].sum())]
+                             for v in vintages]}
+    return sha256_bytes(json.dumps(identity, sort_keys=True, default=str).encode())[:16]
+
+
+def delay_model_for_run(settings: NowcastSettings) -> DelayModel | None:
+    """The delay model of the CDPH vintages at hand (fitted once per set, then read from
+    ``<data dir>/delay-models/``); None with fewer than two vintages."""
+    vintages = delay_vintages(settings)
+    if len(vintages) < 2:
+        log.warning("nowcast: %d CDPH vintage(s) in the cache and archive, two are needed for "
+                    "the delay model; import CDPH downloads with `flowcast data import` or set "
+                    "%s", len(vintages), ARCHIVE_ENV)
+        return None
+    path = data_dir() / MODELS_DIR / f"delay-{_model_key(vintages, settings)}.npz"
+    if path.is_file():
+        try:
+            return load_delay_model(path, settings.delay)
+        except DelayModelError as exc:
+            log.warning("refitting the delay model: %s", exc)
+    pairs = revision_pairs(vintages, max_lag=settings.delay.max_lag, consecutive=True)
+    model = fit_delay_model(pairs, settings.delay,
+                            sources=tuple(str(v.as_of.date()) for v in vintages))
+    save_delay_model(model, path)
+    return model
+
+
+def data_date(vintage: DataVintage, history: EpiHistory) -> pd.Timestamp:
+    """When the data were published: DataSF's "data as of" day, else the last day in them."""
+    if vintage.data_as_of:
+        stamp = pd.Timestamp(vintage.data_as_of[:10])
+        if stamp >= history.origin:
+            return stamp
+    return history.origin
+
+
+def run_nowcast(history: EpiHistory, vintage: DataVintage, settings: NowcastSettings,
+                seed: int) -> tuple[EpiHistory, RunNowcast | None]:
+    """(the history the weekly step forecasts from, the nowcast): with a delay model, every day
+    with its last ones nowcast (the history is their per-day median; the completions are in
+    the nowcast); without one, the history less ``fallback_trailing_days``."""
+    model = delay_model_for_run(settings) if settings.enabled else None
+    if model is None:
+        cut = history.origin - pd.Timedelta(days=settings.fallback_trailing_days)
+        return history.up_to(cut), None
+    published = data_date(vintage, history)
+    nowcast = nowcast_history(history, model, as_of=published, county=None,
+                              config=NowcastConfig(n_completions=settings.nowcast_samples),
+                              seed=seed)
+    completed = complete_histories(history, nowcast)
+    weeks = hub_weeks(history.origin)
+    note = (f"CDPH delay model of {len(model.sources)} vintages "
+            f"({', '.join(model.sources)}), San Francisco as a new county; lags from "
+            f"{published.date()}")
+    median = median_history(history, nowcast)
+    return median, RunNowcast(nowcast, completed, median, weeks, note)
+
+
+@dataclass(frozen=True, eq=False)
+class RecentDays:
+    """Step ``nowcast-recent-days``: the history the weekly step forecasts from, the S/I/R
+    frame the joint models read (recent days at the nowcast's per-day median), the nowcast
+    (None: no delay model, ``fallback_trailing_days`` dropped instead)."""
+
+    history: EpiHistory
+    sir_frame: pd.DataFrame
+    nowcast: RunNowcast | None
+
+
+def nowcast_recent_days(series: SFSeries, sir: SIRSeries, settings: NowcastSettings,
+                        seed: int) -> RecentDays:
+    """The SF series' last days nowcast (:func:`run_nowcast`), as the run's later steps use it."""
+    history, nowcast = run_nowcast(sf_history(series, sir), series.vintage, settings, seed)
+    frame = sir.frame.iloc[:len(history)].copy()
+    for name in ("S", "I", "R"):
+        frame[name] = getattr(history, name)
+    return RecentDays(history, frame, nowcast)
+
+
+def mixture_start(nowcast: RunNowcast, weeks: int) -> pd.Timestamp:
+    """The first origin whose forecast is mixed over the completions."""
+    return last_saturday(nowcast.weeks.data_date) - pd.Timedelta(days=DAYS_PER_WEEK * (weeks - 1))
