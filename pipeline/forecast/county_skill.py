@@ -73,7 +73,7 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
     except OfflineError as exc:
         log.warning("no county skill: %s", exc)
         return None
-    backtest = CountyBacktestConfig(trailing_days=config.data.trailing_days)
+    backtest = CountyBacktestConfig()
     path = data_dir() / FOLDER / f"{skill_key(vintage, backtest, config)[:24]}.json"
     as_of = str(vintage.as_of.date())
     if path.is_file():
