@@ -26,6 +26,7 @@ last date, where they mean "nothing reported yet"; anywhere else they are an err
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 from collections.abc import Sequence
@@ -162,8 +163,24 @@ def _check_days(frame: pd.DataFrame, source: str) -> None:
                                   f", the file on {pd.Timestamp(last).date()}")
 
 
+# Parsed vintages by (bytes' hash, source): a weekly run reads the same cached vintage in several
+# steps (reference counties, nowcast, county skill); parsing a 4 MB file takes most of a second.
+_PARSED: dict[tuple[str, str], CDPHVintage] = {}
+_PARSED_LIMIT = 16
+
+
 def parse_cdph_csv(data: bytes, source: str) -> CDPHVintage:
-    """A :class:`CDPHVintage` from the bytes of ``covid19cases_test.csv`` (module docstring)."""
+    """A :class:`CDPHVintage` from the bytes of ``covid19cases_test.csv`` (module docstring);
+    the same bytes from the same source are parsed once per process."""
+    key = (hashlib.sha256(data).hexdigest(), source)
+    if key not in _PARSED:
+        if len(_PARSED) >= _PARSED_LIMIT:
+            _PARSED.pop(next(iter(_PARSED)))
+        _PARSED[key] = _parse(data, source)
+    return _PARSED[key]
+
+
+def _parse(data: bytes, source: str) -> CDPHVintage:
     try:
         raw = pd.read_csv(io.BytesIO(data), dtype=str, keep_default_na=False)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
