@@ -1,7 +1,9 @@
 """The weekly forecast's one model on the SF series → bench/results/rollouts_sf.json.
 
 With the default forecast preset's joint flows (trained on the flow member's multi-wave prior;
-reused from the model store, trained if absent) and its settings, on the shared DataSF data:
+reused from the model store, trained if absent) and its settings, on the shared DataSF data as
+the run reads them (every day up to the data date, the days still being reported nowcast from the
+CDPH vintages' delay model):
 
 * rollouts: the rolling forward and backward rollouts re-anchored every 7 and 28 days (the
   report's), per view the share of days whose observed I lies in the 90 % band (5 %–95 % of the
@@ -29,6 +31,7 @@ from typing import Any
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED_DATASF = Path(__file__).resolve().parents[2] / "shared" / "data" / "datasf"
+SHARED_CDPH = Path(__file__).resolve().parents[2] / "shared" / "data" / "cdph"
 SYNTHETIC_PATHS = 40
 SMC_SEEDS = (0, 1, 2, 3, 4)
 
@@ -110,23 +113,32 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny preset (smoke test)")
     parser.add_argument("--data", default=str(SHARED_DATASF))
+    parser.add_argument("--cdph", default=str(SHARED_CDPH), help="CDPH county downloads (the "
+                        "nowcast's delay model), imported when the cache has none")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     import numpy as np
 
     from pipeline import forecast as fc
+    from pipeline.data.cdph import find_vintage_files
+    from pipeline.data.cdph_source import import_cdph_exports
     from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
+    from pipeline.forecast.nowcasting import nowcast_recent_days
     from pipeline.forecast.sources import import_exports, load_series, series_to_sir, sir_arrays
     from pipeline.forecast.steps import parameter_track, rollouts, seeded_smc
     from pipeline.io import atomic_write_json
 
     started = time.perf_counter()
     import_exports([args.data], if_empty=True)
+    if Path(args.cdph).is_dir():      # the nowcast's delay model, as `make forecast` imports it
+        import_cdph_exports(find_vintage_files(args.cdph), if_empty=True, accept_revisions=True)
     config = fc.resolve_config("tiny" if args.quick else "default",
                                data=fc.DataSourceConfig(kind="cache"))
     series = load_series(config.data)
-    sir_series = series_to_sir(series)
-    sir = sir_arrays(sir_series.frame)
+    # the run's S/I/R frame: every day of the data, the days still being reported nowcast
+    recent = nowcast_recent_days(series, series_to_sir(series), config.nowcast,
+                                 config.step_seed("nowcast"))
+    sir = sir_arrays(recent.sir_frame)
     models = train_or_reuse_models(config, simulate_training_data(config))
     t0 = time.perf_counter()
     rolled = rollouts(models, sir, config)
@@ -146,7 +158,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     latest = params[(params["direction"] == "forward")].groupby("component").tail(1)
     smc = {}
     for seed in SMC_SEEDS:
-        run = seeded_smc(models, series, sir_series, sir, dataclasses.replace(config, seed=seed))
+        run = seeded_smc(models, recent.history, sir, dataclasses.replace(config, seed=seed))
         ess = run.result.ess[0].numpy() / config.smc.particles
         smc[str(seed)] = {"min_ess_share": float(ess.min()),
                           "min_ess_day": str(run.dates[int(np.argmin(ess))].date()),
@@ -167,6 +179,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "smc": {"days": config.smc.days, "particles": config.smc.particles, "by_seed": smc,
                 "min_ess_share_over_seeds": min(v["min_ess_share"] for v in smc.values())},
         "data": {"first_day": str(sir.dates[0].date()), "last_day": str(sir.dates[-1].date()),
+                 "nowcast_from": (str(recent.nowcast.completed.first_nowcast_day.date())
+                                  if recent.nowcast else None),
                  "max_observed_I": float(sir.values[:, 1].max())},
         "seconds": round(time.perf_counter() - started, 1),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",

@@ -26,6 +26,8 @@ growth seen so far (zero growth).
 """
 from __future__ import annotations
 
+import functools
+
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -153,11 +155,18 @@ def weekly_sums_ending(cases: NDArray[np.integer] | NDArray[np.floating], dates:
                        n_weeks: int) -> NDArray[np.float64]:
     """Counts of the ``n_weeks`` 7-day weeks ending at ``end``, ``end`` − 7, … (oldest first) of a
     daily series; NaN for weeks not wholly inside the series (or after its last day)."""
-    first = dates[0]
     cumulative = np.concatenate([[0.0], np.cumsum(np.asarray(cases, dtype=np.float64))])
+    return cumulative_weeks_ending(cumulative, dates[0], end, n_weeks)
+
+
+def cumulative_weeks_ending(cumulative: NDArray[np.float64], first: pd.Timestamp,
+                            end: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
+    """:func:`weekly_sums_ending` from a series' cumulative counts (a leading 0, then one per
+    day from ``first``)."""
+    n_days = len(cumulative) - 1
     week_ends = (end - first).days - DAYS_PER_WEEK * np.arange(n_weeks)[::-1]      # day index
-    inside = (week_ends - DAYS_PER_WEEK + 1 >= 0) & (week_ends < len(cases))
-    safe = np.clip(week_ends, DAYS_PER_WEEK - 1, len(cases) - 1)
+    inside = (week_ends - DAYS_PER_WEEK + 1 >= 0) & (week_ends < n_days)
+    safe = np.clip(week_ends, DAYS_PER_WEEK - 1, n_days - 1)
     sums = cumulative[safe + 1] - cumulative[safe + 1 - DAYS_PER_WEEK]
     return np.where(inside, sums, np.nan)
 
@@ -178,15 +187,28 @@ class PooledGrowthMember:
         if own.size < 2:
             raise TargetError(f"{self.name} at {history.origin.date()}: needs two complete "
                               f"weeks, got {len(history)} days")
-        seen = [r.up_to(history.origin) for r in self.reference if r.dates[0] <= history.origin]
-        others = [weekly_sums_ending(r.cases, r.dates, history.origin, own.size) for r in seen]
-        weekly = np.vstack([*others, own[None]]) if others else own[None]
+        others = self._reference_weeks_ending(history.origin, own.size)
+        weekly = np.vstack([others, own[None]])
         quantiles = growth_regression_quantiles(weekly, np.array([own.size - 1]), horizons,
                                                 np.asarray(levels, dtype=np.float64),
                                                 self.config)[-1, 0]
         return quantile_forecast_from_weekly_cases(self.name, history.origin, horizons,
                                                    np.asarray(levels, dtype=np.float64),
                                                    quantiles, history.population)
+
+    @functools.cached_property
+    def _reference_cumulative(self) -> tuple[tuple[pd.Timestamp, NDArray[np.float64]], ...]:
+        """Each reference place's first day and cumulative daily cases (computed once: a week's
+        sum reads only its own days, so an origin still sees nothing after it)."""
+        return tuple((r.dates[0], np.concatenate([[0.0], np.cumsum(r.cases, dtype=np.float64)]))
+                     for r in self.reference)
+
+    def _reference_weeks_ending(self, end: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
+        """``(P, n_weeks)`` weekly counts of the reference places that began by ``end``, for the
+        weeks ending ``end``, ``end`` − 7, … (NaN where a week is not wholly observed)."""
+        rows = [cumulative_weeks_ending(cumulative, first, end, n_weeks)
+                for first, cumulative in self._reference_cumulative if first <= end]
+        return np.vstack(rows) if rows else np.empty((0, n_weeks))
 
     def forecast_panel(self, weekly_cases: NDArray[np.float64], origin_index: NDArray[np.intp],
                        horizons: tuple[int, ...], levels: NDArray[np.float64]
