@@ -1,5 +1,6 @@
 """The ``flowcast`` entry point: the library's commands (:mod:`pipeline.cli`) plus
-``flowcast forecast``, which runs the weekly SF forecast flow once (Prefect's local ephemeral API,
+``flowcast forecast``, which runs the weekly SF (``--county NAME``: a California county's)
+forecast flow once (Prefect's local ephemeral API,
 or the server at ``PREFECT_API_URL``; ``make forecast`` calls it). It lives with the flows
 because it runs one: the library never imports Prefect."""
 from __future__ import annotations
@@ -29,18 +30,31 @@ def forecast_command(
              "tiny: a seconds-long smoke run")] = ForecastPreset("default"),
     encoder: Annotated[Encoder | None, typer.Option(
         help="context encoder (default: the preset's)")] = None,
+    county: Annotated[str | None, typer.Option(
+        metavar="NAME", help="a California county (e.g. 'Los Angeles'), forecast from CDPH's "
+                             "county data on its own population; default: San Francisco from "
+                             "DataSF")] = None,
     data_source: Annotated[DataSource, typer.Option(
-        help="live: DataSF with cache fallback; cache: offline; import: the --import-from "
-             "exports first")] = DataSource("live"),
+        help="live: DataSF (CDPH for --county) with cache fallback; cache: offline; import: "
+             "the --import-from exports first")] = DataSource("live"),
     import_from: Annotated[list[Path] | None, typer.Option(
-        metavar="PATH", help="DataSF CSV export or folder for --data-source import "
-                             "(repeat the option for several)")] = None,
+        metavar="PATH", help="DataSF CSV export or folder (CDPH covid19cases_test.csv for "
+                             "--county) for --data-source import (repeat the option for "
+                             "several)")] = None,
     output_dir: Annotated[Path, typer.Option(help="reports folder")] = Path("reports"),
     seed: Annotated[int, typer.Option(help="seed of every random step")] = 0,
     retrain: Annotated[bool, typer.Option("--retrain", help="ignore the cached model")] = False,
 ) -> None:
-    """Run the weekly San Francisco forecast once and print where the report went."""
-    from pipeline.errors import FlowcastError
+    """Run the weekly San Francisco (or --county) forecast once and print where the report
+    went."""
+    from pipeline.data.california import california_county
+    from pipeline.errors import ConfigError, FlowcastError
+
+    try:  # a misspelt county fails here, before Prefect starts
+        county = california_county(county) if county is not None else None
+    except ConfigError as error:
+        typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1) from None
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
@@ -55,7 +69,7 @@ def forecast_command(
                             data_source=value(data_source),
                             import_from=[str(p) for p in import_from] if import_from else None,
                             output_dir=str(output_dir), seed=seed, retrain=retrain,
-                            return_state=True)
+                            county=county, return_state=True)
     if not state.is_completed():
         try:
             state.result()
@@ -69,7 +83,8 @@ def forecast_command(
     assert isinstance(result, dict)  # the flow's outcome (a stale run's Completed state holds it)
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:
-        typer.secho("warning: DataSF could not be reached; the forecast used cached data "
+        typer.secho(f"warning: {'DataSF' if county is None else 'the CHHS portal (CDPH)'} "
+                    "could not be reached; the forecast used cached data "
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
 
 

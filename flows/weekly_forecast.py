@@ -5,9 +5,10 @@ Run once, locally (Prefect's ephemeral API; no server needed)::
     python -m flows.weekly_forecast                      # default preset, live data
     python -m flows.weekly_forecast --preset tiny --data-source import \
         --import-from ../shared/data/datasf
+    python -m flows.weekly_forecast --county "Los Angeles" --data-source cache   # CDPH data
 
 The flow adds orchestration only: each step of ``run_forecast`` runs as a task of the same name
-(:class:`PrefectSteps`), with retries and a time limit on the DataSF fetch; then the outputs are
+(:class:`PrefectSteps`), with retries and a time limit on the DataSF (or CDPH) fetch; then the outputs are
 published, artifacts posted, and a stale-data run marked. Tasks hand large objects (tensors,
 models) to each other in memory, so every task has ``cache_policy=NO_CACHE`` and does not persist
 results: the expensive step (training) is cached by :mod:`pipeline.training.model_store` instead.
@@ -24,6 +25,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Literal, ParamSpec, TypeVar
 
 import pandas as pd
@@ -36,9 +38,11 @@ from prefect.client.schemas.objects import State
 from prefect.states import Completed
 
 from pipeline import forecast as fc
+from pipeline.data.california import california_county, county_slug
+from pipeline.errors import ConfigError
 from pipeline.forecast.config import DataSourceKind
 from pipeline.forecast.publish import PublishedRun, publish
-from pipeline.forecast.run import Step, StepRunner
+from pipeline.forecast.run import FETCH_STEPS, Step, StepRunner
 from pipeline.forecast.steps import REPORT_LEVELS
 from pipeline.report.headline import compute_headline, markdown
 from pipeline.report.weekly import data_banner
@@ -46,7 +50,8 @@ from pipeline.report.weekly import data_banner
 FORECAST_PRESETS_CHOICES = tuple(fc.FORECAST_PRESETS)
 P = ParamSpec("P")
 R = TypeVar("R")
-# Artifact keys are stable so the UI shows each one's history across weekly runs.
+# Artifact keys are stable so the UI shows each one's history across weekly runs (a county's
+# runs: the same keys with the county's slug for "sf", :func:`artifact_key`).
 ARTIFACT_NLL = "sf-weekly-nll"
 ARTIFACT_PARAMS = "sf-weekly-beta-gamma"
 ARTIFACT_REPORT = "sf-weekly-report"
@@ -74,8 +79,14 @@ class _LoggerProgress:
             self.logger.info("%s: %d steps %s", self.label, self.done, status)
 
 
+def artifact_key(key: str, county: str | None) -> str:
+    """``key`` for San Francisco's runs; for a county's, its slug in place of ``sf``."""
+    return key if county is None else f"{county_slug(county)}{key[len('sf'):]}"
+
+
 class PrefectSteps(StepRunner):
-    """Runs each step of ``run_forecast`` as a Prefect task named after it. DataSF's fetch gets
+    """Runs each step of ``run_forecast`` as a Prefect task named after it. The fetch (DataSF's,
+    or CDPH's for a county) gets
     retries with exponential delays (live data only) and a time limit: the client's own
     deadlines bound each dataset, this limit is the backstop (Prefect interrupts a sync task
     in the flow's main thread with SIGALRM)."""
@@ -88,7 +99,7 @@ class PrefectSteps(StepRunner):
         self.fetch_timeout_s = source.task_timeout_s
 
     def invoke(self, step: Step, fn: Callable[P, R], *args: P.args, **kwargs: P.kwargs) -> R:
-        if step == "fetch-datasf":
+        if step in FETCH_STEPS:
             fetch = task(name=step, cache_policy=NO_CACHE, persist_result=False,
                          retries=len(self.fetch_retry_delays),
                          retry_delay_seconds=self.fetch_retry_delays or 0,
@@ -98,16 +109,18 @@ class PrefectSteps(StepRunner):
 
 
 def _publish_artifacts(results: fc.ForecastResults, published: PublishedRun) -> None:
-    create_table_artifact(_records(results.nll.round(4)), key=ARTIFACT_NLL,
-                          description="Mean NLL of the observed S/I/R at random SF days "
+    county, place = results.config.data.county, results.config.data.place
+    create_table_artifact(_records(results.nll.round(4)), key=artifact_key(ARTIFACT_NLL, county),
+                          description=f"Mean NLL of the observed S/I/R at random "
+                                      f"{'SF' if county is None else place} days "
                                       "(forward/backward × model variant; paper Table 5 layout)")
     params = results.parameters[results.parameters["component"].isin(["beta", "gamma", "Rt"])]
     columns = ["direction", "date", "component", *(f"q{level:g}" for level in REPORT_LEVELS)]
     latest = params.groupby(["direction", "component"]).tail(8)[columns]
-    create_table_artifact(_records(latest.round(6)), key=ARTIFACT_PARAMS,
+    create_table_artifact(_records(latest.round(6)), key=artifact_key(ARTIFACT_PARAMS, county),
                           description="β, γ and R_t estimates (median, 50% and 90% intervals), "
                                       "latest days")
-    _publish_report_link(published)
+    _publish_report_link(published, results.config)
     # The report's page-1 headline, with its one data banner (stale or old data, once; the
     # transport's long error text stays in the run log).
     banner = data_banner(results)
@@ -115,30 +128,38 @@ def _publish_artifacts(results: fc.ForecastResults, published: PublishedRun) -> 
         banner = f"{banner} (Run tagged `{STALE_TAG}`, state `{STALE_STATE_NAME}`.)"
     create_markdown_artifact(markdown(compute_headline(results), banner,
                                       report_path=str(published.folder / published.report)),
-                             key=ARTIFACT_SUMMARY,
-                             description="Headline of the weekly SF forecast (report page 1)")
+                             key=artifact_key(ARTIFACT_SUMMARY, county),
+                             description=f"Headline of the weekly {_short(place)} forecast "
+                                         "(report page 1)")
 
 
 def _records(frame: pd.DataFrame) -> list[dict[str, object]]:
     return [{str(k): v for k, v in row.items()} for row in frame.to_dict(orient="records")]
 
 
-def _publish_report_link(published: PublishedRun) -> None:
+def _short(place: str) -> str:
+    return "SF" if place == "San Francisco" else place
+
+
+def _publish_report_link(published: PublishedRun, config: fc.ForecastConfig) -> None:
     """A link the Prefect UI can open when the reports folder is served over http(s)
     ($FLOWCAST_REPORTS_URL, its base address); browsers refuse file:// links from the UI, so
     without it the artifact names the file on the worker's machine and says how to serve it."""
     final_dir, report = published.folder, published.report
+    served = Path(config.outputs.output_dir)   # a county's runs lie in its subfolder
+    relative = final_dir.relative_to(served).as_posix()
+    key = artifact_key(ARTIFACT_REPORT, config.data.county)
+    description = f"Weekly {_short(config.data.place)} forecast report"
     base = os.environ.get(REPORTS_URL_ENV, "").rstrip("/")
     if base.startswith(("http://", "https://")):
-        create_link_artifact(f"{base}/{final_dir.name}/{report}",
-                             link_text=f"report {final_dir.name}", key=ARTIFACT_REPORT,
-                             description="Weekly SF forecast report")
+        create_link_artifact(f"{base}/{relative}/{report}",
+                             link_text=f"report {relative}", key=key, description=description)
         return
     create_markdown_artifact(
-        f"Report {final_dir.name}: `{final_dir / report}` on the worker's machine. To link it "
-        f"here, serve the reports folder (e.g. `python -m http.server -d {final_dir.parent} "
+        f"Report {relative}: `{final_dir / report}` on the worker's machine. To link it "
+        f"here, serve the reports folder (e.g. `python -m http.server -d {served} "
         f"8080`) and set `{REPORTS_URL_ENV}=http://<host>:8080` for the worker.",
-        key=ARTIFACT_REPORT, description="Weekly SF forecast report")
+        key=key, description=description)
 
 
 @flow(name="weekly_forecast", log_prints=True)
@@ -149,10 +170,12 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
                     output_dir: str = "reports",
                     seed: int = 0,
                     retrain: bool = False,
-                    datasf_base_url: str | None = None) -> dict[str, object] | State:
-    """:func:`pipeline.forecast.run_forecast` step by step as tasks (fetch DataSF → S/I/R →
-    synthetic ensemble → (cached) joint estimators → estimates, rollouts, β/γ, NLL, NF-seeded
-    SMC, the published forecast and its backtest) → report in ``<output_dir>/<reference-date>/``.
+                    datasf_base_url: str | None = None,
+                    county: str | None = None) -> dict[str, object] | State:
+    """:func:`pipeline.forecast.run_forecast` step by step as tasks (fetch DataSF, or a
+    county's CDPH series → S/I/R → synthetic ensemble → (cached) joint estimators → estimates,
+    rollouts, β/γ, NLL, NF-seeded SMC, the published forecast and its backtest) → report in
+    ``<output_dir>/<reference-date>/`` (a county's: ``<output_dir>/<county-slug>/<reference-date>/``).
 
     A run that had to fall back to cached data finishes in the state "Completed (stale data)",
     is tagged ``stale-data`` and emits the event ``flowcast.forecast.stale-data``.
@@ -174,13 +197,18 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
         datasf_base_url: A DataSF mirror or proxy (https://host). Empty: $FLOWCAST_DATASF_BASE_URL
             or https://data.sfgov.org. The app token comes from $FLOWCAST_DATASF_APP_TOKEN only
             (flow parameters are stored in plain text).
+        county: A California county (e.g. "Los Angeles") to forecast from CDPH's county data
+            (the CHHS portal, $FLOWCAST_CHHS_BASE_URL, with the cache as fallback; "import"
+            takes CDPH covid19cases_test.csv files) on the county's own population. Empty: San
+            Francisco from DataSF.
     """
     logger = get_run_logger()
     started = time.monotonic()
     config = flow_config(preset, encoder=encoder, data_source=data_source,
                          import_from=import_from, output_dir=output_dir, seed=seed,
-                         datasf_base_url=datasf_base_url)
-    logger.info("weekly forecast: preset=%s encoder=%s data=%s seed=%d retrain=%s", preset,
+                         datasf_base_url=datasf_base_url, county=county)
+    logger.info("weekly forecast%s: preset=%s encoder=%s data=%s seed=%d retrain=%s",
+                "" if config.data.county is None else f" for {config.data.county}", preset,
                 config.training.encoder, data_source, seed, retrain)
     results = fc.run_forecast(config, lambda step: _LoggerProgress(logger, step, 500),
                               retrain=retrain, runner=PrefectSteps(logger, config))
@@ -192,32 +220,36 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     logger.info("weekly forecast %s done in %.1f s → %s", results.reference_date, elapsed,
                 published.folder)
     outcome: dict[str, object] = {
-        "reference_date": results.reference_date, "output_dir": str(published.folder),
+        "reference_date": results.reference_date, "place": config.data.place,
+        "output_dir": str(published.folder),
         "files": list(published.files), "data_stale": results.stale,
         "model_key": results.models.key, "model_reused": results.models.reused,
         "seconds": elapsed, "step_seconds": dict(results.timings)}
     if not results.stale:
         return outcome
     logger.warning("forecast made from STALE cached data: %s", "; ".join(results.stale_notes))
-    _mark_stale(results.reference_date, results.stale_notes)
+    _mark_stale(results.reference_date, results.stale_notes, config.data.place)
     return Completed(name=STALE_STATE_NAME, data=outcome,
-                     message=f"forecast {results.reference_date} made from cached data (DataSF "
-                             "unreachable)")
+                     message=f"forecast {results.reference_date} made from cached data "
+                             f"({config.data.provider} unreachable)")
 
 
 def flow_config(preset: str, *, encoder: str | None, data_source: DataSourceKind,
                 import_from: list[str] | None, output_dir: str, seed: int,
-                datasf_base_url: str | None) -> fc.ForecastConfig:
-    """The flow's parameters as a :class:`~pipeline.forecast.ForecastConfig`."""
+                datasf_base_url: str | None, county: str | None = None) -> fc.ForecastConfig:
+    """The flow's parameters as a :class:`~pipeline.forecast.ForecastConfig` (``county`` as
+    CDPH spells it, whatever its case; an unknown name fails here, before any work)."""
     base = fc.resolve_config(preset)
     data = dataclasses.replace(base.data, kind=data_source, import_paths=tuple(import_from or ()),
-                               base_url=datasf_base_url or None)
+                               base_url=datasf_base_url or None,
+                               county=california_county(county) if county else None)
     return fc.resolve_config(preset, encoder=encoder, seed=seed, data=data,
                              output_dir=output_dir)
 
 
-def _mark_stale(reference_date: str, notes: tuple[str, ...]) -> None:
-    """Tag the running flow run ``stale-data`` and emit ``flowcast.forecast.stale-data``."""
+def _mark_stale(reference_date: str, notes: tuple[str, ...], place: str) -> None:
+    """Tag the running flow run ``stale-data`` and emit ``flowcast.forecast.stale-data`` (its
+    payload names the place forecast: San Francisco or the county)."""
     from prefect.client.orchestration import get_client
     from prefect.context import FlowRunContext
     from prefect.events import emit_event
@@ -232,12 +264,14 @@ def _mark_stale(reference_date: str, notes: tuple[str, ...]) -> None:
             client.update_flow_run(run.id, tags=[*tags, STALE_TAG])
     emit_event(event=STALE_EVENT, resource={"prefect.resource.id": f"prefect.flow-run.{run.id}",
                                             "prefect.resource.name": run.name},
-               payload={"reference_date": reference_date, "notes": list(notes)})
+               payload={"reference_date": reference_date, "place": place,
+                        "notes": list(notes)})
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m flows.weekly_forecast",
-                                     description="Run the weekly SF forecast once, locally.")
+                                     description="Run the weekly SF (or a California county's) "
+                                                 "forecast once, locally.")
     parser.add_argument("--preset", default="default", choices=FORECAST_PRESETS_CHOICES)
     parser.add_argument("--encoder", default=None,
                         choices=["mlp", "transformer", "transformer-ke", "mamba"])
@@ -250,18 +284,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--datasf-base-url", default=None,
                         help="DataSF mirror or proxy (default: $FLOWCAST_DATASF_BASE_URL or "
                              "https://data.sfgov.org)")
+    parser.add_argument("--county", default=None,
+                        help="a California county, from CDPH data (default: San Francisco, "
+                             "DataSF)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.county is not None:  # a misspelt county fails here, before Prefect starts
+        try:
+            args.county = california_county(args.county)
+        except ConfigError as error:
+            parser.error(str(error))
     logging.basicConfig(level=logging.INFO)
     from flows.server_guard import guard_ephemeral_server
     guard_ephemeral_server()  # a killed run no longer orphans Prefect's temporary server
     result = weekly_forecast(preset=args.preset, encoder=args.encoder,
                              data_source=args.data_source, import_from=args.import_from,
                              output_dir=args.output_dir, seed=args.seed, retrain=args.retrain,
-                             datasf_base_url=args.datasf_base_url)
+                             datasf_base_url=args.datasf_base_url, county=args.county)
     # Called directly, a flow that returned a State gives back that state's data: the outcome.
     assert isinstance(result, dict)
     print(f"report: {result['output_dir']}")

@@ -32,3 +32,13 @@ def datasf_dir() -> Path:
     if not DATASF.is_dir():
         pytest.fail(f"real DataSF exports expected at {DATASF} (../shared beside the repo)")
     return DATASF
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    """Prefect's temporary test server, one per session (the flow tests of SF and a county)."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    # generous start-up bound: the ephemeral server is slow to come up on a loaded 2-core box
+    with prefect_test_harness(server_startup_timeout=120):
+        yield

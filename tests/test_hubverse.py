@@ -16,7 +16,7 @@ import yaml
 
 from pipeline.outputs.hubverse import (HUB_QUANTILE_LEVELS, HubFormatError, HubValidationError,
                                    SubmissionConfig, load_tasks_config, model_output_path,
-                                   reference_date_for, sf_hub_tasks_config,
+                                   reference_date_for, hub_tasks_config,
                                    validate_model_output, write_model_output)
 from pipeline.ensemble.targets import QuantileForecast
 from pipeline.systems.sir import simulate_sir
@@ -130,7 +130,7 @@ def _set(frame: pd.DataFrame, row: int, column: str, value: str) -> pd.DataFrame
     (lambda f: _set(f, 3, "value", "abc"), r"row 5: column 'value' must be a number"),
     (lambda f: _set(f, 0, "target", "wk inc death"), r"column 'target': 'wk inc death' is not one"),
     (lambda f: _set(f, 0, "horizon", "4"), r"column 'horizon': 4 is not one"),
-    (lambda f: _set(f, 0, "location", "06001"), r"column 'location': '06001' is not one"),
+    (lambda f: _set(f, 0, "location", "06117"), r"column 'location': '06117' is not one"),
     (lambda f: _set(f, 0, "output_type_id", "0.33"), r"column 'output_type_id': 0.33 is not one"),
     (lambda f: _set(f, 0, "output_type", "mean"), r"output_type 'mean' is not one"),
     (lambda f: _set(f, 0, "target_end_date", "2022-03-26"),
@@ -167,7 +167,7 @@ def test_file_name_must_match_round_and_model(tmp_path):
 def test_hub_config_and_model_metadata():
     import jsonschema
 
-    assert TASKS == sf_hub_tasks_config(dt.date(2020, 3, 1), dt.date(2027, 12, 31))
+    assert TASKS == hub_tasks_config(dt.date(2020, 3, 1), dt.date(2027, 12, 31))
     task = TASKS["rounds"][0]["model_tasks"][0]
     assert task["task_ids"]["horizon"]["optional"] == [-1, 0, 1, 2, 3]
     levels = task["output_type"]["quantile"]["output_type_id"]["required"]

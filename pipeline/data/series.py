@@ -33,8 +33,9 @@ import pandas as pd
 import requests
 
 from pipeline.data.cache import CacheManifest, CachedPayload, DatasetCache, SourceKind, utc_now
-from pipeline.data.datasf import (DATASETS, CASES, SF_PLAUSIBILITY, ClientConfig, DataSFClient,
-                                  DatasetSpec, NetworkError)
+from pipeline.data.california import SAN_FRANCISCO
+from pipeline.data.datasf import (DATASETS, CASES, SF_PLAUSIBILITY, SF_POPULATION_2020_CENSUS,
+                                  ClientConfig, DataSFClient, DatasetSpec, NetworkError)
 from pipeline.data.decoding import decode_boundary
 from pipeline.data.payloads import decode_cached as _decode_payload
 from pipeline.data.payloads import rows_frame
@@ -96,16 +97,17 @@ class DatasetProvenance:
 
 @dataclass(frozen=True)
 class DataVintage:
-    """What data a result rests on: DataSF's vintage, when loaded, what was kept."""
+    """What data a result rests on: the publisher's vintage, when loaded, what was kept."""
 
-    data_as_of: str | None    # earliest DataSF "data as of" stamp among the datasets
+    data_as_of: str | None    # earliest DataSF "data as of" stamp (CDPH: the vintage's last day)
     loaded_at: str            # when flowcast loaded (fetched or read from cache) the data
     first_date: str
     last_date_kept: str
     trimmed_days: int
+    publisher: str = "DataSF"
 
     def describe(self) -> str:
-        return (f"DataSF data as of {self.data_as_of or 'unknown'}; days "
+        return (f"{self.publisher} data as of {self.data_as_of or 'unknown'}; days "
                 f"{self.first_date}…{self.last_date_kept} (last {self.trimmed_days} days of each "
                 f"dataset dropped as still under revision); loaded {self.loaded_at}")
 
@@ -128,10 +130,14 @@ class SeriesProvenance:
 @dataclass(frozen=True)
 class SFSeries:
     """Daily frame ``date, new_cases, cumulative_cases, new_deaths, cumulative_deaths, tests,
-    positives, negatives, indeterminate`` (those of the loaded datasets) + provenance."""
+    positives, negatives, indeterminate`` (those of the loaded datasets) + provenance, of
+    ``place`` and its ``population``: San Francisco from DataSF, or a California county from
+    CDPH (cases and deaths only; ``pipeline.forecast.sources.load_county_series``)."""
 
     frame: pd.DataFrame
     provenance: SeriesProvenance
+    place: str = SAN_FRANCISCO
+    population: int = SF_POPULATION_2020_CENSUS
 
     @property
     def vintage(self) -> DataVintage:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
 
+from pipeline.data.california import SAN_FRANCISCO, california_county
 from pipeline.data.delays import DelayModelConfig
 from pipeline.ensemble.nf_finetune import FineTuneConfig
 from pipeline.ensemble.nf_member import GrowthModelConfig
@@ -38,11 +39,13 @@ def _require_positive(owner: str, **values: int | None) -> None:
 
 @dataclass(frozen=True)
 class DataSourceConfig:
-    """Where the SF series comes from.
+    """Where the forecast's series comes from: San Francisco from DataSF (``county`` None, the
+    default), or the California ``county`` (as CDPH spells it) from CDPH's county file.
 
-    ``live``: fetch DataSF (HTTP retries with backoff inside the client), falling back to the cache
-    with a staleness note; ``cache``: offline, cache only; ``import``: import the given DataSF CSV
-    exports into the cache (``flowcast data import``), then read it offline.
+    ``live``: fetch DataSF, or the CDPH file from the CHHS portal (HTTP retries with backoff
+    inside the client), falling back to the cache with a staleness note; ``cache``: offline,
+    cache only; ``import``: import the given DataSF CSV exports (CDPH ``covid19cases_test.csv``
+    downloads for a county) into the cache (``flowcast data import``), then read it offline.
     """
 
     kind: DataSourceKind = "live"
@@ -56,6 +59,17 @@ class DataSourceConfig:
     # days dropped from the end of every dataset; 0: the run keeps every day and nowcasts the
     # ones still being reported (NowcastSettings); without a nowcast it falls back to 14
     trailing_days: int = 0
+    county: str | None = None      # a California county from CDPH; None: San Francisco, DataSF
+
+    @property
+    def place(self) -> str:
+        """The place forecast: the county, or San Francisco."""
+        return self.county or SAN_FRANCISCO
+
+    @property
+    def provider(self) -> str:
+        """Who publishes the series: DataSF (San Francisco) or CDPH (a county)."""
+        return "DataSF" if self.county is None else "CDPH"
 
     @property
     def task_timeout_s(self) -> float:
@@ -66,9 +80,13 @@ class DataSourceConfig:
         if self.kind not in ("live", "cache", "import"):
             raise ConfigError(f"data source must be live, cache or import, got {self.kind!r}")
         if self.kind == "import" and not self.import_paths:
-            raise ConfigError("data source 'import' needs import_paths (DataSF CSV exports)")
+            raise ConfigError("data source 'import' needs import_paths (DataSF CSV exports, or "
+                              "CDPH files for a county)")
         if self.trailing_days < 0:
             raise ConfigError(f"DataSourceConfig.trailing_days={self.trailing_days} must be >= 0")
+        if self.county is not None and california_county(self.county) != self.county:
+            raise ConfigError(f"county {self.county!r} is spelled "
+                              f"{california_county(self.county)!r} in the CDPH data")
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """The weekly run's nowcast: the delay model from the CDPH vintages (fitted once per set of
-vintages, cached), the nowcast of the SF series' last days, and the completions the published
+vintages, cached), the nowcast of the series' last days, and the completions the published
 forecast is mixed over.
 
 San Francisco's DataSF series has no report-date column and the project holds one DataSF
@@ -9,6 +9,10 @@ SF is nowcast as a *new county* of it (the pooled curve with the between-county 
 reports arriving around the data date (the latest era, extrapolated by the random walk). Lags
 count from DataSF's own "data as of" stamp when it gives one (DataSF publishes a day only some
 days after it: the export of 2022-03-21 ends on 2022-03-16), else from the last day in the data.
+
+A California county forecast from CDPH data (``DataSourceConfig.county``) is one of the delay
+model's own places: it is nowcast with its own (partially pooled) county effect when the model
+has one, else as a new county, with lags counted from the CDPH vintage's last day.
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ from pipeline.ensemble.nowcast_forecast import RunNowcast, hub_weeks, last_satur
     median_history
 from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory
 from pipeline.forecast.config import NowcastSettings
-from pipeline.forecast.sources import sf_history
+from pipeline.forecast.sources import SF_COUNTY, sf_history
 from pipeline.io import sha256_bytes
 
 ARCHIVE_ENV = "FLOWCAST_CDPH_ARCHIVE"
@@ -100,25 +104,32 @@ def data_date(vintage: DataVintage, history: EpiHistory) -> pd.Timestamp:
 
 
 def run_nowcast(history: EpiHistory, vintage: DataVintage, settings: NowcastSettings,
-                seed: int) -> tuple[EpiHistory, RunNowcast | None]:
+                seed: int, county: str | None = None) -> tuple[EpiHistory, RunNowcast | None]:
     """(the history the weekly step forecasts from, the nowcast): with a delay model, every day
     with its last ones nowcast (the history is their per-day median; the completions are in
-    the nowcast); without one, the history less ``fallback_trailing_days``."""
+    the nowcast); without one, the history less ``fallback_trailing_days``. ``county``: the
+    CDPH county the history is (None: San Francisco from DataSF, a new county to the model)."""
     model = delay_model_for_run(settings) if settings.enabled else None
     if model is None:
         cut = history.origin - pd.Timedelta(days=settings.fallback_trailing_days)
         return history.up_to(cut), None
     published = data_date(vintage, history)
-    nowcast = nowcast_history(history, model, as_of=published, county=None,
+    nowcast = nowcast_history(history, model, as_of=published, county=county,
                               config=NowcastConfig(n_completions=settings.nowcast_samples),
                               seed=seed)
     completed = complete_histories(history, nowcast)
     weeks = hub_weeks(history.origin)
     note = (f"CDPH delay model of {len(model.sources)} vintages "
-            f"({', '.join(model.sources)}), San Francisco as a new county; lags from "
+            f"({', '.join(model.sources)}), {_delay_place(model, county)}; lags from "
             f"{published.date()}")
     median = median_history(history, nowcast)
     return median, RunNowcast(nowcast, completed, median, weeks, note)
+
+
+def _delay_place(model: DelayModel, county: str | None) -> str:
+    if county is not None and county in model.counties:
+        return f"{county} with its own county effect"
+    return f"{county or SF_COUNTY} as a new county"
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,9 +144,11 @@ class RecentDays:
 
 
 def nowcast_recent_days(series: SFSeries, sir: SIRSeries, settings: NowcastSettings,
-                        seed: int) -> RecentDays:
-    """The SF series' last days nowcast (:func:`run_nowcast`), as the run's later steps use it."""
-    history, nowcast = run_nowcast(sf_history(series, sir), series.vintage, settings, seed)
+                        seed: int, county: str | None = None) -> RecentDays:
+    """The series' last days nowcast (:func:`run_nowcast`; ``county``: the CDPH county it is,
+    None for San Francisco from DataSF), as the run's later steps use it."""
+    history, nowcast = run_nowcast(sf_history(series, sir), series.vintage, settings, seed,
+                                   county)
     frame = sir.frame.iloc[:len(history)].copy()
     for name in ("S", "I", "R"):
         frame[name] = getattr(history, name)

@@ -1,7 +1,8 @@
 """The run's files: CSV tables, the hub CSV, the hubverse submission, ``results.json`` and the
 report, written into a staging folder and promoted to ``<output_dir>/<reference-date>/`` only when
 all of them were written (:mod:`pipeline.outputs.run_folders`), so a failed run never replaces the
-last good report."""
+last good report. A California county's runs (``DataSourceConfig.county``) go to
+``<output_dir>/<county-slug>/<reference-date>/``, with their own index, beside San Francisco's."""
 from __future__ import annotations
 
 import datetime as dt
@@ -12,13 +13,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.data.california import county_fips, county_slug
 from pipeline.ensemble.backtest import PUBLISHED, hub_frame
 from pipeline.ensemble.weekly import WeeklyForecast
+from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import ForecastResults
 from pipeline.forecast.steps import published_skill
 from pipeline.io import atomic_write_json, atomic_write_text
-from pipeline.outputs.hubverse import (NowcastWeek, Submission, SubmissionConfig,
-                                       load_tasks_config, write_model_output)
+from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission,
+                                       SubmissionConfig, load_tasks_config, write_model_output)
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 from pipeline.report.weekly import build_forecast_report
 from pipeline.report.headline import compute_headline
@@ -29,7 +32,7 @@ HUB_TASKS = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"
 @dataclass(frozen=True)
 class PublishedRun:
     reference_date: str
-    folder: Path              # <output_dir>/<reference-date>/
+    folder: Path              # <output_dir>[/<county-slug>]/<reference-date>/
     files: tuple[str, ...]    # relative to ``folder``
 
     @property
@@ -39,7 +42,7 @@ class PublishedRun:
 
 def publish(results: ForecastResults) -> PublishedRun:
     """Write every file of the run into a staging folder, then promote it and update the index."""
-    outputs = RunOutputs(results.config.outputs.output_dir)
+    outputs = RunOutputs(output_root(results.config), place=results.config.data.place)
     run_id = new_run_id()
     with outputs.staged(results.reference_date, run_id) as staging:
         files = write_tables(results, staging) + write_report(results, staging)
@@ -58,6 +61,13 @@ def publish(results: ForecastResults) -> PublishedRun:
     return PublishedRun(results.reference_date, folder, tuple(files))
 
 
+def output_root(config: ForecastConfig) -> Path:
+    """Where the run's folders go: ``output_dir`` for San Francisco, its ``<county-slug>/``
+    subfolder for a California county (so a county never replaces San Francisco's report)."""
+    root = Path(config.outputs.output_dir)
+    return root if config.data.county is None else root / county_slug(config.data.county)
+
+
 def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
     """CSV tables + hub CSV + results.json into ``out_dir``; returns the file names written."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -74,7 +84,8 @@ def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
         atomic_write_text(out_dir / name, frame.to_csv(index=False))
     atomic_write_json(out_dir / "backtest_summary.json", results.weekly.summary())
     submission = write_submission(results.weekly, out_dir, submission_run_date(results),
-                                  max_samples=results.config.outputs.hub_samples)
+                                  max_samples=results.config.outputs.hub_samples,
+                                  location=county_fips(results.config.data.place))
     atomic_write_json(out_dir / "results.json", results_summary(results))
     return sorted([*tables, "results.json", "backtest_summary.json",
                    submission.path.relative_to(out_dir).as_posix()])
@@ -95,16 +106,16 @@ def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
 
 
 def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date, *,
-                     max_samples: int = 200) -> Submission:
+                     max_samples: int = 200, location: str = SF_COUNTY_FIPS) -> Submission:
     """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``
-    (with the nowcast of the weeks in the data), validated against the repository's
-    ``hub-config/tasks.json`` when it is there."""
+    (with the nowcast of the weeks in the data) for ``location`` (the place's FIPS code),
+    validated against the repository's ``hub-config/tasks.json`` when it is there."""
     paths = weekly.latest.paths
     n_paths = 0 if paths is None else int(paths.shape[0])
     n = min(max_samples, n_paths)
     return write_model_output(weekly.latest, population=weekly.history.population,
                               run_date=run_date, hub_dir=hub_dir, tasks=_hub_tasks(),
-                              config=SubmissionConfig(n_samples=n),
+                              config=SubmissionConfig(n_samples=n, location=location),
                               nowcasts=nowcast_weeks(weekly, n))
 
 

@@ -29,10 +29,12 @@ from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_v
                                      weekly_forecast)
 from pipeline.progress import ProgressReporter, SilentProgress
 
-Step = Literal["fetch-datasf", "convert-to-sir", "nowcast-recent-days", "simulate-training-data",
+Step = Literal["fetch-datasf", "fetch-cdph", "convert-to-sir", "nowcast-recent-days", "simulate-training-data",
                "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
                "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast",
                "county-skill"]
+# The fetch step is named after the publisher (the Prefect flow retries either).
+FETCH_STEPS: tuple[Step, ...] = ("fetch-datasf", "fetch-cdph")
 P = ParamSpec("P")
 R = TypeVar("R")
 # A step's progress reporter, by step (training and the weekly forecast report progress).
@@ -67,19 +69,23 @@ def _silent(step: Step) -> ProgressReporter:
 def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
                  retrain: bool = False, runner: StepRunner | None = None,
                  session: requests.Session | None = None) -> ForecastResults:
-    """Fetch DataSF → S/I/R → nowcast of the days still being reported → synthetic ensemble →
-    (cached) joint estimators → estimates, rollouts, β/γ, NLL, NF-seeded SMC, and the published
-    forecast (mixed over the nowcast's completions) with its backtest."""
+    """Fetch DataSF (or a county's CDPH series) → S/I/R → nowcast of the days still being
+    reported → synthetic ensemble → (cached) joint estimators → estimates, rollouts, β/γ, NLL,
+    NF-seeded SMC, and the published forecast (mixed over the nowcast's completions) with its
+    backtest."""
     run = runner or StepRunner()
-    series = run("fetch-datasf", load_series, config.data, session=session)
-    stale = data_is_stale(series, config.data.kind)
+    source = config.data
+    fetch: Step = "fetch-datasf" if source.county is None else "fetch-cdph"
+    series = run(fetch, load_series, source, session=session)
+    stale = data_is_stale(series, source.kind)
     notes = staleness_notes(series)
-    run.logger.info("DataSF series: %s", series.vintage.describe())
+    run.logger.info("%s series: %s", source.provider if source.county is None
+                    else f"{source.provider} {source.county}", series.vintage.describe())
     for note in notes:
         (run.logger.warning if stale else run.logger.info)("%s", note)
     sir = run("convert-to-sir", series_to_sir, series)
     recent = run("nowcast-recent-days", nowcast_recent_days, series, sir, config.nowcast,
-                 config.step_seed("nowcast"))
+                 config.step_seed("nowcast"), source.county)
     run.logger.info("%s", recent.nowcast.delay_model if recent.nowcast else
                     f"no nowcast: last {config.nowcast.fallback_trailing_days} days dropped")
     arrays = sir_arrays(recent.sir_frame)

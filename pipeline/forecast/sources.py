@@ -1,6 +1,7 @@
-"""Step 1: the SF series from DataSF (live with cache fallback, cache only, or imported CSV
-exports), every day up to the last one in the data (the run nowcasts the days still being
-reported: :mod:`pipeline.forecast.nowcasting`), and its S/I/R proportions."""
+"""Step 1: the forecast's series — San Francisco from DataSF, or a California county from CDPH
+(each live with cache fallback, cache only, or imported exports) — every day up to the last one
+in the data (the run nowcasts the days still being reported:
+:mod:`pipeline.forecast.nowcasting`), and its S/I/R proportions on the place's own population."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,12 +13,18 @@ import numpy as np
 import pandas as pd
 import requests
 
+from pipeline.data.cache import utc_now
+from pipeline.data.california import SAN_FRANCISCO
+from pipeline.data.cdph import CountySeries, find_vintage_files
+from pipeline.data.chhs import CHHSClientConfig
 from pipeline.data.csv_import import ImportSummary, detect_dataset, import_csv_exports
 from pipeline.data.datasf import ClientConfig
 from pipeline.data.payloads import read_csv_bytes
-from pipeline.data.series import SFDataConfig, SFSeries, load_sf_series
-from pipeline.data.sir_transform import SIRSeries, to_sir
-from pipeline.data.cdph_source import load_cdph_vintage
+from pipeline.data.series import (DatasetProvenance, DataVintage, SeriesProvenance, SFDataConfig,
+                                  SFSeries, load_sf_series, trim_trailing_days)
+from pipeline.data.sir_transform import SIRConversionConfig, SIRSeries, to_sir
+from pipeline.data.cdph_source import (CDPHConfig, CDPHProvenance, import_cdph_exports,
+                                       load_cdph, load_cdph_vintage)
 from pipeline.ensemble.targets import EpiHistory, history_from_county, history_from_frames
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
 from pipeline.forecast.config import DataSourceConfig, DataSourceKind
@@ -25,7 +32,7 @@ from pipeline.forecast.results import SIRArrays
 from pipeline.names import COMPARTMENTS
 
 log = logging.getLogger(__name__)
-SF_COUNTY = "San Francisco"
+SF_COUNTY = SAN_FRANCISCO
 REFERENCE_MIN_POPULATION = 100_000
 
 
@@ -65,7 +72,10 @@ def _exports_in(folder: Path) -> list[Path]:
 
 def load_series(source: DataSourceConfig, *,
                 session: requests.Session | None = None) -> SFSeries:
-    """The SF series per ``source``; see :class:`DataSourceConfig`."""
+    """The forecast's series per ``source`` (San Francisco from DataSF, or ``source.county``
+    from CDPH); see :class:`DataSourceConfig`."""
+    if source.county is not None:
+        return load_county_series(source, session=session)
     client = ClientConfig(max_retries=source.http_retries, backoff_base_s=source.http_backoff_s,
                           fetch_deadline_s=source.fetch_deadline_s)
     if source.base_url:
@@ -83,6 +93,61 @@ def load_series(source: DataSourceConfig, *,
                            "FILE...` (or run with data source 'import').") from exc
 
 
+def load_county_series(source: DataSourceConfig, *,
+                       session: requests.Session | None = None) -> SFSeries:
+    """``source.county`` from CDPH's county file (live from the CHHS portal with cache
+    fallback, cache only, or imported downloads first), as the series the run reads: episode-date
+    cases and deaths on CDPH's population for the county, its vintage's last day as its "data
+    as of" (the nowcast's lags count from it)."""
+    if source.county is None:
+        raise ConfigError("a county series needs DataSourceConfig.county")
+    if source.kind == "import":
+        summaries = import_cdph_exports(_cdph_files(source.import_paths))
+        log.info("imported %s", ", ".join(f"{s.path.name} ({s.action}, CDPH vintage of "
+                                          f"{s.as_of})" for s in summaries))
+    client = CHHSClientConfig(max_retries=source.http_retries,
+                              backoff_base_s=source.http_backoff_s,
+                              fetch_deadline_s=source.fetch_deadline_s)
+    try:
+        loaded = load_cdph(CDPHConfig(client=client), offline=source.kind != "live",
+                           session=session)
+    except OfflineError as exc:
+        raise OfflineError(f"{exc} No usable CDPH data, so no forecast for {source.county} was "
+                           "made; the last good report is unchanged.") from exc
+    return county_series(loaded.vintage.county(source.county), loaded.provenance,
+                         trailing_days=source.trailing_days)
+
+
+def _cdph_files(paths: Sequence[str]) -> list[Path]:
+    """Files as given; a directory contributes every ``covid19cases_test.csv`` under it."""
+    files = [f for p in map(Path, paths)
+             for f in (find_vintage_files(p) if p.is_dir() else [p])]
+    if not files:
+        raise ConfigError(f"no CDPH covid19cases_test.csv files found in {list(paths)}")
+    return files
+
+
+def county_series(county: CountySeries, provenance: CDPHProvenance, *,
+                  trailing_days: int = 0) -> SFSeries:
+    """A CDPH county's cases (by episode date) and deaths as the run's daily series, less its
+    last ``trailing_days`` days."""
+    cases, deaths = county.cases.astype(np.int64), county.deaths.astype(np.int64)
+    frame = trim_trailing_days(pd.DataFrame({
+        "date": county.dates.astype("datetime64[us]"), "new_cases": cases,
+        "cumulative_cases": np.cumsum(cases), "new_deaths": deaths,
+        "cumulative_deaths": np.cumsum(deaths)}), trailing_days)
+    vintage = DataVintage(
+        data_as_of=provenance.last_date[:10], loaded_at=utc_now().isoformat(timespec="seconds"),
+        first_date=str(frame["date"].iloc[0].date()),
+        last_date_kept=str(frame["date"].iloc[-1].date()), trimmed_days=trailing_days,
+        publisher="CDPH")
+    # CDPH's provenance has the DataSF one's fields but its "data as of" stamp
+    dataset = DatasetProvenance(**dataclasses.asdict(provenance),
+                                data_as_of=provenance.last_date[:10])
+    return SFSeries(frame, SeriesProvenance(vintage, (dataset,)), place=county.area,
+                    population=county.population)
+
+
 def data_is_stale(series: SFSeries, source: DataSourceKind) -> bool:
     """True when a live fetch was asked for but the cache had to be used."""
     return source == "live" and any(p.from_cache for p in series.provenance.datasets)
@@ -93,8 +158,9 @@ def staleness_notes(series: SFSeries) -> list[str]:
 
 
 def series_to_sir(series: SFSeries) -> SIRSeries:
-    """S, I, R proportions with the default conversion (see :mod:`pipeline.data.sir_transform`)."""
-    return to_sir(series)
+    """S, I, R proportions with the default conversion (see :mod:`pipeline.data.sir_transform`)
+    on the place's own population."""
+    return to_sir(series, SIRConversionConfig(population=series.population))
 
 
 def sir_arrays(sir_frame: pd.DataFrame) -> SIRArrays:

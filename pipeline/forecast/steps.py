@@ -39,7 +39,7 @@ from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.nowcasting import RecentDays, mixture_start
-from pipeline.forecast.sources import SF_COUNTY, load_reference_histories
+from pipeline.forecast.sources import load_reference_histories
 from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, SIRArrays,
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
@@ -243,8 +243,8 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
                     progress: ProgressReporter | None = None) -> WeeklyForecast:
     """The published forecast at the latest Saturday and the same method's real-time forecasts
     at every earlier Saturday (:mod:`pipeline.ensemble.weekly`), with California's counties
-    from the CDPH cache as the pooled members' reference places; the flows come from the model
-    store. The days still being reported are nowcast and the forecast mixed over the nowcast's
+    from the CDPH cache as the pooled members' reference places (the forecast's own place left
+    out); the flows come from the model store. The days still being reported are nowcast and the forecast mixed over the nowcast's
     completions (:mod:`pipeline.forecast.nowcasting`). The NF-seeded SMC member is scored beside
     the members at every origin (one batch of filters) but not averaged into the published
     forecast (docs/forecasting.md)."""
@@ -257,7 +257,7 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
                                    config.step_seed("smc") + 1)
     start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
     return forecast_weekly(history, weekly, default_store_root(), load_reference_histories(),
-                           SF_COUNTY, progress, references=(scored,) if scored.forecasts else (),
+                           config.data.place, progress, references=(scored,) if scored.forecasts else (),
                            nowcast=nowcast, mixture_from=start,
                            mixed_completions=config.nowcast.completions)
 

@@ -1,6 +1,8 @@
 """The hubverse submission of the published weekly forecast (no Prefect, no torch).
 
-For an SF hub whose config is ``hub-config/`` (the 2024+ COVID-19 Forecast Hub conventions):
+For a hub of California's counties whose config is ``hub-config/`` (the 2024+ COVID-19 Forecast
+Hub conventions; ``location`` is the county's FIPS code, San Francisco ``06075`` by default,
+:mod:`pipeline.data.california`):
 ``model-output/<team>-<model>/<reference_date>-<team>-<model>.csv`` with the columns
 ``reference_date, target, horizon, location, target_end_date, output_type, output_type_id,
 value``, validated by :func:`validate_model_output` against ``hub-config/tasks.json``.
@@ -44,11 +46,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.data.california import COUNTY_FIPS, SAN_FRANCISCO
 from pipeline.errors import FlowcastError
 from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, QuantileForecast, format_level
 from pipeline.io import atomic_write_text, sha256_bytes
 
-SF_COUNTY_FIPS = "06075"
+SF_COUNTY_FIPS = COUNTY_FIPS[SAN_FRANCISCO]
 _QUANTILE_TOL = 1e-12
 
 log = logging.getLogger(__name__)
@@ -268,8 +271,9 @@ def write_model_output(forecast: QuantileForecast, *, population: float, run_dat
 # -------------------------------------------------------------------- tasks.json and checks
 
 
-def sf_hub_tasks_config(first_reference: dt.date, last_reference: dt.date) -> dict[str, Any]:
-    """The SF hub's ``tasks.json`` (hubverse schema v5) for the rounds between the two dates."""
+def hub_tasks_config(first_reference: dt.date, last_reference: dt.date) -> dict[str, Any]:
+    """The California county hub's ``tasks.json`` (hubverse schema v5) for the rounds between
+    the two dates: every county's FIPS code a location."""
     saturdays = [reference_date_for(first_reference)]
     while saturdays[-1] + dt.timedelta(weeks=1) <= last_reference:
         saturdays.append(saturdays[-1] + dt.timedelta(weeks=1))
@@ -289,7 +293,7 @@ def sf_hub_tasks_config(first_reference: dt.date, last_reference: dt.date) -> di
                                        "optional": [d.isoformat() for d in saturdays]},
                     "target": {"required": None, "optional": list(HUBVERSE_TARGETS)},
                     "horizon": {"required": None, "optional": list(HUBVERSE_HORIZONS)},
-                    "location": {"required": None, "optional": [SF_COUNTY_FIPS]},
+                    "location": {"required": None, "optional": sorted(COUNTY_FIPS.values())},
                     "target_end_date": {"required": None,
                                         "optional": [d.isoformat() for d in ends]},
                 },
@@ -306,12 +310,12 @@ def sf_hub_tasks_config(first_reference: dt.date, last_reference: dt.date) -> di
                     {"target_id": TARGET_WEEKLY_CASES, "target_name": "weekly reported cases",
                      "target_units": "count", "target_keys": {"target": TARGET_WEEKLY_CASES},
                      "target_type": "continuous", "is_step_ahead": True, "time_unit": "week",
-                     "description": f"Reported COVID-19 cases in San Francisco {week}."},
+                     "description": f"Reported COVID-19 cases in the county {week}."},
                     {"target_id": TARGET_I_PROP, "target_name": "infectious share",
                      "target_units": "proportion", "target_keys": {"target": TARGET_I_PROP},
                      "target_type": "continuous", "is_step_ahead": True, "time_unit": "week",
-                     "description": ("Share of the San Francisco population infectious (reported "
-                                     "in the last 10 days) on target_end_date, [horizon] weeks "
+                     "description": ("Share of the county's population infectious (reported "
+                                     "in the last 7 days) on target_end_date, [horizon] weeks "
                                      "after the reference_date.")},
                 ],
             }],

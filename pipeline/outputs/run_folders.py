@@ -1,4 +1,6 @@
 """Where a weekly run writes: ``<root>/<reference-date>/``, staged then promoted, plus an index.
+(A California county's runs have their own root, ``<output_dir>/<county-slug>/``:
+``pipeline.forecast.publish.output_root``.)
 
 A run writes everything into a hidden staging directory beside the final one
 (``<root>/.staging-<date>-<run-id>/``). Only when the whole run succeeded is the staging
@@ -41,6 +43,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from pipeline.data.california import SAN_FRANCISCO
 from pipeline.errors import ConfigError
 from pipeline.io import STALE_AFTER_S, atomic_write_json, atomic_write_text, file_lock, sweep_stale
 
@@ -101,8 +104,9 @@ class RunOutputs:
     """The output root (e.g. ``reports/``): staging, promotion and the index of past runs."""
 
     def __init__(self, root: str | os.PathLike[str], *,
-                 lock_timeout_s: float = RUN_LOCK_TIMEOUT_S) -> None:
+                 lock_timeout_s: float = RUN_LOCK_TIMEOUT_S, place: str = SAN_FRANCISCO) -> None:
         self.root = Path(root)
+        self.place = place  # the index page's title names it
         self.lock_timeout_s = lock_timeout_s
         self._lock_depth = 0  # re-entrant: promote() runs inside staged()
 
@@ -215,7 +219,7 @@ class RunOutputs:
         runs.append(record)
         runs.sort(key=lambda r: (r.reference_date, r.finished_at), reverse=True)
         atomic_write_json(self.root / INDEX_JSON, {"runs": [r.to_json() for r in runs]})
-        atomic_write_text(self.root / INDEX_HTML, render_index_html(runs))
+        atomic_write_text(self.root / INDEX_HTML, render_index_html(runs, self.place))
 
 
 def recover_interrupted_promotions(root: Path) -> list[Path]:
@@ -233,8 +237,8 @@ def recover_interrupted_promotions(root: Path) -> list[Path]:
     return restored
 
 
-def render_index_html(runs: list[RunRecord]) -> str:
-    """A small self-contained page linking every promoted run's report."""
+def render_index_html(runs: list[RunRecord], place: str = SAN_FRANCISCO) -> str:
+    """A small self-contained page linking every promoted run's report of ``place``."""
     rows = []
     for r in runs:
         date = html.escape(r.reference_date)
@@ -252,7 +256,7 @@ def render_index_html(runs: list[RunRecord]) -> str:
 <html lang="en"><head><meta charset="utf-8"><title>flowcast weekly forecasts</title>
 <style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #ccc;padding:4px 8px;text-align:left}}</style></head>
-<body><h1>San Francisco weekly forecasts</h1>
+<body><h1>{html.escape(place)} weekly forecasts</h1>
 <table><thead><tr><th>reference date</th><th>headline</th><th>data vintage</th><th>data</th>
 <th>preset</th>
 <th>seed</th><th>finished (UTC)</th></tr></thead>

@@ -20,8 +20,10 @@ ROLLOUT_OVERSHOOT = 2.0           # a rollout median this many times the observe
 PRIOR_WIDTH_FRACTION = 0.9        # a 90 % interval this wide, relative to the prior range
 OLD_DATA_DAYS = 7
 
-STALE_HEADLINE = ("Stale data: DataSF could not be reached (every retry failed), so this "
+STALE_HEADLINE = ("Stale data: {provider} could not be reached (every retry failed), so this "
                   "forecast was made from the cached data")
+# the transport's error notes, left out of the banner (the run log keeps them)
+_UNREACHABLE = ("DataSF unreachable", "CHHS portal unreachable")
 _URL = re.compile(r"https?://[^\s;,)]+")
 # pipeline.data.series' cache note, said shorter (the banner is on page 1)
 _CACHE_NOTE = re.compile(r"using cache, fetched (\S+) days ago \(its last day, ([0-9-]+), is "
@@ -47,25 +49,27 @@ def dataset_lines(notes: Sequence[str]) -> list[str]:
     for key, texts in by_key.items():
         urls = [m.group(0) for t in texts for m in _URL.finditer(t)]
         kept = [_CACHE_NOTE.sub(r"cache fetched \1 days ago, last day \2", _short(t))
-                for t in texts if not t.startswith("DataSF unreachable")]
+                for t in texts if not t.startswith(_UNREACHABLE)]
         source = f" ({urls[0]})" if urls else ""
         lines.append(f"{key}{source}: " + ("; ".join(kept) or "from the cache"))
     return lines
 
 
 def data_banner(*, stale: bool, vintage: str, notes: Sequence[str], last_day: dt.date,
-                today: dt.date, source: str) -> str | None:
+                today: dt.date, source: str, provider: str = "DataSF") -> str | None:
     """The one data banner: stale (live fetch failed, cache used) or old (newest observation
-    more than a week before the run date), else None."""
+    more than a week before the run date), else None. ``provider``: who publishes the data
+    (DataSF, CDPH)."""
     age = (today - last_day).days
     age_text = (f"the newest observation ({last_day}) is {age:,} days before the run date "
                 f"({today})")
     if stale:
         per_dataset = dataset_lines(notes)
-        return (f"{STALE_HEADLINE} ({vintage.split(';', 1)[0]}); {age_text}."
+        return (f"{STALE_HEADLINE.format(provider=provider)} ({vintage.split(';', 1)[0]}); "
+                f"{age_text}."
                 + (" Per dataset: " + "; ".join(per_dataset) + "." if per_dataset else ""))
     if age > OLD_DATA_DAYS:
-        return (f"Old data: {age_text}; this run read DataSF data from the local "
+        return (f"Old data: {age_text}; this run read {provider} data from the local "
                 f"{'cache' if source == 'cache' else source} ({vintage.split(';', 1)[0]}), "
                 "as asked. The forecast describes the weeks after the data, not the coming "
                 "weeks.")

@@ -8,7 +8,7 @@ escapes it, so data can never inject markup.
 Page 1 is the headline (``ReportContent.headline``: the published forecast's numbers, not a
 numbered section). Sections of the weekly report, in order (:class:`SectionKey`; titles in
 ``SECTION_TITLES``): the published 4-week forecast · its real-time backtest against the hub
-baseline · SF S/I/R series · β, γ and R_t over time · forward/backward state estimates ·
+baseline · the place's S/I/R series · β, γ and R_t over time · forward/backward state estimates ·
 rollouts (7- and 28-day windows) · NF-seeded SMC · NLL table (paper Table 5 layout) ·
 training/validation loss · appendix: provenance (from :class:`Provenance`, not a section).
 Every band and interval is a 50 % or 90 % central interval.
@@ -135,10 +135,12 @@ class Section:
 
     @classmethod
     def weekly(cls, key: SectionKey, items: Sequence[FigureItem | TableItem],
-               intro: str = "", alerts: Sequence[str] = (), new_page: bool = True) -> Section:
-        """A section of the weekly report with its canonical anchor and title."""
-        return cls(key=str(key), title=SECTION_TITLES[key], items=tuple(items), intro=intro,
-                   alerts=tuple(alerts), new_page=new_page)
+               intro: str = "", alerts: Sequence[str] = (), new_page: bool = True,
+               title: str | None = None) -> Section:
+        """A section of the weekly report with its canonical anchor and title (``title``
+        replaces the canonical one, e.g. to name the place)."""
+        return cls(key=str(key), title=title or SECTION_TITLES[key], items=tuple(items),
+                   intro=intro, alerts=tuple(alerts), new_page=new_page)
 
 
 def _freeze(mapping: Mapping[str, Any]) -> Mapping[str, Any]:

@@ -166,7 +166,8 @@ def _shade(ax: Axes, span: tuple[dt.date, dt.date] | None, label: str | None) ->
 
 # ----------------------------------------------------------------------------- figures
 
-def sir_series_figure(df: pd.DataFrame, vintage: str | None = None) -> bytes:
+def sir_series_figure(df: pd.DataFrame, vintage: str | None = None,
+                      place: str = "San Francisco") -> bytes:
     """The observed S, I, R proportions over time: three stacked panels sharing the date axis.
 
     ``df`` has columns date, S, I, R (proportions of the population).
@@ -183,7 +184,7 @@ def sir_series_figure(df: pd.DataFrame, vintage: str | None = None) -> bytes:
     _date_axis(axes[-1, 0])
     axes[-1, 0].set_xlabel("date")
     if vintage:
-        fig.suptitle(f"San Francisco COVID-19 — {vintage}", fontsize=10, color="#444444")
+        fig.suptitle(f"{place} COVID-19 — {vintage}", fontsize=10, color="#444444")
     return _png(fig)
 
 

@@ -165,6 +165,7 @@ class Headline:
     data_date: dt.date | None = None                 # last day in the data (None: no nowcast)
     # share of each of the last four weeks to the origin already reported (nowcast), newest first
     reported_weeks: tuple[tuple[dt.date, Interval], ...] = ()
+    place: str = "San Francisco"                     # the forecast's county
 
     @property
     def infectious_now_people(self) -> float:
@@ -208,7 +209,7 @@ class Headline:
         """The lead an epidemiologist can quote (it opens with the nowcast, when there is one)."""
         first, last = self.horizons[0], self.horizons[-1]
         rt = self.rt.value
-        return self.nowcast_sentence() + (f"About {fmt_count(self.infectious_now_people)} people in San Francisco are "
+        return self.nowcast_sentence() + (f"About {fmt_count(self.infectious_now_people)} people in {self.place} are "
                 f"infectious ({fmt_share(self.infectious_now)} of the population: the cases "
                 f"reported in the 7 days to {self.last_data_day}). Weekly reported cases are "
                 f"forecast at {fmt_count(first.cases.median)} (90% interval "
@@ -370,7 +371,8 @@ def compute_headline(results: ForecastResults) -> Headline:
         rt=_rt(results), skill=_skill(weekly),
         n_paths=0 if latest.paths is None else int(latest.paths.shape[0]),
         nowcast_weeks=_nowcast_weeks(weekly), reported_weeks=_reported_weeks(weekly),
-        data_date=None if weekly.nowcast is None else history.dates[-1].date())
+        data_date=None if weekly.nowcast is None else history.dates[-1].date(),
+        place=results.config.data.place)
 
 
 # ----------------------------------------------------------------------------- tables
@@ -469,7 +471,7 @@ def skill_frame(h: Headline, county: CountySkill | None = None) -> pd.DataFrame:
 
 def markdown(h: Headline, banner: str | None, report_path: str = "") -> str:
     """The Prefect summary artifact: the headline table, the stale-data note once."""
-    lines = [f"# SF weekly COVID-19 forecast from {h.origin}", ""]
+    lines = [f"# {h.place} weekly COVID-19 forecast from {h.origin}", ""]
     if banner:
         lines += [f"> **{banner}**", ""]
     lines += [h.sentence(), "",

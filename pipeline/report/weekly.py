@@ -282,11 +282,16 @@ def backtest_section(results: ForecastResults) -> Section:
 def series_section(results: ForecastResults) -> Section:
     sir = results.sir_frame
     last = pd.to_datetime(sir["date"]).max().date()
-    png = figures.sir_series_figure(sir, vintage=str(results.vintage).split(";", 1)[0])
+    place = results.config.data.place
+    png = figures.sir_series_figure(sir, vintage=str(results.vintage).split(";", 1)[0],
+                                    place=place)
+    counts = ("DataSF cases, tests and deaths" if results.config.data.county is None
+              else "CDPH cases (by episode date) and deaths")
     return Section.weekly(SectionKey.SIR_SERIES, [_fig(
-        png, f"S, I and R as fractions of the San Francisco population, derived from DataSF "
-             f"cases, tests and deaths; last day {last}. Data: {results.vintage}.",
-        "Three stacked time series: susceptible, infectious and removed fractions")])
+        png, f"S, I and R as fractions of the {place} population, derived from {counts}; "
+             f"last day {last}. Data: {results.vintage}.",
+        "Three stacked time series: susceptible, infectious and removed fractions")],
+        title=f"{place} S/I/R series")
 
 
 def _long_to_arrays(frame: pd.DataFrame, direction: str
@@ -356,9 +361,9 @@ ONE_MODEL = (
     "One model of the epidemic: the forward and backward joint flows behind β, R_t, the state "
     "estimates and the rollouts are trained on the multi-wave prior that also trains the "
     "published forecast's flow member (SIRS with a drifting, jumping transmission rate, seen "
-    "through the same 7-day S/I/R conversion as the SF data), and the NF-seeded SMC filters that "
-    "prior's own dynamics from the flow's draws. γ = 1/7 per day is not estimated: the "
-    "conversion removes every case after exactly 7 days. R_t = β·S/γ on page 1 is the forward "
+    "through the same 7-day S/I/R conversion as the forecast's data), and the NF-seeded SMC "
+    "filters that prior's own dynamics from the flow's draws. γ = 1/7 per day is not "
+    "estimated: the conversion removes every case after exactly 7 days. R_t = β·S/γ on page 1 is the forward "
     "flow's; the SMC's four-week forecast is scored in the backtest beside the members "
     "(“nf-smc”) and enters the published forecast only if it earns weight there.")
 
@@ -528,7 +533,8 @@ def data_banner(results: ForecastResults, today: dt.date | None = None) -> str |
     last = pd.to_datetime(results.sir_frame["date"]).max().date()
     return checks.data_banner(stale=results.stale, vintage=results.vintage,
                               notes=results.stale_notes, last_day=last,
-                              today=today or dt.date.today(), source=results.config.data.kind)
+                              today=today or dt.date.today(), source=results.config.data.kind,
+                              provider=results.config.data.provider)
 
 
 def forecast_report_content(results: ForecastResults) -> ReportContent:
@@ -546,7 +552,7 @@ def forecast_report_content(results: ForecastResults) -> ReportContent:
     # the header shows the vintage's first two parts (as of, days); the full one is in §3
     vintage = "; ".join(str(results.vintage).split("; ")[:2])
     return ReportContent(
-        title=f"San Francisco COVID-19 forecast from {headline.origin}",
+        title=f"{headline.place} COVID-19 forecast from {headline.origin}",
         reference_date=headline.origin, data_vintage=vintage,
         sections=tuple(sections), provenance=_provenance(results), warnings=tuple(notes),
         summary=headline.sentence(),
