@@ -226,6 +226,15 @@ def faults() -> list[Fault]:
         Fault("html-instead-of-package-json", "an HTML page instead of a CKAN package_show",
               package=lambda s, o: body(b"<html><body>502 Bad Gateway</body></html>",
                                         "text/html")),
+        # issue 22's decode faults, on the CKAN answer: every decode failure is one named
+        # rejection (pipeline.data.decoding), never a traceback
+        Fault("deeply-nested-package-json", "nested too deeply to decode (RecursionError",
+              package=lambda s, o: body(b"[" * 200_000, "application/json")),
+        Fault("huge-integer-package-json", "ValueError: Exceeds the limit (4300 digits)",
+              package=lambda s, o: body(b'{"success": true, "result": ' + b"9" * 5_000 + b"}",
+                                        "application/json")),
+        Fault("binary-garbage-csv", "not a CSV file",
+              download=lambda s, o: body(b"\xff\xfe\x00\x01" * 4_096)),
         Fault("resource-missing", "has no resource covid19cases_test.csv",
               package=lambda s, o: body(package_show(s.url + DOWNLOAD_PATH, resources=[]),
                                         "application/json")),

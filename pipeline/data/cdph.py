@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.data.decoding import PayloadRejectedError, decode_boundary
 from pipeline.data.sir_transform import DEFAULT_INFECTIOUS_PERIOD_DAYS, proportions, sir_counts
 from pipeline.errors import ValidationError
 
@@ -182,9 +183,10 @@ def parse_cdph_csv(data: bytes, source: str) -> CDPHVintage:
 
 def _parse(data: bytes, source: str) -> CDPHVintage:
     try:
-        raw = pd.read_csv(io.BytesIO(data), dtype=str, keep_default_na=False)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise CDPHFormatError(f"{source}: not a CSV file ({exc})") from exc
+        with decode_boundary("CSV", source, len(data)):
+            raw = pd.read_csv(io.BytesIO(data), dtype=str, keep_default_na=False)
+    except PayloadRejectedError as exc:   # any decode failure, named (pipeline.data.decoding)
+        raise CDPHFormatError(f"{source}: not a CSV file ({exc.__cause__})") from exc
     missing = [c for c in REQUIRED_COLUMNS if c not in raw.columns]
     if missing:
         raise CDPHFormatError(f"{source}: missing column(s) {missing}; columns present: "

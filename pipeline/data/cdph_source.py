@@ -223,7 +223,7 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
             raise
         held = cache.hold(SPEC, payload, suffix="csv", reason=str(exc))
         raise RevisionRefusedError(f"{exc} (payload held in {held}; after review accept it "
-                                   f"with --accept-revisions)", hold=True) from exc
+                                   "with `flowcast data fetch --source chhs --accept-revisions` (or `flowcast data import --accept-revisions FILE`))", hold=True) from exc
     archive_vintage(cache, vintage, payload)
     return manifest
 

@@ -46,6 +46,7 @@ from urllib.parse import urlencode, urljoin, urlsplit, urlunsplit
 import requests
 
 from pipeline.data.datasf import parse_retry_after, redirect_allowed
+from pipeline.data.decoding import PayloadRejectedError, decode_boundary
 from pipeline.errors import ConfigError, DataSourceError
 
 log = logging.getLogger(__name__)
@@ -359,8 +360,12 @@ class CHHSClient:
 def parse_package_show(body: bytes, url: str) -> dict[str, object]:
     """The ``result`` of a CKAN ``package_show`` answer; a named error for anything else."""
     try:
-        data = json.loads(body)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        with decode_boundary("CKAN package_show JSON", url, len(body)):
+            data = json.loads(body)
+    except PayloadRejectedError as rejected:
+        exc = rejected.__cause__
+        if not isinstance(exc, json.JSONDecodeError | UnicodeDecodeError):
+            raise                   # too deep, a huge integer, ...: named by the boundary
         kind = "an HTML page" if looks_like_html(body) else "invalid JSON"
         raise CKANResponseError(f"{url}: {kind} instead of a CKAN package_show answer "
                                 f"({len(body)} bytes): {exc}") from exc

@@ -175,4 +175,4 @@ def commit_validated(cache: DatasetCache, validated: ValidatedFrame, payload: by
             raise
         held = cache.hold(validated.spec, payload, suffix=suffix, reason=str(exc))
         raise RevisionRefusedError(f"{exc} (payload held in {held}; after review accept it "
-                                   f"with --accept-revisions)", hold=True) from exc
+                                   "with `flowcast data fetch --accept-revisions` (or `flowcast data import --accept-revisions FILE`))", hold=True) from exc
