@@ -34,6 +34,17 @@ def datasf_dir() -> Path:
     return DATASF
 
 
+@pytest.fixture
+def prefect_logging_rebound():
+    """Run a flow inside typer's CliRunner, then give Prefect's console handler back a live
+    stream: set up inside CliRunner it writes to CliRunner's stderr, which is closed when invoke
+    returns, and every later flow of the session would log into a closed file."""
+    yield
+    from prefect.logging.configuration import setup_logging
+
+    setup_logging(incremental=False)
+
+
 @pytest.fixture(scope="session")
 def prefect_harness():
     """Prefect's temporary test server, one per session (the flow tests of SF and a county)."""

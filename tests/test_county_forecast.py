@@ -242,6 +242,7 @@ def test_county_live_fetch_falls_back_to_the_cache_and_says_so(county_run, monke
 
 @pytest.mark.slow
 def test_cli_flow_run_for_a_county_from_the_imported_cdph_files(county_run, prefect_harness,
+                                                                prefect_logging_rebound,
                                                                 monkeypatch):
     """`flowcast forecast --county "santa cruz" --preset tiny --data-source import` end to end
     (every step as a Prefect task, the county-skill step included), in the library run's data
