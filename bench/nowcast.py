@@ -14,14 +14,29 @@ against today's method (drop the last 14 days) and the truncated data as is.
    and per 7-day week (weeks ending 0, 7, 14, 21 days before the vintage).
 3. **Real-time nowcast-then-forecast**: at each vintage with a later one, every county ≥ 100k,
    from that vintage's data exactly as the weekly run would (delay model from the vintage pairs
-   known then; for the first vintage, which has none, from the pairs of the later ones — marked),
-   K completions forecast by AutoETS from the last Saturday ≤ the data date and mixed; against
+   known then; for the first vintage, which has none, from the pairs of the later ones —
+   marked), K completions forecast from the last Saturday ≤ the data date and mixed; against
    the same forecaster after dropping the last 14 days (origin = last Saturday ≤ D − 14, the
-   horizons extended to the same target weeks) and on the truncated data as is; the current
-   week's days in the data are not used (as in the run; ``nowcast_with_partial_week`` uses them,
-   a variant). Scored (WIS of
-   weekly cases) against the latest vintage on the hub weeks −1..3 of each data date; per hub
-   horizon the geometric mean over county × vintage cells of the WIS ratios.
+   horizons extended to the same target weeks) and on the truncated data as is. Two
+   forecasters, each on every method:
+
+   * ``published`` — the weekly run's published forecast
+     (:class:`pipeline.ensemble.published.PublishedEnsemble`, members chosen by
+     :func:`pipeline.ensemble.weekly.build_vintage_ensemble`): hub-baseline, growth-qr pooled
+     over the vintage's counties less their last 14 days (the run's reference places; each
+     county's own left out), nf-growth, and nf-real fine-tuned on the vintage's county windows
+     at the latest refit date ≤ each origin (model store); each member mixed over the
+     completions, then the members' log average (the run's order). The flows forecast four
+     weeks, and drop-14's origin is two weeks earlier, so its hub weeks 2 and 3 are five and
+     six weeks ahead: there ``drop14`` has no forecast (not scored), and
+     ``drop14_reachable_members`` is the log average of hub-baseline and growth-qr (a
+     different forecaster, reported beside it);
+   * ``autoets`` — AutoETS on every method (reaches any week), as before, with the variant
+     ``nowcast_with_partial_week`` (the current week's days in the data used).
+
+   Scored (WIS of weekly cases) against the latest vintage on the hub weeks −1..3 of each data
+   date; per hub horizon the geometric mean over county × vintage cells of the WIS ratios
+   (``n_ratio_cells``: the cells each is over), and published / AutoETS per method.
 4. **DataSF**: the vintages the project has (one shared export), so nothing to score there.
 """
 from __future__ import annotations
@@ -261,15 +276,16 @@ def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
             for forecaster, methods in forecasts.items():
                 for method, by_county in methods.items():
                     q = by_county[county]
-                    s = score(q, truth, levels)
-                    for j, w in enumerate(weeks.weeks):
-                        if not np.isfinite(q[j]).all():
-                            continue            # beyond the forecaster's reach: no forecast
+                    # a week beyond the forecaster's reach has no forecast (NaN): not scored
+                    reached = np.flatnonzero(np.isfinite(q).all(axis=1))
+                    s = score(q[reached], truth[reached], levels)
+                    for i, j in enumerate(reached):
+                        w = weeks.weeks[j]
                         rows.append({"vintage": str(vintage.as_of.date()), "county": county,
                                      "forecaster": forecaster, "method": method,
                                      "horizon": w.horizon, "kind": w.kind,
-                                     "wis": float(s["wis"][j]), "c50": bool(s["c50"][j]),
-                                     "c90": bool(s["c90"][j]), "truth": truth[j],
+                                     "wis": float(s["wis"][i]), "c50": bool(s["c50"][i]),
+                                     "c90": bool(s["c90"][i]), "truth": truth[j],
                                      "median": float(q[j, 11])})
             reported += reported_shares(histories[county],
                                         history_from_county(latest.county(county)),
@@ -338,13 +354,19 @@ def summarize_reported(frame: pd.DataFrame) -> dict[str, Any]:
     return out
 
 
-def geometric_mean_ratio(frame: pd.DataFrame, method: str, reference: str,
-                         key: str = "method") -> float | None:
-    """The geometric mean over the county × vintage cells both have of the WIS ratio."""
+def wis_ratios(frame: pd.DataFrame, method: str, reference: str,
+               key: str = "method") -> pd.Series:
+    """WIS(method) / WIS(reference) of the county × vintage cells both have (finite, > 0)."""
     a = frame[frame[key] == method].set_index(["vintage", "county"])["wis"]
     b = frame[frame[key] == reference].set_index(["vintage", "county"])["wis"]
     ratio = (a / b).replace([np.inf, -np.inf], np.nan).dropna()
-    ratio = ratio[ratio > 0]
+    return ratio[ratio > 0]
+
+
+def geometric_mean_ratio(frame: pd.DataFrame, method: str, reference: str,
+                         key: str = "method") -> float | None:
+    """The geometric mean over the county × vintage cells both have of the WIS ratio."""
+    ratio = wis_ratios(frame, method, reference, key)
     return round(float(np.exp(np.log(ratio).mean())), 3) if len(ratio) else None
 
 
@@ -357,11 +379,15 @@ def summarize_scores(frame: pd.DataFrame) -> dict[str, Any]:
     methods = set(frame["method"])
     for h in HUB_HORIZONS:
         g = frame[frame["horizon"] == h]
+        pairs = [(a, b) for a, b in RATIOS if a in methods and b in methods]
         ratios = {f"geomean_wis_ratio_{a}_vs_{b}": geometric_mean_ratio(g, a, b)
-                  for a, b in RATIOS if a in methods and b in methods}
+                  for a, b in pairs}
+        # the cells each ratio is over (both methods scored, ratio finite and > 0)
+        ratio_cells = {f"{a}_vs_{b}": int(len(wis_ratios(g, a, b))) for a, b in pairs}
         out[f"horizon_{h}"] = {
             "kinds": sorted(set(g[g["method"] == "nowcast"]["kind"])),
             **ratios,
+            "n_ratio_cells": ratio_cells,
             "n_cells": {m: int(len(x)) for m, x in g.groupby("method")},
             "mean_wis": {m: round(float(x["wis"].mean()), 1) for m, x in g.groupby("method")},
             "coverage50": {m: round(float(x["c50"].mean()), 3) for m, x in g.groupby("method")},
@@ -371,6 +397,10 @@ def summarize_scores(frame: pd.DataFrame) -> dict[str, Any]:
             "per_vintage_ratio_vs_as_is": {
                 v: geometric_mean_ratio(x, "nowcast", "as_is") for v, x in g.groupby("vintage")},
         }
+        if "drop14_reachable_members" in methods:
+            out[f"horizon_{h}"]["per_vintage_ratio_vs_drop14_reachable_members"] = {
+                v: geometric_mean_ratio(x, "nowcast", "drop14_reachable_members")
+                for v, x in g.groupby("vintage")}
     return out
 
 
