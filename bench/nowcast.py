@@ -14,14 +14,29 @@ against today's method (drop the last 14 days) and the truncated data as is.
    and per 7-day week (weeks ending 0, 7, 14, 21 days before the vintage).
 3. **Real-time nowcast-then-forecast**: at each vintage with a later one, every county ≥ 100k,
    from that vintage's data exactly as the weekly run would (delay model from the vintage pairs
-   known then; for the first vintage, which has none, from the pairs of the later ones — marked),
-   K completions forecast by AutoETS from the last Saturday ≤ the data date and mixed; against
+   known then; for the first vintage, which has none, from the pairs of the later ones —
+   marked), K completions forecast from the last Saturday ≤ the data date and mixed; against
    the same forecaster after dropping the last 14 days (origin = last Saturday ≤ D − 14, the
-   horizons extended to the same target weeks) and on the truncated data as is; the current
-   week's days in the data are not used (as in the run; ``nowcast_with_partial_week`` uses them,
-   a variant). Scored (WIS of
-   weekly cases) against the latest vintage on the hub weeks −1..3 of each data date; per hub
-   horizon the geometric mean over county × vintage cells of the WIS ratios.
+   horizons extended to the same target weeks) and on the truncated data as is. Two
+   forecasters, each on every method:
+
+   * ``published`` — the weekly run's published forecast
+     (:class:`pipeline.ensemble.published.PublishedEnsemble`, members chosen by
+     :func:`pipeline.ensemble.weekly.build_vintage_ensemble`): hub-baseline, growth-qr pooled
+     over the vintage's counties less their last 14 days (the run's reference places; each
+     county's own left out), nf-growth, and nf-real fine-tuned on the vintage's county windows
+     at the latest refit date ≤ each origin (model store); each member mixed over the
+     completions, then the members' log average (the run's order). The flows forecast four
+     weeks, and drop-14's origin is two weeks earlier, so its hub weeks 2 and 3 are five and
+     six weeks ahead: there ``drop14`` has no forecast (not scored), and
+     ``drop14_reachable_members`` is the log average of hub-baseline and growth-qr (a
+     different forecaster, reported beside it);
+   * ``autoets`` — AutoETS on every method (reaches any week), as before, with the variant
+     ``nowcast_with_partial_week`` (the current week's days in the data used).
+
+   Scored (WIS of weekly cases) against the latest vintage on the hub weeks −1..3 of each data
+   date; per hub horizon the geometric mean over county × vintage cells of the WIS ratios
+   (``n_ratio_cells``: the cells each is over), and published / AutoETS per method.
 4. **DataSF**: the vintages the project has (one shared export), so nothing to score there.
 """
 from __future__ import annotations
@@ -43,13 +58,22 @@ from pipeline.data.cdph import CDPHVintage, find_vintage_files, read_vintages
 from pipeline.data.delays import DelayModel, DelayModelConfig, fit_delay_model
 from pipeline.data.vintage_pairs import RevisionPairs, revision_pairs
 from pipeline.ensemble.autoets import AutoETSMember
-from pipeline.ensemble.nowcast import NowcastConfig, complete_histories, nowcast_history
-from pipeline.ensemble.nowcast_forecast import (HUB_HORIZONS, MemberForecaster, hub_weeks,
-                                                nowcast_then_forecast, truncated_forecast,
-                                                week_sums)
-from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, DAYS_PER_WEEK, history_from_county
+from pipeline.ensemble.nowcast import (CompletedHistories, NowcastConfig, complete_histories,
+                                       nowcast_history)
+from pipeline.ensemble.nowcast_forecast import (HUB_HORIZONS, CompletionForecaster,
+                                                MemberForecaster, hub_weeks, last_saturday,
+                                                nowcast_then_forecast_places,
+                                                truncated_forecasts, week_sums)
+from pipeline.ensemble.published import PublishedEnsemble, reachable
+from pipeline.ensemble.targets import (HUB_QUANTILE_LEVELS, DAYS_PER_WEEK, EpiHistory,
+                                       history_from_county)
+from pipeline.ensemble.weekly import WeeklyConfig, build_vintage_ensemble
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
+from pipeline.forecast import resolve_config
+from pipeline.forecast.sources import SETTLED_DAYS
 from pipeline.io import atomic_write_json
+from pipeline.progress import rich_progress
+from pipeline.training.model_store import default_store_root
 
 CDPH_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "cdph"
 DATASF_ROOT = CDPH_ROOT.parent / "datasf"
@@ -171,54 +195,128 @@ def score(quantiles: np.ndarray, truth: np.ndarray, levels: np.ndarray) -> dict[
             "c90": interval_coverage(levels, quantiles, truth, 0.9)}
 
 
+def week_truth(final: EpiHistory, ends: list[pd.Timestamp]) -> np.ndarray:
+    pos = final.dates.get_indexer(pd.DatetimeIndex(ends))
+    return np.array([final.cases[p - DAYS_PER_WEEK + 1:p + 1].sum() for p in pos],
+                    dtype=np.float64)
+
+
+def vintage_forecasts(forecaster: CompletionForecaster, histories: dict[str, EpiHistory],
+                      completed: dict[str, CompletedHistories], data_date: pd.Timestamp, levels: np.ndarray,
+                      seed: int, seconds: dict[str, float], *,
+                      drop14_reachable: CompletionForecaster | None = None,
+                      partial_week: bool = False) -> dict[str, dict[str, np.ndarray]]:
+    """{method: {county: (H, Q)}} of one forecaster at one vintage, every county in one batch
+    per method; ``seconds[method]`` accumulates the time each took."""
+    calls: dict[str, Any] = {
+        "nowcast": lambda: {c: f.quantiles for c, f in nowcast_then_forecast_places(
+            completed, data_date, forecaster, levels, seed).items()},
+        "drop14": lambda: truncated_forecasts(histories, data_date, forecaster, levels, seed,
+                                              drop_days=14),
+        "as_is": lambda: truncated_forecasts(histories, data_date, forecaster, levels, seed,
+                                             drop_days=0)}
+    if partial_week:
+        calls["nowcast_with_partial_week"] = lambda: {
+            c: f.quantiles for c, f in nowcast_then_forecast_places(
+                completed, data_date, forecaster, levels, seed, partial_week=True).items()}
+    if drop14_reachable is not None:
+        calls["drop14_reachable_members"] = lambda: truncated_forecasts(
+            histories, data_date, drop14_reachable, levels, seed, drop_days=14)
+    out = {}
+    for method, call in calls.items():
+        t = time.perf_counter()
+        out[method] = call()
+        seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t
+    return out
+
+
 def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
                        counties: tuple[str, ...], config: DelayModelConfig,
-                       nowcast_config: NowcastConfig, seed: int) -> dict[str, Any]:
+                       nowcast_config: NowcastConfig, weekly: WeeklyConfig, store_root: Path,
+                       seed: int) -> dict[str, Any]:
     latest = vintages[-1]
     levels = np.asarray(HUB_QUANTILE_LEVELS)
-    forecaster = MemberForecaster(AutoETSMember())
+    autoets = MemberForecaster(AutoETSMember())
     rows: list[dict[str, Any]] = []
     reported: list[dict[str, Any]] = []
     models: dict[str, str] = {}
+    reach: dict[str, Any] = {}
+    seconds: dict[str, dict[str, float]] = {"published": {}, "autoets": {}, "nowcast": {},
+                                            "members": {}}
     for vintage in vintages[:-1]:
         model, how = delay_model_at(vintage, chain, config)
         models[str(vintage.as_of.date())] = how
         weeks = hub_weeks(vintage.as_of)
+        histories = {c: history_from_county(vintage.county(c)) for c in counties}
+        t = time.perf_counter()
+        completed = {c: complete_histories(h, nowcast_history(h, model, county=c,
+                                                               config=nowcast_config, seed=seed))
+                     for c, h in histories.items()}
+        seconds["nowcast"][str(vintage.as_of.date())] = round(time.perf_counter() - t, 1)
+        t = time.perf_counter()
+        drop_origin = last_saturday(vintage.as_of - pd.Timedelta(days=14))
+        # the pooled members' places as the run has them: the vintage less its last 14 days
+        pool = {c: h.up_to(vintage.as_of - pd.Timedelta(days=SETTLED_DAYS))
+                for c, h in histories.items()}
+        with rich_progress(f"members at {vintage.as_of.date()}", 2) as progress:
+            published = build_vintage_ensemble(weekly, store_root, pool,
+                                               [weeks.origin, drop_origin], progress)
+        seconds["members"][str(vintage.as_of.date())] = round(time.perf_counter() - t, 1)
+        reach[str(vintage.as_of.date())] = drop14_reach(published, weeks, drop_origin)
+        forecasts = {
+            "published": vintage_forecasts(
+                published, histories, completed, vintage.as_of, levels, seed,
+                seconds["published"],
+                drop14_reachable=dataclasses.replace(published, beyond_reach="reachable-members")),
+            "autoets": vintage_forecasts(autoets, histories, completed, vintage.as_of, levels,
+                                         seed, seconds["autoets"], partial_week=True)}
         for county in counties:
-            history = history_from_county(vintage.county(county))
-            final = history_from_county(latest.county(county))
-            ends = [w.end for w in weeks.weeks]
-            pos = final.dates.get_indexer(pd.DatetimeIndex(ends))
-            truth = np.array([final.cases[p - DAYS_PER_WEEK + 1:p + 1].sum() for p in pos],
-                             dtype=np.float64)
-            nowcast = nowcast_history(history, model, county=county, config=nowcast_config,
-                                      seed=seed)
-            completed = complete_histories(history, nowcast)
-            forecasts = {
-                "nowcast": nowcast_then_forecast(completed, vintage.as_of, forecaster, levels,
-                                                 seed).quantiles,
-                "nowcast_with_partial_week": nowcast_then_forecast(
-                    completed, vintage.as_of, forecaster, levels, seed,
-                    partial_week=True).quantiles,
-                "drop14": truncated_forecast(history, vintage.as_of, forecaster, levels, seed,
-                                             drop_days=14),
-                "as_is": truncated_forecast(history, vintage.as_of, forecaster, levels, seed,
-                                            drop_days=0)}
-            for method, q in forecasts.items():
-                s = score(q, truth, levels)
-                for j, w in enumerate(weeks.weeks):
-                    rows.append({"vintage": str(vintage.as_of.date()), "county": county,
-                                 "method": method, "horizon": w.horizon, "kind": w.kind,
-                                 "wis": float(s["wis"][j]), "c50": bool(s["c50"][j]),
-                                 "c90": bool(s["c90"][j]), "truth": truth[j],
-                                 "median": float(q[j, 11])})
-            reported += reported_shares(history, final, completed, vintage, county)
-        print(f"  {vintage.as_of.date()}: {len(counties)} counties ({how})")
+            truth = week_truth(history_from_county(latest.county(county)),
+                               [w.end for w in weeks.weeks])
+            for forecaster, methods in forecasts.items():
+                for method, by_county in methods.items():
+                    q = by_county[county]
+                    # a week beyond the forecaster's reach has no forecast (NaN): not scored
+                    reached = np.flatnonzero(np.isfinite(q).all(axis=1))
+                    s = score(q[reached], truth[reached], levels)
+                    for i, j in enumerate(reached):
+                        w = weeks.weeks[j]
+                        rows.append({"vintage": str(vintage.as_of.date()), "county": county,
+                                     "forecaster": forecaster, "method": method,
+                                     "horizon": w.horizon, "kind": w.kind,
+                                     "wis": float(s["wis"][i]), "c50": bool(s["c50"][i]),
+                                     "c90": bool(s["c90"][i]), "truth": truth[j],
+                                     "median": float(q[j, 11])})
+            reported += reported_shares(histories[county],
+                                        history_from_county(latest.county(county)),
+                                        completed[county], vintage, county)
+        print(f"  {vintage.as_of.date()}: {len(counties)} counties ({how}); published "
+              f"{sum(seconds['published'].values()):.0f} s, autoets "
+              f"{sum(seconds['autoets'].values()):.0f} s so far")
     frame = pd.DataFrame(rows)
     return {"delay_model_per_vintage": models,
-            "summary": summarize_scores(frame),
+            "published": summarize_scores(frame[frame["forecaster"] == "published"]),
+            "autoets": summarize_scores(frame[frame["forecaster"] == "autoets"]),
+            "published_vs_autoets": published_vs_autoets(frame),
+            "drop14_reach": reach,
             "reported_share_of_recent_weeks": summarize_reported(pd.DataFrame(reported)),
-            "n_cells": int(frame.groupby(["vintage", "county"]).ngroups)}
+            "n_cells": int(frame.groupby(["vintage", "county"]).ngroups),
+            "seconds": {k: {m: round(x, 1) for m, x in v.items()} for k, v in seconds.items()}}
+
+
+def drop14_reach(published: PublishedEnsemble, weeks: Any, drop_origin: pd.Timestamp
+                 ) -> dict[str, Any]:
+    """Each hub week's step from the drop-14 origin and the members that reach it."""
+    out: dict[str, Any] = {"drop14_origin": str(drop_origin.date()),
+                           "origin": str(weeks.origin.date())}
+    for w in weeks.weeks:
+        step = int((w.end - drop_origin).days // DAYS_PER_WEEK)
+        out[f"horizon_{w.horizon}"] = {
+            "step_from_drop14_origin": step,
+            "members": [n for n, m in zip(published.member_names,
+                                          (None, *published.members))
+                        if m is None or reachable(m, (step,))]}
+    return out
 
 
 def reported_shares(history: Any, final: Any, completed: Any, vintage: CDPHVintage,
@@ -256,24 +354,41 @@ def summarize_reported(frame: pd.DataFrame) -> dict[str, Any]:
     return out
 
 
-def geometric_mean_ratio(frame: pd.DataFrame, method: str, reference: str) -> float | None:
-    a = frame[frame["method"] == method].set_index(["vintage", "county"])["wis"]
-    b = frame[frame["method"] == reference].set_index(["vintage", "county"])["wis"]
+def wis_ratios(frame: pd.DataFrame, method: str, reference: str,
+               key: str = "method") -> pd.Series:
+    """WIS(method) / WIS(reference) of the county × vintage cells both have (finite, > 0)."""
+    a = frame[frame[key] == method].set_index(["vintage", "county"])["wis"]
+    b = frame[frame[key] == reference].set_index(["vintage", "county"])["wis"]
     ratio = (a / b).replace([np.inf, -np.inf], np.nan).dropna()
-    ratio = ratio[ratio > 0]
+    return ratio[ratio > 0]
+
+
+def geometric_mean_ratio(frame: pd.DataFrame, method: str, reference: str,
+                         key: str = "method") -> float | None:
+    """The geometric mean over the county × vintage cells both have of the WIS ratio."""
+    ratio = wis_ratios(frame, method, reference, key)
     return round(float(np.exp(np.log(ratio).mean())), 3) if len(ratio) else None
+
+
+RATIOS = (("nowcast", "drop14"), ("nowcast", "drop14_reachable_members"), ("nowcast", "as_is"),
+          ("nowcast_with_partial_week", "drop14"))
 
 
 def summarize_scores(frame: pd.DataFrame) -> dict[str, Any]:
     out: dict[str, Any] = {}
+    methods = set(frame["method"])
     for h in HUB_HORIZONS:
         g = frame[frame["horizon"] == h]
+        pairs = [(a, b) for a, b in RATIOS if a in methods and b in methods]
+        ratios = {f"geomean_wis_ratio_{a}_vs_{b}": geometric_mean_ratio(g, a, b)
+                  for a, b in pairs}
+        # the cells each ratio is over (both methods scored, ratio finite and > 0)
+        ratio_cells = {f"{a}_vs_{b}": int(len(wis_ratios(g, a, b))) for a, b in pairs}
         out[f"horizon_{h}"] = {
             "kinds": sorted(set(g[g["method"] == "nowcast"]["kind"])),
-            "geomean_wis_ratio_nowcast_vs_drop14": geometric_mean_ratio(g, "nowcast", "drop14"),
-            "geomean_wis_ratio_nowcast_vs_as_is": geometric_mean_ratio(g, "nowcast", "as_is"),
-            "geomean_wis_ratio_with_partial_week_vs_drop14": geometric_mean_ratio(
-                g, "nowcast_with_partial_week", "drop14"),
+            **ratios,
+            "n_ratio_cells": ratio_cells,
+            "n_cells": {m: int(len(x)) for m, x in g.groupby("method")},
             "mean_wis": {m: round(float(x["wis"].mean()), 1) for m, x in g.groupby("method")},
             "coverage50": {m: round(float(x["c50"].mean()), 3) for m, x in g.groupby("method")},
             "coverage90": {m: round(float(x["c90"].mean()), 3) for m, x in g.groupby("method")},
@@ -282,6 +397,21 @@ def summarize_scores(frame: pd.DataFrame) -> dict[str, Any]:
             "per_vintage_ratio_vs_as_is": {
                 v: geometric_mean_ratio(x, "nowcast", "as_is") for v, x in g.groupby("vintage")},
         }
+        if "drop14_reachable_members" in methods:
+            out[f"horizon_{h}"]["per_vintage_ratio_vs_drop14_reachable_members"] = {
+                v: geometric_mean_ratio(x, "nowcast", "drop14_reachable_members")
+                for v, x in g.groupby("vintage")}
+    return out
+
+
+def published_vs_autoets(frame: pd.DataFrame) -> dict[str, Any]:
+    """Per method and hub horizon: geometric mean of WIS(published) / WIS(AutoETS)."""
+    out: dict[str, Any] = {}
+    for method in ("nowcast", "drop14", "as_is"):
+        g = frame[frame["method"] == method]
+        out[method] = {f"horizon_{h}": geometric_mean_ratio(g[g["horizon"] == h], "published",
+                                                             "autoets", key="forecaster")
+                       for h in HUB_HORIZONS}
     return out
 
 
@@ -326,9 +456,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result["held_out_pairs"] = held_out_pairs(vintages, chain, counties, config, 200, args.seed)
     print("nowcast then forecast")
     nowcast_config = NowcastConfig(n_completions=args.completions)
+    weekly = resolve_config("default", seed=args.seed).weekly_config()
     result["forecasts"] = evaluate_forecasts(vintages, chain, counties, config, nowcast_config,
-                                             args.seed)
-    result["forecasts"]["forecaster"] = "autoets (pipeline.ensemble.autoets) on every method"
+                                             weekly, default_store_root(), args.seed)
+    result["forecasts"]["forecasters"] = {
+        "published": "the weekly run's published forecast (pipeline.ensemble.published via "
+                     "pipeline.ensemble.weekly.build_vintage_ensemble): equal-weight log "
+                     "average of hub-baseline, growth-qr (pooled over the vintage's counties "
+                     "less their last 14 days, each county's own left out), nf-growth and "
+                     "nf-real (fine-tuned on the vintage's county windows at the latest refit "
+                     "date <= the origin); each member mixed over the completions, then "
+                     "averaged; no recalibration. drop14 beyond the flows' 4 weeks: missing; "
+                     "drop14_reachable_members: there the log average of hub-baseline and "
+                     "growth-qr (a different forecaster)",
+        "autoets": "autoets (pipeline.ensemble.autoets) on every method"}
     result["datasf"] = datasf_vintages()
     result["settings"] = {"completions": args.completions, "seed": args.seed,
                           "nowcast": dataclasses.asdict(nowcast_config)}
@@ -339,7 +480,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result["seconds"] = round(time.perf_counter() - started, 1)
     name = "nowcast-quick.json" if args.quick else "nowcast.json"
     atomic_write_json(RESULTS / name, result)
-    print(json.dumps(result["forecasts"]["summary"], indent=1)[:3000])
+    print(json.dumps({f: {h: {k: v for k, v in x.items() if k.startswith("geomean")}
+                          for h, x in result["forecasts"][f].items()}
+                      for f in ("published", "autoets")}, indent=1))
     return result
 
 

@@ -36,6 +36,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.ensemble.combine import EnsembleError
+from pipeline.ensemble.hub_baseline import row_quantiles
 from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
 from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
 
@@ -148,6 +149,143 @@ def _forecast(x_train: NDArray[np.float64], y_train: NDArray[np.float64],
     return np.maximum.accumulate(np.expm1(log_q), axis=-1)
 
 
+# ------------------------------------------------------- one pool, many forecast series at once
+
+# Series forecast per call of the batched regression: each carries its own copy of the pool's
+# rows (a few thousand), so a chunk's arrays stay within a few tens of MB.
+BATCH_CHUNK = 128
+
+
+def masked_quantiles(values: NDArray[np.float64], mask: NDArray[np.bool_],
+                     levels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Type-7 quantiles ``(B, Q)`` of each row's values where ``mask`` (NaN for an empty row)."""
+    counts = mask.sum(axis=1)
+    if values.shape[1] == 0:
+        return np.full((values.shape[0], len(levels)), np.nan)
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    with np.errstate(invalid="ignore"):             # an empty row's inf - inf, replaced below
+        out = row_quantiles(ordered, np.maximum(counts, 1), levels)
+    return np.where(counts[:, None] > 0, out, np.nan)
+
+
+def pooled_growth_quantiles(own_weekly: NDArray[np.float64], pool_weekly: NDArray[np.float64],
+                            excluded: NDArray[np.intp], horizons: tuple[int, ...],
+                            levels: NDArray[np.float64],
+                            config: GrowthRegressionConfig = GrowthRegressionConfig()
+                            ) -> NDArray[np.float64]:
+    """Weekly case quantiles ``(B, H, Q)`` of B series at their last week, each pooled with the
+    same places ``pool_weekly (P, W)`` but ``excluded[b]`` (−1: none; a place's own reference
+    series): series b's forecast is :func:`growth_regression_quantiles` of the panel (the pool
+    without ``excluded[b]``, then ``own_weekly[b]``) at week W − 1, every series in one batch
+    (the K completions of a nowcast, many counties)."""
+    out = np.empty((own_weekly.shape[0], len(horizons), len(levels)))
+    for start in range(0, own_weekly.shape[0], BATCH_CHUNK):
+        chunk = slice(start, start + BATCH_CHUNK)
+        out[chunk] = _pooled_chunk(own_weekly[chunk], pool_weekly, excluded[chunk], horizons,
+                                   np.asarray(levels, dtype=np.float64), config)
+    return out
+
+
+def _pooled_chunk(own_weekly: NDArray[np.float64], pool_weekly: NDArray[np.float64],
+                  excluded: NDArray[np.intp], horizons: tuple[int, ...],
+                  levels: NDArray[np.float64], config: GrowthRegressionConfig
+                  ) -> NDArray[np.float64]:
+    own_log = np.log(np.maximum(own_weekly, 0.0) + 1.0)                     # (B, W)
+    pool_log = np.log(np.maximum(pool_weekly, 0.0) + 1.0)                   # (P, W)
+    x_own, x_pool = features(own_log, config), features(pool_log, config)
+    n_b, n_w = own_log.shape
+    n_p, n_f = pool_log.shape[0], x_own.shape[-1]
+    x_now, log_now = np.nan_to_num(x_own[:, -1]), own_log[:, -1]
+    out = np.empty((n_b, len(horizons), len(levels)))
+    for k, h in enumerate(horizons):
+        rows = max(0, n_w - h)
+        y_pool = pool_log[:, h:] - pool_log[:, :rows]                          # (P, rows)
+        y_own = own_log[:, h:] - own_log[:, :rows]
+        x = np.concatenate([np.broadcast_to(x_pool[:, :rows].reshape(1, -1, n_f),
+                                            (n_b, n_p * rows, n_f)),
+                            x_own[:, :rows]], axis=1)                          # (B, N, F)
+        y = np.concatenate([np.broadcast_to(y_pool.reshape(1, -1), (n_b, n_p * rows)), y_own],
+                           axis=1)
+        place = np.concatenate([np.repeat(np.arange(n_p), rows), np.full(rows, -1)])
+        usable = (np.isfinite(y) & np.isfinite(x).all(axis=-1)
+                  & ((place[None, :] < 0) | (place[None, :] != excluded[:, None])))
+        x, y = np.where(usable[..., None], x, 0.0), np.where(usable, y, 0.0)
+        fitted = usable.sum(axis=1) >= config.min_rows
+        log_q = log_now[:, None] + _fallback_spread(y, usable, levels)
+        if fitted.any():
+            log_q[fitted] = _fitted_log_quantiles(x[fitted], y[fitted], usable[fitted],
+                                                  x_now[fitted], log_now[fitted], levels, config)
+        out[:, k] = np.maximum.accumulate(np.expm1(log_q), axis=-1)
+    return np.maximum(out, 0.0)
+
+
+def _fallback_spread(y: NDArray[np.float64], usable: NDArray[np.bool_],
+                     levels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Too few rows: the quantiles of the growth seen so far (zero without any)."""
+    return np.nan_to_num(masked_quantiles(y, usable, levels))
+
+
+def _fitted_log_quantiles(x: NDArray[np.float64], y: NDArray[np.float64],
+                          usable: NDArray[np.bool_], x_now: NDArray[np.float64],
+                          log_now: NDArray[np.float64], levels: NDArray[np.float64],
+                          config: GrowthRegressionConfig) -> NDArray[np.float64]:
+    """:func:`_forecast`'s fit for each row b of the batch on its usable rows: ``(B, Q)``."""
+    weight = np.exp(config.count_weight_power * LEVEL_SCALE * x[..., 1]) * usable
+    penalty = config.ridge * np.eye(x.shape[-1])
+    penalty[0, 0] = 0.0
+    gram = np.einsum("bn,bnf,bng->bfg", weight, x, x) + penalty
+    beta = np.linalg.solve(gram, np.einsum("bn,bnf,bn->bf", weight, x, y)[..., None])[..., 0]
+    residual = y - np.einsum("bnf,bf->bn", x, beta)
+    level = x[..., 1]
+    if config.level_groups > 1:
+        inner = np.linspace(0, 1, config.level_groups + 1)[1:-1]
+        edges = masked_quantiles(level, usable, inner)                        # (B, G - 1)
+    else:
+        edges = np.empty((x.shape[0], 0))
+    group = (level[..., None] > edges[:, None, :]).sum(axis=-1)               # searchsorted left
+    overall = masked_quantiles(residual, usable, levels)
+    spread = np.stack([np.where(((group == g) & usable).sum(axis=1, keepdims=True)
+                                >= config.min_group_rows,
+                                masked_quantiles(residual, (group == g) & usable, levels),
+                                overall)
+                       for g in range(edges.shape[1] + 1)], axis=1)           # (B, G, Q)
+    group_now = (x_now[:, 1, None] > edges).sum(axis=-1)
+    return (log_now + np.einsum("bf,bf->b", x_now, beta))[:, None] + \
+        spread[np.arange(x.shape[0]), group_now]
+
+
+def pooled_growth_forecast_batch(histories: Sequence[EpiHistory], reference: Sequence[EpiHistory],
+                                 horizons: tuple[int, ...], levels: NDArray[np.float64],
+                                 config: GrowthRegressionConfig = GrowthRegressionConfig(),
+                                 excluded: Sequence[int | None] | None = None,
+                                 cumulative: ReferenceCumulative | None = None
+                                 ) -> NDArray[np.float64]:
+    """Weekly case quantiles ``(B, H, Q)``: history b forecast as
+    :meth:`PooledGrowthMember.forecast` with ``reference`` less ``reference[excluded[b]]`` (its
+    own place), in one batch per origin and length. ``cumulative``: ``reference``'s
+    :func:`reference_cumulative` if already computed (each reference place read once)."""
+    out = np.empty((len(histories), len(horizons), len(levels)))
+    skip = list(excluded) if excluded is not None else [None] * len(histories)
+    weekly = [h.weekly_cases() for h in histories]
+    short = [h for h, w in zip(histories, weekly) if w.size < 2]
+    if short:
+        raise TargetError(f"{GROWTH_QR} at {short[0].origin.date()}: needs two complete weeks, "
+                          f"got {len(short[0])} days")
+    if cumulative is None:
+        cumulative = reference_cumulative(reference)
+    keys = [(h.origin, w.size) for h, w in zip(histories, weekly)]
+    for origin, n_weeks in dict.fromkeys(keys):
+        rows = [b for b, key in enumerate(keys) if key == (origin, n_weeks)]
+        seen, pool = reference_weeks_ending(cumulative, origin, n_weeks)
+        position = {int(i): p for p, i in enumerate(seen)}
+        drop = np.array([-1 if (i := skip[b]) is None else position.get(i, -1) for b in rows],
+                        dtype=np.intp)
+        out[rows] = pooled_growth_quantiles(np.stack([weekly[b] for b in rows]), pool, drop,
+                                            horizons, np.asarray(levels, dtype=np.float64),
+                                            config)
+    return out
+
+
 # ----------------------------------------------------------------------- as a weekly member
 
 
@@ -169,6 +307,29 @@ def cumulative_weeks_ending(cumulative: NDArray[np.float64], first: pd.Timestamp
     safe = np.clip(week_ends, DAYS_PER_WEEK - 1, n_days - 1)
     sums = cumulative[safe + 1] - cumulative[safe + 1 - DAYS_PER_WEEK]
     return np.where(inside, sums, np.nan)
+
+
+# Each reference place's first day and cumulative daily cases (a leading 0).
+ReferenceCumulative = tuple[tuple[pd.Timestamp, NDArray[np.float64]], ...]
+
+
+def reference_cumulative(reference: Sequence[EpiHistory]) -> ReferenceCumulative:
+    """Each reference place's first day and cumulative daily cases, read once (a week's sum
+    reads only its own days, so an origin still sees nothing after it)."""
+    return tuple((r.dates[0], np.concatenate([[0.0], np.cumsum(r.cases, dtype=np.float64)]))
+                 for r in reference)
+
+
+def reference_weeks_ending(cumulative: ReferenceCumulative, end: pd.Timestamp, n_weeks: int
+                           ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """The reference places that began by ``end`` (indices) and their ``(P, n_weeks)`` weekly
+    counts for the weeks ending ``end``, ``end`` − 7, … (NaN where a week is not wholly
+    observed)."""
+    seen = np.array([i for i, (first, _) in enumerate(cumulative) if first <= end],
+                    dtype=np.intp)
+    rows = [cumulative_weeks_ending(cumulative[i][1], cumulative[i][0], end, n_weeks)
+            for i in seen]
+    return seen, (np.vstack(rows) if rows else np.empty((0, n_weeks)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,18 +358,22 @@ class PooledGrowthMember:
                                                    quantiles, history.population)
 
     @functools.cached_property
-    def _reference_cumulative(self) -> tuple[tuple[pd.Timestamp, NDArray[np.float64]], ...]:
+    def _reference_cumulative(self) -> ReferenceCumulative:
         """Each reference place's first day and cumulative daily cases (computed once: a week's
         sum reads only its own days, so an origin still sees nothing after it)."""
-        return tuple((r.dates[0], np.concatenate([[0.0], np.cumsum(r.cases, dtype=np.float64)]))
-                     for r in self.reference)
+        return reference_cumulative(self.reference)
 
     def _reference_weeks_ending(self, end: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
         """``(P, n_weeks)`` weekly counts of the reference places that began by ``end``, for the
         weeks ending ``end``, ``end`` − 7, … (NaN where a week is not wholly observed)."""
-        rows = [cumulative_weeks_ending(cumulative, first, end, n_weeks)
-                for first, cumulative in self._reference_cumulative if first <= end]
-        return np.vstack(rows) if rows else np.empty((0, n_weeks))
+        return reference_weeks_ending(self._reference_cumulative, end, n_weeks)[1]
+
+    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
+        """Weekly case quantiles ``(B, H, Q)``, each history as :meth:`forecast` forecasts it,
+        in one batch (:func:`pooled_growth_forecast_batch`)."""
+        return pooled_growth_forecast_batch(histories, self.reference, horizons, levels,
+                                            self.config, cumulative=self._reference_cumulative)
 
     def forecast_panel(self, weekly_cases: NDArray[np.float64], origin_index: NDArray[np.intp],
                        horizons: tuple[int, ...], levels: NDArray[np.float64]

@@ -49,7 +49,7 @@ def symmetrized(differences: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([differences, -differences])
 
 
-def _row_quantiles(sorted_rows: NDArray[np.float64], counts: NDArray[np.intp],
+def row_quantiles(sorted_rows: NDArray[np.float64], counts: NDArray[np.intp],
                    q: NDArray[np.float64]) -> NDArray[np.float64]:
     """Type-7 quantiles ``(B, K)`` of each row's first ``counts[b]`` (sorted) values."""
     position = q[None, :] * (counts[:, None] - 1)
@@ -79,7 +79,7 @@ def baseline_quantiles_batch(last_values: NDArray[np.float64],
     for b, d in enumerate(rows):
         padded[b, :d.size] = np.sort(d)
     lv = np.asarray(levels, dtype=np.float64)
-    grid = _row_quantiles(padded, counts, np.linspace(0.0, 1.0, config.n_samples))  # (B, S)
+    grid = row_quantiles(padded, counts, np.linspace(0.0, 1.0, config.n_samples))  # (B, S)
     generators = [np.random.default_rng(seed) for seed in seeds]
     out = np.empty((len(rows), len(horizons), lv.size))
     total = np.zeros_like(grid)
@@ -91,7 +91,7 @@ def baseline_quantiles_batch(last_values: NDArray[np.float64],
             continue
         k = horizons.index(h)
         if h == 1:
-            out[:, k] = _row_quantiles(padded, counts, lv)
+            out[:, k] = row_quantiles(padded, counts, lv)
             continue
         centred = total - (np.median(total, axis=1, keepdims=True) if config.symmetrize else 0.0)
         out[:, k] = np.quantile(centred, lv, axis=1).T

@@ -108,6 +108,13 @@ def refit_dates(origins: Sequence[pd.Timestamp], every_weeks: int) -> list[pd.Ti
             if (o - REFIT_EPOCH).days % (7 * every_weeks) == 0]
 
 
+def latest_refit_date(origin: pd.Timestamp, every_weeks: int) -> pd.Timestamp:
+    """The last day of the refit calendar on or before ``origin``: the refit whose model a
+    forecast at ``origin`` uses."""
+    origin = pd.Timestamp(origin).normalize()
+    return origin - pd.Timedelta(days=(origin - REFIT_EPOCH).days % (DAYS_PER_WEEK * every_weeks))
+
+
 def _dataset(context: NDArray[np.float32], target: NDArray[np.float32],
              trajectory: NDArray[np.int64], like: WindowedDataset) -> WindowedDataset:
     """Windows in the synthetic dataset's standardization and metadata."""
@@ -164,6 +171,10 @@ class FineTunedGrowthMember:
     base: NFGrowthMember
     models: Mapping[pd.Timestamp, ConditionalEstimator]
     name: str = NF_REAL
+
+    @property
+    def max_horizon(self) -> int:
+        return self.base.max_horizon
 
     def refit_for(self, origin: pd.Timestamp) -> pd.Timestamp | None:
         """The latest refit date on or before ``origin`` (None: before the first refit)."""

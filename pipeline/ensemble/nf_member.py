@@ -277,6 +277,11 @@ class NFGrowthMember:
     name: str = "nf-growth"
     n_samples: int = 1000
 
+    @property
+    def max_horizon(self) -> int:
+        """The flow forecasts exactly the next ``N_WEEKS`` weeks."""
+        return N_WEEKS
+
     def sample_paths(self, history: EpiHistory, seed: int) -> NDArray[np.float64]:
         """Weekly S, I, R paths ``(n_samples, 4, 3)`` at origin + 7h, h = 1..4."""
         return self.sample_paths_batch([history], seed)[0]

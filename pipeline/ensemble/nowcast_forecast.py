@@ -27,9 +27,9 @@ plugged in (AutoETS in the benchmark; the published ensemble in the weekly run).
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Literal, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 import pandas as pd
@@ -47,17 +47,34 @@ HUB_HORIZONS: tuple[int, ...] = (-1, 0, 1, 2, 3)
 MIX_LEVELS = 200
 WEEKDAY_SHARE_WEEKS = 8
 WeekKind = Literal["nowcast", "forecast"]
+Place = TypeVar("Place", str, None)          # a place's name (None: one unnamed place)
 
 
 class CompletionForecaster(Protocol):
     """Weekly case quantiles ``(B, H, Q)`` of B histories at weekly steps ``horizons`` after
-    each history's last day (its origin)."""
+    each history's last day (its origin); ``places[b]`` names history b's place (a pooled
+    forecaster leaves the place's own reference series out of its pool)."""
 
     @property
     def name(self) -> str: ...
 
     def __call__(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]: ...
+                 levels: NDArray[np.float64], seed: int,
+                 places: Sequence[str | None] | None = None) -> NDArray[np.float64]: ...
+
+
+@runtime_checkable
+class MemberwiseForecaster(CompletionForecaster, Protocol):
+    """An ensemble whose members' quantiles ``(M, B, H, Q)`` and their combination are exposed:
+    a nowcast's completions are then mixed per member before the members are combined, as the
+    weekly run's :class:`CompletionMixture` does."""
+
+    def member_quantiles(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
+                         levels: NDArray[np.float64], seed: int,
+                         places: Sequence[str | None] | None = None
+                         ) -> NDArray[np.float64]: ...
+
+    def combine(self, member_quantiles: NDArray[np.float64]) -> NDArray[np.float64]: ...
 
 
 @dataclass(frozen=True)
@@ -72,7 +89,8 @@ class MemberForecaster:
         return self.member.name
 
     def __call__(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
+                 levels: NDArray[np.float64], seed: int,
+                 places: Sequence[str | None] | None = None) -> NDArray[np.float64]:
         return forecast_cells(self.member, histories, horizons, levels, seed)["cases"]
 
 
@@ -196,30 +214,73 @@ class NowcastForecast:
 
 
 def nowcast_then_forecast(histories: CompletedHistories, data_date: pd.Timestamp,
-                          forecaster: CompletionForecaster, levels: NDArray[np.float64],
-                          seed: int, *, horizons: tuple[int, ...] = HUB_HORIZONS,
+                          forecaster: CompletionForecaster,
+                          levels: NDArray[np.float64], seed: int, *,
+                          horizons: tuple[int, ...] = HUB_HORIZONS,
                           partial_week: bool = False) -> NowcastForecast:
     """Every completion forecast from the last Saturday ≤ ``data_date`` (one batch), nowcast
     weeks from the completions' own counts, mixed (module docstring)."""
+    return nowcast_then_forecast_places({None: histories}, data_date, forecaster, levels, seed,
+                                        horizons=horizons, partial_week=partial_week)[None]
+
+
+def nowcast_then_forecast_places(completed: Mapping[Place, CompletedHistories],
+                                 data_date: pd.Timestamp,
+                                 forecaster: CompletionForecaster,
+                                 levels: NDArray[np.float64], seed: int, *,
+                                 horizons: tuple[int, ...] = HUB_HORIZONS,
+                                 partial_week: bool = False
+                                 ) -> dict[Place, NowcastForecast]:
+    """:func:`nowcast_then_forecast` of every place's completions, all in one forecaster call.
+    A :class:`MemberwiseForecaster`'s members are each mixed over the completions, then
+    combined (the weekly run's order); any other forecaster is mixed as it comes."""
     weeks = hub_weeks(data_date, horizons)
-    if histories.dates[-1] != weeks.data_date:
-        raise TargetError(f"the completed histories end {histories.dates[-1].date()}, the data "
-                          f"date is {weeks.data_date.date()}")
-    k, q = len(histories), len(levels)
-    per = np.empty((k, len(weeks.weeks), q))
+    for place, histories in completed.items():
+        if histories.dates[-1] != weeks.data_date:
+            raise TargetError(f"{place or 'the'} completed histories end "
+                              f"{histories.dates[-1].date()}, the data date is "
+                              f"{weeks.data_date.date()}")
     steps = weeks.forecast_steps
-    if steps:
-        forecast = forecaster(histories.histories(up_to=weeks.origin), steps, levels, seed)
-        forecast = _with_known_days(forecast, histories, weeks, partial_week)
-        for j, w in enumerate(x for x in weeks.weeks if x.kind == "forecast"):
-            per[:, weeks.weeks.index(w)] = forecast[:, j]
+    forecast_at = [weeks.weeks.index(w) for w in weeks.weeks if w.kind == "forecast"]
+    places = [p for p, h in completed.items() for _ in range(len(h))]
+    cells = [h for c in completed.values() for h in c.histories(up_to=weeks.origin)]
+    bounds = np.cumsum([0] + [len(c) for c in completed.values()])
+    members = np.empty((1, len(cells), 0, len(levels)))                              # (M, B, H, Q)
+    if steps and isinstance(forecaster, MemberwiseForecaster):
+        members = forecaster.member_quantiles(cells, steps, levels, seed, places)
+    elif steps:
+        members = forecaster(cells, steps, levels, seed, places)[None]
+    out: dict[Place, NowcastForecast] = {}
+    for i, (place, histories) in enumerate(completed.items()):
+        per = _nowcast_weeks(histories, weeks, len(levels))                          # (K, W, Q)
+        mixed: NDArray[np.float64] | None = None
+        if steps:
+            own = np.stack([_with_known_days(m[bounds[i]:bounds[i + 1]], histories, weeks,
+                                             partial_week) for m in members])   # (M, K, H, Q)
+            if isinstance(forecaster, MemberwiseForecaster):
+                per[:, forecast_at] = forecaster.combine(own)
+                mixed = forecaster.combine(np.stack([mix_quantiles(m, levels) for m in own]))
+            else:
+                per[:, forecast_at] = own[0]
+        quantiles = mix_quantiles(per, levels)
+        if mixed is not None:
+            quantiles[forecast_at] = mixed
+        out[place] = NowcastForecast(weeks, np.asarray(levels, dtype=np.float64), quantiles,
+                                     per, forecaster.name)
+    return out
+
+
+def _nowcast_weeks(histories: CompletedHistories, weeks: HubWeeks, n_levels: int
+                   ) -> NDArray[np.float64]:
+    """``(K, W, Q)``: each completion's count of every nowcast week (a point per completion),
+    NaN at the forecast weeks."""
+    per = np.full((len(histories), len(weeks.weeks), n_levels), np.nan)
     nowcast_weeks = [w for w in weeks.weeks if w.kind == "nowcast"]
     if nowcast_weeks:
-        sums = week_sums(histories, [w.end for w in nowcast_weeks])          # (K, W)
+        sums = week_sums(histories, [w.end for w in nowcast_weeks])                # (K, W)
         for j, w in enumerate(nowcast_weeks):
             per[:, weeks.weeks.index(w)] = sums[:, j, None]
-    return NowcastForecast(weeks, np.asarray(levels, dtype=np.float64),
-                           mix_quantiles(per, levels), per, forecaster.name)
+    return per
 
 
 def _with_known_days(forecast: NDArray[np.float64], histories: CompletedHistories,
@@ -247,22 +308,36 @@ def truncated_forecast(history: EpiHistory, data_date: pd.Timestamp,
     after ``data_date − drop_days`` are dropped (today's run drops 14), the origin is the last
     Saturday ≤ the last day kept and the forecast runs as many weeks as the hub weeks need; a
     week ending on or before that origin is its count as reported (the truncated data as is)."""
+    return truncated_forecasts({None: history}, data_date, forecaster, levels, seed,
+                               drop_days=drop_days, horizons=horizons)[None]
+
+
+def truncated_forecasts(histories: Mapping[Place, EpiHistory], data_date: pd.Timestamp,
+                        forecaster: CompletionForecaster, levels: NDArray[np.float64],
+                        seed: int, *, drop_days: int, horizons: tuple[int, ...] = HUB_HORIZONS
+                        ) -> dict[Place, NDArray[np.float64]]:
+    """:func:`truncated_forecast` of every place, one forecaster call per origin (places whose
+    data end on the same day share it)."""
     weeks = hub_weeks(data_date, horizons)
-    kept = history.up_to(weeks.data_date - pd.Timedelta(days=drop_days))
-    origin = last_saturday(kept.origin)
-    seen = kept.up_to(origin)
-    steps = [int((w.end - origin).days // DAYS_PER_WEEK) for w in weeks.weeks]
-    ahead = tuple(s for s in steps if s > 0)
-    out = np.empty((len(steps), len(levels)))
-    if ahead:
-        forecast = forecaster([seen], ahead, levels, seed)[0]
-        for j, s in enumerate(ahead):
-            out[steps.index(s)] = forecast[j]
-    for i, s in enumerate(steps):
-        if s <= 0:
-            end = weeks.weeks[i].end
-            pos = day_index(history.dates, end)
-            out[i] = float(history.cases[pos - DAYS_PER_WEEK + 1:pos + 1].sum())
+    seen = {p: h.up_to(weeks.data_date - pd.Timedelta(days=drop_days))
+            for p, h in histories.items()}
+    origins = {p: last_saturday(h.origin) for p, h in seen.items()}
+    out = {p: np.empty((len(weeks.weeks), len(levels))) for p in histories}
+    for origin in dict.fromkeys(origins.values()):
+        group = [p for p in histories if origins[p] == origin]
+        steps = [int((w.end - origin).days // DAYS_PER_WEEK) for w in weeks.weeks]
+        ahead = tuple(s for s in steps if s > 0)
+        if ahead:
+            forecast = forecaster([seen[p].up_to(origin) for p in group], ahead, levels, seed,
+                                  group)
+            for b, p in enumerate(group):
+                for j, s in enumerate(ahead):
+                    out[p][steps.index(s)] = forecast[b, j]
+        for p in group:
+            for i, s in enumerate(steps):
+                if s <= 0:
+                    pos = day_index(histories[p].dates, weeks.weeks[i].end)
+                    out[p][i] = float(histories[p].cases[pos - DAYS_PER_WEEK + 1:pos + 1].sum())
     return out
 
 

@@ -24,10 +24,12 @@ from pipeline.ensemble.backtest import (PUBLISHED, BacktestConfig, BacktestResul
 from pipeline.ensemble.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.ensemble.members import Member
-from pipeline.ensemble.nf_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.ensemble.nf_finetune import (FineTuneConfig, fit_finetuned_member,
+                                           latest_refit_date, refit_dates)
 from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, growth_dataset,
                                          train_or_reuse_growth_model)
 from pipeline.ensemble.nowcast_forecast import CompletionMixture, RunNowcast
+from pipeline.ensemble.published import BeyondReach, PublishedEnsemble
 from pipeline.ensemble.targets import EpiHistory, QuantileForecast
 from pipeline.progress import ProgressReporter
 
@@ -141,6 +143,21 @@ def build_panel_members(places: Sequence[EpiHistory], origins: Sequence[pd.Times
         HubBaseline(HubBaselineConfig(n_samples=BASELINE_SAMPLES)),
         PooledGrowthMember((), config.regression)]
     return _with_flows(members, config, store_root, list(places), list(origins), progress)
+
+
+def build_vintage_ensemble(config: WeeklyConfig, store_root: Path,
+                           pool: Mapping[str, EpiHistory], origins: Sequence[pd.Timestamp],
+                           progress: ProgressReporter | None = None,
+                           beyond_reach: BeyondReach = "missing") -> PublishedEnsemble:
+    """The same members for many histories known at one vintage, forecast at ``origins``
+    (every county and nowcast completion of ``bench/nowcast.py``'s real-time evaluation):
+    growth-qr pools ``pool`` (the vintage's places, each history's own left out), nf-real is
+    fine-tuned on ``pool``'s windows at the latest refit date ≤ each origin — the only refits a
+    forecast at those origins uses (:mod:`pipeline.ensemble.published`)."""
+    dates = sorted({latest_refit_date(o, config.finetune.refit_every_weeks) for o in origins})
+    chosen = _with_flows([HubBaseline(HubBaselineConfig(n_samples=BASELINE_SAMPLES))], config,
+                         store_root, list(pool.values()), dates, progress)
+    return PublishedEnsemble(tuple(chosen.members), dict(pool), config.regression, beyond_reach)
 
 
 def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
