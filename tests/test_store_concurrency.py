@@ -1,12 +1,15 @@
 """Issue 15, concurrent writers: N processes commit different data to the DataSF cache and the
 model store at once, while a reader process reads both; afterwards (and during) every reader
-finds a complete, loadable entry. 100 trials, 0 failures. (Before: the cache's manifest pointed
-at a deleted payload in 46 of 60 trials; 18 of 80 model-store writes failed.)
+finds a complete, loadable entry. (Before: the cache's manifest pointed at a deleted payload in
+46 of 60 trials; 18 of 80 model-store writes failed.) 20 trials by default — the old failure
+rate would fail nearly every one of them; ``FLOWCAST_STRESS_TRIALS=100`` for the long run (0
+failures in 100 when last run).
 """
 from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
 import time
 import traceback
 from pathlib import Path
@@ -16,7 +19,7 @@ from pipeline.data.datasf import CASES
 from pipeline.io import sha256_bytes
 from pipeline.training.model_store import ModelStore
 
-TRIALS = 100
+TRIALS = int(os.environ.get("FLOWCAST_STRESS_TRIALS", "20"))
 WRITERS = 4
 KEY = "f" * 64
 
