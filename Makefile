@@ -51,7 +51,7 @@ forecast: venv sysdeps
 # The type check first (pyright over pipeline/ and flows/, settings in pyproject.toml): zero errors.
 test: venv sysdeps
 	$(VENV)/bin/pyright
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q -n 2 --dist loadfile
 
 # The report's Table 5 columns beyond the run's own model: train the paper's variants once
 # (Dask workers, flows/scale_out.py); the weekly forecast scores every variant in the model cache.
