@@ -2,6 +2,7 @@
 distribution, the nowcast (never below what was reported), hub weeks, mixing, hubverse rows."""
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 from pathlib import Path
 
@@ -14,9 +15,11 @@ from pipeline.data.cdph import CDPHVintage
 from pipeline.data.delays import (DelayModelConfig, fit_delay_model, load_delay_model,
                                   save_delay_model)
 from pipeline.data.vintage_pairs import VintagePairError, revision_pairs
-from pipeline.ensemble.nowcast import NowcastConfig, complete_histories, nowcast_history
-from pipeline.ensemble.nowcast_forecast import (hub_weeks, median_history, mix_quantiles,
-                                                week_sums)
+from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
+from pipeline.ensemble.nowcast import (CompletedHistories, NowcastConfig, complete_histories,
+                                       nowcast_history)
+from pipeline.ensemble.nowcast_forecast import (CompletionMixture, floor_current_week, hub_weeks,
+                                                median_history, mix_quantiles, week_sums)
 from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, EpiHistory, QuantileForecast
 from pipeline.outputs.hubverse import NowcastWeek, load_tasks_config, write_model_output
 
@@ -199,3 +202,55 @@ def test_hub_file_fills_the_nowcast_week(tmp_path: Path):
                   & (rows["target"] == "wk inc case") & (rows["output_type_id"] == "0.5")]
     assert float(median["value"].iloc[0]) == pytest.approx(week.quantiles[11])
     assert not submission.omitted
+
+
+def _completed(cases: np.ndarray, reported: np.ndarray,
+               end: str = "2022-03-16") -> CompletedHistories:
+    """K completions of a daily series ending ``end`` (S, I, R consistent enough for a member)
+    and the counts as reported."""
+    dates = pd.date_range(end=end, periods=cases.shape[1])
+    n = 1_000_000
+    cumulative = np.cumsum(cases, axis=1) / n
+    return CompletedHistories(dates=dates, cases=cases.astype(np.int64), S=1.0 - cumulative,
+                              I=np.full(cases.shape, 1e-4), R=cumulative - 1e-4, population=n,
+                              first_nowcast_day=dates[-5], reported=reported.astype(np.int64))
+
+
+def test_the_current_week_never_ends_below_what_was_reported_of_it():
+    # data to Wednesday 2022-03-16; the round's origin is Saturday 2022-03-12: 4 days reported
+    reported = np.array([10] * 20 + [40, 50, 30, 10])                   # 130 in the 4 days
+    cases = np.stack([reported + np.array([0] * 20 + [5, 10, 20, 40]), reported])
+    completed = _completed(cases, reported)
+    low = np.tile(np.array([0.0, 100.0, 300.0]), (2, 4, 1))                   # (K, H, Q)
+    floored = floor_current_week(low, completed, pd.Timestamp("2022-03-12"), (1, 2, 3, 4))
+    np.testing.assert_array_equal(floored[:, 0], [[130.0, 130.0, 300.0]] * 2)
+    np.testing.assert_array_equal(floored[:, 1:], low[:, 1:])               # later weeks as they were
+    # a backtest origin a week earlier sees nothing after itself: unchanged
+    np.testing.assert_array_equal(
+        floor_current_week(low, completed, pd.Timestamp("2022-03-05"), (1, 2, 3, 4)), low)
+    # without the reported counts there is nothing to floor at
+    bare = dataclasses.replace(completed, reported=None)
+    np.testing.assert_array_equal(
+        floor_current_week(low, bare, pd.Timestamp("2022-03-12"), (1, 2, 3, 4)), low)
+
+
+def test_the_published_current_week_is_floored_through_the_completion_mixture():
+    class Zero:
+        name = "zero"
+
+        def forecast(self, history, horizons, levels, seed):
+            return quantile_forecast_from_weekly_cases(
+                self.name, history.origin, tuple(horizons), levels,
+                np.zeros((len(horizons), len(levels))), history.population)
+
+    reported = np.array([10] * 20 + [50, 60, 70, 80])
+    completed = _completed(np.stack([reported] * 3), reported)
+    mixture = CompletionMixture(Zero(), completed, pd.Timestamp("2022-03-05"), n_mixed=3)
+    latest = mixture.forecast(completed.history(0).up_to(pd.Timestamp("2022-03-12")), (1, 2),
+                              LEVELS, 0)
+    np.testing.assert_allclose(latest.values["cases"][0], 260.0)
+    np.testing.assert_allclose(latest.values["I"][0], 260.0 / completed.population)
+    np.testing.assert_allclose(latest.values["cases"][1], 0.0)
+    earlier = mixture.forecast(completed.history(0).up_to(pd.Timestamp("2022-03-05")), (1, 2),
+                               LEVELS, 0)
+    np.testing.assert_allclose(earlier.values["cases"], 0.0)

@@ -22,7 +22,8 @@ from pipeline.ensemble.growth_regression import (PooledGrowthMember,
 from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.ensemble.nf_finetune import REFIT_EPOCH, latest_refit_date, refit_dates
 from pipeline.ensemble.nowcast import Nowcast, complete_histories
-from pipeline.ensemble.nowcast_forecast import (MemberForecaster, hub_weeks, mix_quantiles,
+from pipeline.ensemble.nowcast_forecast import (MemberForecaster, floor_current_week, hub_weeks,
+                                                mix_quantiles,
                                                 nowcast_then_forecast_places,
                                                 truncated_forecast, truncated_forecasts,
                                                 week_sums)
@@ -149,9 +150,14 @@ def test_completions_are_mixed_per_member_then_averaged(pool):
     for place, histories in completed.items():
         members = ensemble.member_quantiles(histories.histories(up_to=weeks.origin), (1, 2, 3, 4),
                                             LEVELS, SEED, [place] * len(histories))
-        mixed = np.stack([mix_quantiles(m, LEVELS) for m in members])
+        # the current week (Sunday..Wednesday in the data) floored at its 4 reported days
+        floored = np.stack([floor_current_week(m, histories, weeks.origin, (1, 2, 3, 4))
+                            for m in members])
+        mixed = np.stack([mix_quantiles(m, LEVELS) for m in floored])
         expected = np.expm1(np.log1p(np.maximum(mixed, 0.0)).mean(axis=0))
         np.testing.assert_allclose(got[place].quantiles[1:], expected, rtol=1e-9)
+        if histories.reported is not None:
+            assert got[place].quantiles[1, 0] >= histories.reported[-4:].sum() - 1e-6
         # the nowcast week: the mixture of the K completions' counts (point masses), whose
         # median lies between the 6th and 7th of the 12 sorted counts
         sums = np.sort(week_sums(histories, [weeks.origin])[:, 0])

@@ -217,6 +217,7 @@ class CompletedHistories:
     R: NDArray[np.float64]
     population: int
     first_nowcast_day: pd.Timestamp
+    reported: NDArray[np.int64] | None = None       # (T,) the counts as reported, when known
 
     def __len__(self) -> int:
         return int(self.cases.shape[0])
@@ -249,4 +250,5 @@ def complete_histories(history: EpiHistory, nowcast: Nowcast) -> CompletedHistor
     return CompletedHistories(dates=history.dates,
                               cases=history.cases[None, :] + added.astype(np.int64),
                               S=s, I=i, R=1.0 - s - i, population=history.population,
-                              first_nowcast_day=nowcast.dates[0])
+                              first_nowcast_day=nowcast.dates[0],
+                              reported=np.asarray(history.cases, dtype=np.int64))
