@@ -107,9 +107,11 @@ class DataVintage:
     publisher: str = "DataSF"
 
     def describe(self) -> str:
+        kept = (f"last {self.trimmed_days} days of each dataset dropped as still under revision"
+                if self.trimmed_days else "every day loaded: the forecast nowcasts the days still "
+                "being reported, or drops them without a delay model")
         return (f"{self.publisher} data as of {self.data_as_of or 'unknown'}; days "
-                f"{self.first_date}…{self.last_date_kept} (last {self.trimmed_days} days of each "
-                f"dataset dropped as still under revision); loaded {self.loaded_at}")
+                f"{self.first_date}…{self.last_date_kept} ({kept}); loaded {self.loaded_at}")
 
 
 @dataclass(frozen=True)
