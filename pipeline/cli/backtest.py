@@ -104,10 +104,8 @@ def backtest_command(
     summary = summarize(result)
     for target, by_forecaster in summary["by_target"].items():
         for name, s in by_forecaster.items():
-            rel = s["relative_wis_vs_baseline"]
-            cells = " ".join(f"{k}={v:.3f}" if v is not None else f"{k}=n/a"
-                             for k, v in rel.items())
-            typer.echo(f"{target:5s} {name:22s} relative WIS {cells}  coverage "
+            typer.echo(f"{target:5s} {name:22s} relative WIS "
+                       f"{_horizon_cells(s['relative_wis_vs_baseline'])}  coverage "
                        f"{s['coverage50']:.2f}/{s['coverage90']:.2f}")
     typer.echo(f"{len(result.origins)} origins, invalid values {summary['invalid_values']}, "
                f"{result.seconds:.1f} s; {len(written)} files under {out}")
@@ -152,10 +150,15 @@ def _county_backtest(county: str, out: Path, nf: bool, seed: int) -> None:
     summary = summarize_panel(result)
     for target, by_forecaster in summary["by_target"].items():
         for name, s in by_forecaster.items():
-            g = s["gmean_relative_wis"]
-            typer.echo(f"{target:5s} {name:22s} relative WIS " + " ".join(
-                f"{k}={v:.3f}" if v is not None else f"{k}=n/a" for k, v in g.items())
-                + f"  beat {s['share_beating_baseline']['all']:.2f}  coverage "
-                f"{s['coverage50']:.2f}/{s['coverage90']:.2f}")
+            typer.echo(f"{target:5s} {name:22s} relative WIS "
+                       f"{_horizon_cells(s['gmean_relative_wis'])}  beat "
+                       f"{s['share_beating_baseline']['all']:.2f}  coverage "
+                       f"{s['coverage50']:.2f}/{s['coverage90']:.2f}")
     typer.echo(f"{len(chosen)} of {len(panel.places)} counties, {len(origins)} origins, "
                f"vintage {vintage.as_of.date()}; {len(written)} files under {out}")
+
+
+def _horizon_cells(by_horizon: dict[str, float | None]) -> str:
+    """``h1=0.812 h2=… all=…`` (``n/a`` where a horizon has no score)."""
+    return " ".join(f"{k}={v:.3f}" if v is not None else f"{k}=n/a"
+                    for k, v in by_horizon.items())
