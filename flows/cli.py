@@ -6,9 +6,10 @@ because it runs one: the library never imports Prefect."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from enum import Enum
-from typing import TYPE_CHECKING, Annotated, TypeAlias
+from typing import TYPE_CHECKING, Annotated, NoReturn, TypeAlias
 
 import typer
 
@@ -58,18 +59,17 @@ def forecast_command(
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
-    # Prefect waits 20 s for its temporary server by default; on a busy 2-core machine its
-    # start-up was seen to take longer, failing the run before any work
-    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
-    from flows.server_guard import guard_ephemeral_server
-    from flows.weekly_forecast import weekly_forecast  # imports Prefect: only when run
+    from flows.server_guard import start_temporary_server
 
-    guard_ephemeral_server()  # a killed run must not orphan Prefect's temporary server
-    state = weekly_forecast(preset=value(preset), encoder=value(encoder),
-                            data_source=value(data_source),
-                            import_from=[str(p) for p in import_from] if import_from else None,
-                            output_dir=str(output_dir), seed=seed, retrain=retrain,
-                            county=county, return_state=True)
+    start_temporary_server()  # comes up while the flow's module imports
+    from flows.weekly_forecast import local_api, weekly_forecast  # imports Prefect: when run
+
+    with local_api():
+        state = weekly_forecast(preset=value(preset), encoder=value(encoder),
+                                data_source=value(data_source),
+                                import_from=[str(p) for p in import_from] if import_from else None,
+                                output_dir=str(output_dir), seed=seed, retrain=retrain,
+                                county=county, return_state=True)
     if not state.is_completed():
         try:
             state.result()
@@ -88,8 +88,19 @@ def forecast_command(
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
 
 
-def main() -> None:
-    library_main()
+def main() -> NoReturn:
+    """The console script: the command, then :func:`flows.server_guard.exit_now` (its exit
+    hooks, without the interpreter's 2–3 s teardown after a forecast run)."""
+    from flows.server_guard import exit_now
+
+    try:
+        library_main()
+        code = 0
+    except SystemExit as stop:
+        if isinstance(stop.code, str):
+            print(stop.code, file=sys.stderr)
+        code = stop.code if isinstance(stop.code, int) else int(stop.code is not None)
+    exit_now(code)
 
 
 __all__ = ["app", "build_command", "main"]

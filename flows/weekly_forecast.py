@@ -18,13 +18,21 @@ Outputs are staged and promoted only after every step succeeded
 # No `from __future__ import annotations`: Prefect builds the parameter model from the live
 # annotations (Literal[...]) when a served deployment loads this module; strings fail there.
 
+if __name__ == "__main__":
+    # Run as a script: Prefect's temporary API server comes up while the imports below load
+    # (flows/server_guard.py).
+    from flows.server_guard import start_temporary_server
+
+    start_temporary_server()
+
 import argparse
+import contextlib
 import dataclasses
 import logging
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Literal, ParamSpec, TypeVar
 
@@ -299,17 +307,34 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as error:
             parser.error(str(error))
     logging.basicConfig(level=logging.INFO)
-    from flows.server_guard import guard_ephemeral_server
-    guard_ephemeral_server()  # a killed run no longer orphans Prefect's temporary server
-    result = weekly_forecast(preset=args.preset, encoder=args.encoder,
-                             data_source=args.data_source, import_from=args.import_from,
-                             output_dir=args.output_dir, seed=args.seed, retrain=args.retrain,
-                             datasf_base_url=args.datasf_base_url, county=args.county)
+    with local_api():
+        result = weekly_forecast(preset=args.preset, encoder=args.encoder,
+                                 data_source=args.data_source, import_from=args.import_from,
+                                 output_dir=args.output_dir, seed=args.seed,
+                                 retrain=args.retrain, datasf_base_url=args.datasf_base_url,
+                                 county=args.county)
     # Called directly, a flow that returned a State gives back that state's data: the outcome.
     assert isinstance(result, dict)
     print(f"report: {result['output_dir']}")
     return 0
 
 
+@contextlib.contextmanager
+def local_api() -> Iterator[int | None]:
+    """Prefect's temporary API for a run from the command line, up and guarded (a killed run
+    does not orphan it: :func:`flows.server_guard.ephemeral_api`); yields its pid, or None with
+    a configured API."""
+    # torch imports its reference ops (500 modules, 0.6 s) at the flows' first sample: loaded
+    # here, it overlaps the wait for the server
+    import torch._refs  # noqa: F401
+
+    from flows.server_guard import ephemeral_api
+
+    with ephemeral_api() as pid:
+        yield pid
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    from flows.server_guard import exit_now
+
+    exit_now(main())

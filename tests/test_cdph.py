@@ -402,3 +402,27 @@ def test_validation_error_is_a_data_source_error():
     assert issubclass(CDPHFormatError, ValidationError)
     with pytest.raises(CDPHFormatError, match=r"x.csv: missing column\(s\)"):
         parse_cdph_csv(b"a,b\n1,2\n", "x.csv")
+
+
+def test_a_stored_parse_reads_back_the_same_vintage(vintages, tmp_path, monkeypatch):
+    """The parse kept beside the cached vintages (``parsed/<sha256>.npz``) is the same frame,
+    is used instead of parsing again, and a damaged one is parsed again and replaced."""
+    import pipeline.data.cdph as cdph_module
+
+    path = path_of("ofaye98__CSC508_Mentor_Class")
+    data = path.read_bytes()
+    folder = tmp_path / "parsed"
+    monkeypatch.setattr(cdph_module, "_PARSED", {})
+    parsed = cdph_module.parse_cdph_csv(data, "first", parsed_dir=folder)
+    stored = next(folder.glob("*.npz"))
+    monkeypatch.setattr(cdph_module, "_PARSED", {})
+    monkeypatch.setattr(cdph_module, "_parse", lambda *a: pytest.fail("parsed again"))
+    again = cdph_module.parse_cdph_csv(data, "second", parsed_dir=folder)
+    pd.testing.assert_frame_equal(again.frame, parsed.frame, check_exact=True)
+    assert again.as_of == parsed.as_of and again.source == "second"
+    monkeypatch.undo()
+    monkeypatch.setattr(cdph_module, "_PARSED", {})
+    stored.write_bytes(b"damaged")
+    third = cdph_module.parse_cdph_csv(data, "third", parsed_dir=folder)
+    pd.testing.assert_frame_equal(third.frame, parsed.frame, check_exact=True)
+    assert cdph_module._read_parsed(stored) is not None

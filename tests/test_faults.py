@@ -294,8 +294,8 @@ def test_killed_run_does_not_orphan_the_temporary_prefect_server(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env.update(PREFECT_HOME=str(tmp_path / "prefect"), PREFECT_SERVER_ANALYTICS_ENABLED="false",
                PREFECT_LOGGING_LEVEL="ERROR")
-    script = ("import time; from flows.server_guard import guard_ephemeral_server; "
-              "print(guard_ephemeral_server(), flush=True); time.sleep(120)")
+    script = ("import time; from flows.server_guard import ephemeral_api\n"
+              "with ephemeral_api() as pid:\n    print(pid, flush=True); time.sleep(120)")
     run = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, env=env,
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:

@@ -644,3 +644,20 @@ def test_summary_artifact_and_index_carry_the_headline(real_results):
                        preset="tiny", files=("report.html",),
                        summary={"headline": json.loads(json.dumps(h.to_dict()))})
     assert html.escape(h.one_line()) in render_index_html([record])
+
+
+def test_rollout_band_quantiles_are_nanquantiles_of_the_paths():
+    """The rollout figure's bands: np.nanquantile's values (NaN before the first window, a day
+    NaN on some paths), computed through np.quantile where every path has a value."""
+    import warnings
+
+    from pipeline.report.weekly import LEVELS, _path_quantiles
+
+    rng = np.random.default_rng(0)
+    samples = rng.lognormal(size=(64, 50, 3))
+    samples[:, :10] = np.nan
+    samples[:7, 20, 1] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanquantile(samples, LEVELS, axis=0)
+    assert np.array_equal(_path_quantiles(samples), expected, equal_nan=True)

@@ -60,6 +60,7 @@ from pipeline.io import atomic_write_bytes, sha256_bytes
 log = logging.getLogger(__name__)
 
 VINTAGES_DIR = "vintages"
+PARSED_DIR = "parsed"         # in vintages/: each parsed vintage, by its bytes' hash
 _VINTAGE_RE = re.compile(r"^(\d{4}-\d{2}-\d{2})-([0-9a-f]{16})\.csv$")
 SPEC: CKANResourceSpec = CDPH_COUNTIES
 _IMPORT_HINT = (f"import a downloaded covid19cases_test.csv ({SPEC.download_url()}) with "
@@ -189,9 +190,9 @@ def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
                 f"{policy.max_total_drop:.0%}); held for review, cached copy kept", hold=True)
 
 
-def _cached_vintage(live: CachedPayload) -> CDPHVintage | None:
+def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | None:
     try:
-        return parse_cdph_csv(live.payload, str(live.path))
+        return parse_cached(cache, live.payload, str(live.path))
     except DataSourceError as exc:
         log.warning("cached CDPH vintage no longer parses (%s); replacing it", exc)
         return None
@@ -207,7 +208,7 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
     def check(live: CachedPayload | None) -> None:
         if live is None or accept_revisions:
             return
-        cached = _cached_vintage(live)
+        cached = _cached_vintage(live, cache)
         if cached is not None:
             check_cdph_successor(vintage, cached, policy)
 
@@ -230,6 +231,11 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
 
 def vintages_dir(cache: DatasetCache) -> Path:
     return cache.directory(SPEC) / VINTAGES_DIR
+
+
+def parse_cached(cache: DatasetCache, data: bytes, source: str) -> CDPHVintage:
+    """A cached payload's vintage, its parse kept beside the vintages (``parsed/``)."""
+    return parse_cdph_csv(data, source, parsed_dir=vintages_dir(cache) / PARSED_DIR)
 
 
 def archive_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes) -> Path:
@@ -262,7 +268,7 @@ def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad
         raise OfflineError(f"no cached CDPH county data in {cache.directory(SPEC)}{reason}. "
                            f"Fetch it with `flowcast data fetch --source chhs` when online, or "
                            f"{_IMPORT_HINT}.")
-    vintage = parse_cdph_csv(cached.payload, str(cached.path))
+    vintage = parse_cached(cache, cached.payload, str(cached.path))
     stale = cached.manifest.age_days(now)
     data_age = (now.date() - date.fromisoformat(cached.manifest.last_date[:10])).days
     notes = ((why,) if why else ()) + (
@@ -345,7 +351,7 @@ def cached_vintages(data_dir: str | os.PathLike[str] | None = None) -> list[CDPH
         if not sha256_bytes(data).startswith(digest):
             raise CacheDamagedError(f"cached CDPH vintage {path} does not match the hash in its "
                                     f"name (damaged); delete it or re-import that download")
-        vintage = parse_cdph_csv(data, str(path))
+        vintage = parse_cached(cache, data, str(path))
         if str(vintage.as_of.date()) != as_of:
             raise CacheDamagedError(f"cached CDPH vintage {path} ends {vintage.as_of.date()}, "
                                     f"not on the date in its name")
@@ -353,7 +359,7 @@ def cached_vintages(data_dir: str | os.PathLike[str] | None = None) -> list[CDPH
     if not vintages:
         live = cache.load(SPEC)
         if live is not None:
-            vintages.append(parse_cdph_csv(live.payload, str(live.path)))
+            vintages.append(parse_cached(cache, live.payload, str(live.path)))
     return vintages
 
 
@@ -425,11 +431,11 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
     # --if-empty is decided once, before the first file: an archive of several vintages goes in
     # whole, or not at all
     held_before = cache.load_or_damage(SPEC)[0]
-    skip_all = if_empty and held_before is not None and _cached_vintage(held_before) is not None
+    skip_all = if_empty and held_before is not None and _cached_vintage(held_before, cache) is not None
     for path, vintage, data in ((c.path, c.vintage, c.payload)
                                 for c in sorted(checked, key=lambda c: c.vintage.as_of)):
         live, damage = cache.load_or_damage(SPEC)
-        live_vintage = _cached_vintage(live) if live is not None else None
+        live_vintage = _cached_vintage(live, cache) if live is not None else None
         note, action = "", "imported"
         if skip_all:
             action, note = "skipped", "cache already holds CDPH county data (--if-empty)"

@@ -267,7 +267,8 @@ def run_realtime_backtest(history: EpiHistory, members: Sequence[Member],
                           references: Sequence[Member] = ()) -> BacktestResult:
     """The real-time backtest over ``config``'s origins (module docstring). ``references``:
     further forecasters scored beside the members (e.g. the NF-seeded SMC member) that the
-    published ensemble does not average."""
+    published ensemble does not average; the hub baseline and AutoETS are scored too, unless a
+    member or a reference of that name is given."""
     progress = progress or SilentProgress()
     started = time.perf_counter()
     names = [m.name for m in members]
@@ -275,8 +276,9 @@ def run_realtime_backtest(history: EpiHistory, members: Sequence[Member],
         raise BacktestError(f"members need distinct names, got {names}")
     if PUBLISHED in names or UNCALIBRATED in names:
         raise BacktestError(f"member names {PUBLISHED!r}/{UNCALIBRATED!r} are reserved")
-    scored: list[Member] = [r for r in (HubBaseline(), AutoETSMember(), *references)
-                            if r.name not in names]
+    given = [*names, *(r.name for r in references)]
+    scored: list[Member] = [*(r for r in (HubBaseline(), AutoETSMember()) if r.name not in given),
+                            *(r for r in references if r.name not in names)]
     levels = np.asarray(config.levels, dtype=np.float64)
     origins = backtest_origins(history, config)
     run_origins = (backtest_origins(history, dataclasses.replace(config, first_origin=None))

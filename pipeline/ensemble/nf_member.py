@@ -230,10 +230,12 @@ class StoredGrowthModel:
 
 def train_or_reuse_growth_model(config: GrowthModelConfig, store_root: Path, *,
                                 retrain: bool = False,
-                                progress: ProgressReporter | None = None) -> StoredGrowthModel:
+                                progress: ProgressReporter | None = None,
+                                dataset: WindowedDataset | None = None) -> StoredGrowthModel:
     """The trained member from the model store (key: config + training-data hash), training it
-    only when the store has no valid entry."""
-    dataset = growth_dataset(config)
+    only when the store has no valid entry. ``dataset``: :func:`growth_dataset` of ``config``
+    when the caller has it already (simulating it takes seconds)."""
+    dataset = dataset if dataset is not None else growth_dataset(config)
 
     def build(out_dir: Path) -> dict[str, object]:
         estimator, result = train_growth_model(config, dataset, progress)

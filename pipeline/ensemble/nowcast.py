@@ -34,7 +34,8 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.data.delays import DelayModel, lag_days
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, TargetError
+from pipeline.ensemble.targets import (DAYS_PER_WEEK, EpiHistory, TargetError,
+                                       history_length_up_to)
 
 N_TREND_COEFFICIENTS = 2 + 6        # level, slope per week, weekday effects (Monday = 0)
 _NEWTON_STEPS = 30
@@ -226,10 +227,14 @@ class CompletedHistories:
         return EpiHistory(self.dates, self.cases[k], self.S[k], self.I[k], self.R[k],
                           self.population)
 
-    def histories(self, up_to: pd.Timestamp | None = None) -> list[EpiHistory]:
-        """Every completion (cut at ``up_to``, the forecast origin, when given)."""
-        out = [self.history(k) for k in range(len(self))]
-        return out if up_to is None else [h.up_to(up_to) for h in out]
+    def histories(self, up_to: pd.Timestamp | None = None,
+                  count: int | None = None) -> list[EpiHistory]:
+        """The first ``count`` completions (default: every one), cut at ``up_to`` (the forecast
+        origin) when given."""
+        keep = len(self.dates) if up_to is None else history_length_up_to(self.dates, up_to)
+        return [EpiHistory(self.dates[:keep], self.cases[k, :keep], self.S[k, :keep],
+                           self.I[k, :keep], self.R[k, :keep], self.population)
+                for k in range(len(self) if count is None else min(count, len(self)))]
 
 
 def complete_histories(history: EpiHistory, nowcast: Nowcast) -> CompletedHistories:

@@ -407,7 +407,7 @@ class CompletionMixture:
         if history.origin < self.active_from:
             return self.member.forecast(history, horizons, levels, seed)
         forecasts = [self.member.forecast(h, horizons, levels, seed)
-                     for h in self.completed.histories(up_to=history.origin)[:self.n_mixed]]
+                     for h in self.completed.histories(up_to=history.origin, count=self.n_mixed)]
         cases = floor_current_week(
             mix_quantiles(np.stack([f.values["cases"] for f in forecasts]), levels),
             self.completed, history.origin, horizons)

@@ -87,12 +87,16 @@ class EpiHistory:
 
     def up_to(self, date: pd.Timestamp) -> EpiHistory:
         """The history a forecaster at origin ``date`` would have seen (nothing after it)."""
-        keep = int(np.searchsorted(self.dates.to_numpy(dtype=np.int64), pd.Timestamp(date).value,
-                                   side="right"))
+        keep = history_length_up_to(self.dates, date)
         if keep == 0:
             raise TargetError(f"no history on or before {pd.Timestamp(date).date()}")
-        return EpiHistory(self.dates[:keep], self.cases[:keep], self.S[:keep], self.I[:keep],
-                          self.R[:keep], self.population)
+        # The first days of a checked history need no new checks (the backtest cuts thousands).
+        head = object.__new__(EpiHistory)
+        for name, value in (("dates", self.dates[:keep]), ("cases", self.cases[:keep]),
+                            ("S", self.S[:keep]), ("I", self.I[:keep]), ("R", self.R[:keep]),
+                            ("population", self.population)):
+            object.__setattr__(head, name, value)
+        return head
 
     def weekly_cases(self) -> NDArray[np.float64]:
         """Case counts of the complete 7-day weeks ending at the origin, origin − 7, … (oldest
@@ -113,6 +117,12 @@ class EpiHistory:
         if target == "cases":
             return self.weekly_cases()
         raise TargetError(f"unknown target {target!r}; known: {TARGETS}")
+
+
+def history_length_up_to(dates: pd.DatetimeIndex, date: pd.Timestamp) -> int:
+    """How many of ``dates`` (ascending, nanosecond unit) fall on or before ``date``."""
+    return int(np.searchsorted(dates.as_unit("ns").to_numpy(dtype=np.int64),
+                               pd.Timestamp(date).as_unit("ns").value, side="right"))
 
 
 def history_from_frames(sir_frame: pd.DataFrame, cases: NDArray[np.int64] | pd.Series,

@@ -12,7 +12,8 @@ Forecast Hub and hubverse count in; data after the last Saturday wait for the ne
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping, Sequence
+import functools
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,9 +22,11 @@ import pandas as pd
 
 from pipeline.ensemble.backtest import (PUBLISHED, BacktestConfig, BacktestResult,
                                         backtest_origins, run_realtime_backtest, summarize)
+from pipeline.ensemble.autoets import AutoETSMember
 from pipeline.ensemble.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.ensemble.members import Member
+from pipeline.ensemble.memo import ForecastMemo
 from pipeline.ensemble.nf_finetune import (FineTuneConfig, fit_finetuned_member,
                                            latest_refit_date, refit_dates)
 from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, growth_dataset,
@@ -91,6 +94,12 @@ class WeeklyForecast:
         return dict(self.backtest.forecasts[self.origin])
 
     def summary(self) -> dict[str, Any]:
+        """:func:`~pipeline.ensemble.backtest.summarize` of the track record (computed once:
+        the report reads it a dozen times; treat it as read-only)."""
+        return self._summary
+
+    @functools.cached_property
+    def _summary(self) -> dict[str, Any]:
         return summarize(self.backtest)
 
 
@@ -167,36 +176,46 @@ def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
     dates among ``origins`` (when both are non-empty)."""
     if not config.include_nf:
         return WeeklyMembers(members, None, False)
-    stored = train_or_reuse_growth_model(config.growth, store_root, progress=progress)
+    synthetic = growth_dataset(config.growth)
+    stored = train_or_reuse_growth_model(config.growth, store_root, progress=progress,
+                                         dataset=synthetic)
     flow = NFGrowthMember(stored.estimator, config.growth, n_samples=config.flow_samples)
     members = [*members, flow]
     dates = refit_dates(origins, config.finetune.refit_every_weeks)
     if config.include_real and pool and dates:
-        members.append(fit_finetuned_member(flow, growth_dataset(config.growth), pool, dates,
-                                            config.finetune, store_root, progress))
+        members.append(fit_finetuned_member(flow, synthetic, pool, dates, config.finetune,
+                                            store_root, progress))
     return WeeklyMembers(members, stored.key, stored.reused)
 
 
 def forecast_weekly(history: EpiHistory, config: WeeklyConfig, store_root: Path,
                     reference: Mapping[str, EpiHistory] | None = None, place: str | None = None,
                     progress: ProgressReporter | None = None, *,
-                    references: Sequence[Member] = (),
+                    references: Sequence[Member] | Callable[[], Sequence[Member]] = (),
                     nowcast: RunNowcast | None = None,
                     mixture_from: pd.Timestamp | None = None,
-                    mixed_completions: int = 32) -> WeeklyForecast:
+                    mixed_completions: int = 32,
+                    memo: ForecastMemo | None = None) -> WeeklyForecast:
     """Build the members (training or reusing their models), then forecast every Saturday origin
-    in real time; ``references`` are scored beside the members, not averaged.
+    in real time; ``references`` are scored beside the members, not averaged (or a function
+    giving them, called once the members are built: the run filters the SMC member meanwhile).
 
     With a ``nowcast`` (``history`` is then its per-day median), every member forecasts each
     of the first ``mixed_completions`` completions at the origins from ``mixture_from`` on and
     publishes their mixture
-    (:class:`~pipeline.ensemble.nowcast_forecast.CompletionMixture`)."""
+    (:class:`~pipeline.ensemble.nowcast_forecast.CompletionMixture`). With a ``memo``, the
+    members' and AutoETS's forecasts that an earlier run already made (same member, same
+    history up to the origin) are read back (:mod:`pipeline.ensemble.memo`)."""
     chosen = build_weekly_members(config, store_root, reference, history, place, progress)
-    members = chosen.members
+    members: list[Member] = list(chosen.members)
+    scored = list(references() if callable(references) else references)
+    if memo is not None:
+        members = [memo.wrap(m) for m in members]
+        scored = [memo.wrap(AutoETSMember()), *scored]
     if nowcast is not None:
         start = mixture_from or nowcast.completed.first_nowcast_day
         members = [CompletionMixture(m, nowcast.completed, start, mixed_completions)
                    for m in members]
     result = run_realtime_backtest(history, members, config.backtest_config(), progress,
-                                   references=references)
+                                   references=scored)
     return WeeklyForecast(history, result, chosen.model_key, chosen.reused, nowcast)

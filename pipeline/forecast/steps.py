@@ -25,17 +25,25 @@ same numbers.
 from __future__ import annotations
 
 import dataclasses
+import logging
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
 from torch import Tensor
 
+from pipeline.data.cache import data_dir
+from pipeline.data.california import county_slug
 from pipeline.ensemble.backtest import backtest_origins
-from pipeline.ensemble.smc_member import NFSeededSMCMember, batched_smc_forecasts
+from pipeline.ensemble.memo import ForecastMemo
+from pipeline.ensemble.nf_member import single_thread
+from pipeline.ensemble.smc_member import (BatchedForecasts, NFSeededSMCMember,
+                                          batched_smc_forecasts)
 from pipeline.ensemble.targets import EpiHistory
 from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
+from pipeline.forked import start_in_child
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.nowcasting import RecentDays, mixture_start
@@ -51,6 +59,8 @@ from pipeline.names import DIRECTIONS, JOINT_NAMES, Direction
 from pipeline.training.datasets import WAVE_TARGET_FEATURES
 from pipeline.progress import ProgressReporter
 from pipeline.training.model_store import default_store_root
+
+log = logging.getLogger(__name__)
 
 # Encoder choice -> the paper's Table 5 column name.
 VARIANT_LABELS = {"transformer": "Transformer", "transformer-ke": "Transformer + KE",
@@ -129,17 +139,29 @@ def rollout_settings(config: ForecastConfig, n_paths: int, seed: int) -> Rollout
 
 def rollouts(models: TrainedModels, sir: SIRArrays, config: ForecastConfig,
              progress: ProgressReporter | None = None) -> Rollouts:
-    """Rolling rollouts re-anchored every W days (W in ``rollouts.windows``), fw and bw."""
-    out: Rollouts = {}
-    for direction in DIRECTIONS:
-        for every in config.rollouts.windows:
-            settings = rollout_settings(config, config.rollouts.paths,
-                                        config.step_seed("rollout") + every)
-            out[(direction, every)] = rolling_rollout(
-                models.by_direction(direction), sir.times, sir.values, every, direction,
-                settings, names=WAVE_TARGET_FEATURES, window_length=config.resolved.window,
-                progress=progress)
-    return out
+    """Rolling rollouts re-anchored every W days (W in ``rollouts.windows``), fw and bw: the
+    backward ones in a forked child while this process draws the forward ones
+    (:mod:`pipeline.forked`), each on one torch thread, so a view's draws never depend on
+    where it ran."""
+    views: list[tuple[Direction, int]] = [(d, every) for d in DIRECTIONS
+                                          for every in config.rollouts.windows]
+
+    def draw(subset: list[tuple[Direction, int]],
+             reporter: ProgressReporter | None) -> Rollouts:
+        out: Rollouts = {}
+        with single_thread():
+            for direction, every in subset:
+                settings = rollout_settings(config, config.rollouts.paths,
+                                            config.step_seed("rollout") + every)
+                out[(direction, every)] = rolling_rollout(
+                    models.by_direction(direction), sir.times, sir.values, every, direction,
+                    settings, names=WAVE_TARGET_FEATURES,
+                    window_length=config.resolved.window, progress=reporter)
+        return out
+
+    backward = start_in_child(lambda: draw([v for v in views if v[0] == "backward"], None))
+    drawn = {**draw([v for v in views if v[0] != "backward"], progress), **backward.result()}
+    return {view: drawn[view] for view in views}
 
 
 def future_paths(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) -> FuturePaths:
@@ -252,14 +274,36 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
     weekly = config.weekly_config()
     backtest = weekly.backtest_config()
     origins = backtest_origins(history, dataclasses.replace(backtest, first_origin=None))
-    scored = batched_smc_forecasts(smc_member(models, config), history, origins,
-                                   backtest.horizons, np.asarray(backtest.levels),
-                                   config.step_seed("smc") + 1)
+    def smc_batch() -> BatchedForecasts:
+        with single_thread():
+            return batched_smc_forecasts(smc_member(models, config), history, origins,
+                                         backtest.horizons, np.asarray(backtest.levels),
+                                         config.step_seed("smc") + 1)
+
+    smc = start_in_child(smc_batch)     # filtered in a forked child while the members load
+
+    def references() -> tuple[BatchedForecasts, ...]:
+        scored = smc.result()
+        return (scored,) if scored.forecasts else ()
+
     start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
-    return forecast_weekly(history, weekly, default_store_root(), load_reference_histories(),
-                           config.data.place, progress, references=(scored,) if scored.forecasts else (),
-                           nowcast=nowcast, mixture_from=start,
-                           mixed_completions=config.nowcast.completions)
+    memo = ForecastMemo.load(forecast_memo_path(config.data.place))
+    result = forecast_weekly(
+        history, weekly, default_store_root(), load_reference_histories(), config.data.place,
+        progress, references=references, nowcast=nowcast, mixture_from=start,
+        mixed_completions=config.nowcast.completions, memo=memo)
+    log.info("forecast memo: %d of %d member forecasts read back from %s", memo.hits,
+             memo.hits + memo.misses, memo.path)
+    try:
+        memo.save()
+    except OSError as error:    # a cache: the forecast stands, the next run re-forecasts
+        log.warning("could not write the forecast memo %s: %s", memo.path, error)
+    return result
+
+
+def forecast_memo_path(place: str) -> Path:
+    """The place's memo of member forecasts, under the data folder ($FLOWCAST_DATA_DIR)."""
+    return data_dir() / "forecast-memo" / f"{county_slug(place)}.npz"
 
 
 def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:

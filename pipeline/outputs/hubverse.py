@@ -466,16 +466,30 @@ def validate_model_output_frame(frame: pd.DataFrame, tasks: Mapping[str, Any], *
     if frame.empty:
         raise HubValidationError(f"{source}: no rows")
     records = _typed_rows(frame, model_task, source)
-    validators = {name: Draft202012Validator(_row_schema(model_task, name))
-                  for name in model_task["output_type"]}
+    schemas = {name: _row_schema(model_task, name) for name in model_task["output_type"]}
+    # The task-id columns repeat across rows (and their enums of every location are slow to
+    # scan): each distinct combination is checked once, each row's value on its own.
+    ids = {name: Draft202012Validator({**schema, "properties": {
+               k: v for k, v in schema["properties"].items() if k != "value"},
+               "required": [k for k in schema["required"] if k != "value"]})
+           for name, schema in schemas.items()}
+    values = {name: Draft202012Validator(schema["properties"]["value"])
+              for name, schema in schemas.items()}
+    checked: dict[tuple[Any, ...], list[Any]] = {}
     for row, record in enumerate(records):
         kind = record.get("output_type")
-        if kind not in validators:
+        if kind not in schemas:
             raise HubValidationError(f"{source} row {row + 2}: output_type {kind!r} is not one of "
-                                     f"{sorted(validators)}")
-        error = next(iter(sorted(validators[kind].iter_errors(record), key=str)), None)
-        if error is not None:
-            column = error.path[0] if error.path else "row"
+                                     f"{sorted(schemas)}")
+        rest = {k: v for k, v in record.items() if k != "value"}
+        key = (kind, *sorted((k, repr(v)) for k, v in rest.items()))
+        if key not in checked:
+            checked[key] = list(ids[kind].iter_errors(rest))
+        errors = [(e.path[0] if e.path else "row", e) for e in checked[key]]
+        if "value" in record:
+            errors += [("value", e) for e in values[kind].iter_errors(record["value"])]
+        if errors:
+            column, error = min(errors, key=lambda ce: str(ce[1]))
             raise HubValidationError(f"{source} row {row + 2}: column {column!r}: "
                                      f"{error.message}")
     typed = pd.DataFrame.from_records(records, columns=frame.columns)

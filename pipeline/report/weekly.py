@@ -35,6 +35,7 @@ from torch import Tensor
 from pipeline import __version__
 from pipeline.io import sha256_bytes, sha256_file
 from pipeline.report import checks, figures
+from pipeline.forked import ChildBuild, start_in_child
 from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
                                      SectionKey, TableItem, nll_table)
 from pipeline.report.headline import (PUBLISHED, Headline, as_numpy, compute_headline,
@@ -328,6 +329,21 @@ def estimates_section(results: ForecastResults) -> Section:
     return Section.weekly(SectionKey.STATE_ESTIMATES, items)
 
 
+def _path_quantiles(samples: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Quantiles at :data:`LEVELS` over the paths of ``samples (n, T, C)``, as
+    ``np.nanquantile`` gives them: NaN where nothing was predicted (days before the first
+    window: the band leaves a gap). Days predicted on every path go through ``np.quantile``
+    (the same values; ``nanquantile`` loops over the days in Python, seconds per rollout)."""
+    missing = np.isnan(samples)
+    everywhere = ~missing.any(axis=0)                                               # (T, C)
+    somewhere = ~everywhere & ~missing.all(axis=0)
+    out = np.full((len(LEVELS), *samples.shape[1:]), np.nan)
+    out[:, everywhere] = np.quantile(samples[:, everywhere], LEVELS, axis=0)
+    if somewhere.any():
+        out[:, somewhere] = np.nanquantile(samples[:, somewhere], LEVELS, axis=0)
+    return out
+
+
 def rollout_section(results: ForecastResults) -> Section:
     sir = results.sir_frame
     start = pd.to_datetime(sir["date"]).min()
@@ -338,10 +354,7 @@ def rollout_section(results: ForecastResults) -> Section:
         dates = pd.DatetimeIndex(start + pd.to_timedelta(np.asarray(roll.times, dtype=float),
                                                          unit="D"))
         idx = _indices(roll.names, STATES, f"{direction} {every}-day rollout")
-        # NaN where nothing was predicted (before the first window): the band leaves a gap
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)   # "All-NaN slice": those days
-            q = np.nanquantile(as_numpy(roll.samples)[..., idx], LEVELS, axis=0)    # (5, T, 3)
+        q = _path_quantiles(as_numpy(roll.samples)[..., idx])                      # (5, T, 3)
         png = figures.rollout_figure(dates, _observed_at(sir, dates), q,
                                      window_days=int(every), direction=direction)
         alert = checks.rollout_overshoot(f"{direction} {every}-day rollout",
@@ -537,18 +550,45 @@ def data_banner(results: ForecastResults, today: dt.date | None = None) -> str |
                               provider=results.config.data.provider)
 
 
-def forecast_report_content(results: ForecastResults) -> ReportContent:
-    """The ``ReportContent`` of one weekly run."""
+# The two heaviest diagnostics (5 of the 13 figures, about half the drawing): a child process
+# draws them while this one writes the tables and the other sections (start_diagnostics).
+FORKED_DIAGNOSTICS = ("state estimates", "rollouts")
+Drawn = dict[str, "Section | str"]          # a diagnostic's section, or why it is missing
+
+
+def diagnostic_sections(results: ForecastResults, names: Sequence[str] | None = None) -> Drawn:
+    """The report's diagnostic sections named ``names`` (default: all, :data:`_DIAGNOSTICS`);
+    a section that cannot be drawn is replaced by a note saying so (the rest is published)."""
+    drawn: Drawn = {}
+    for name, build in _DIAGNOSTICS:
+        if names is not None and name not in names:
+            continue
+        try:
+            drawn[name] = build(results)
+        except ReportError as exc:   # malformed inputs: publish the rest, say what is missing
+            log.exception("report section %s failed", name)
+            drawn[name] = f"The {name} section could not be drawn: {exc}"
+    return drawn
+
+
+def forecast_report_content(results: ForecastResults,
+                            diagnostics: ChildBuild[Drawn] | None = None) -> ReportContent:
+    """The ``ReportContent`` of one weekly run. ``diagnostics``: some of
+    :func:`diagnostic_sections` already under way in a child process
+    (:func:`start_diagnostics`); the rest are drawn here."""
     headline = compute_headline(results)
     banner = data_banner(results)
     notes = [banner] if banner else []
     sections = [forecast_section(results, headline), backtest_section(results)]
-    for name, build in _DIAGNOSTICS:
-        try:
-            sections.append(build(results))
-        except ReportError as exc:   # malformed inputs: publish the rest, say what is missing
-            log.exception("report section %s failed", name)
-            notes.append(f"The {name} section could not be drawn: {exc}")
+    in_child = FORKED_DIAGNOSTICS if diagnostics is not None else ()
+    here = diagnostic_sections(results, [n for n, _ in _DIAGNOSTICS if n not in in_child])
+    forked = diagnostics.result() if diagnostics is not None else {}
+    for name, _ in _DIAGNOSTICS:
+        part = forked.get(name, here.get(name))
+        if isinstance(part, Section):
+            sections.append(part)
+        elif part is not None:
+            notes.append(part)
     # the header shows the vintage's first two parts (as of, days); the full one is in §3
     vintage = "; ".join(str(results.vintage).split("; ")[:2])
     return ReportContent(
@@ -559,7 +599,15 @@ def forecast_report_content(results: ForecastResults) -> ReportContent:
         headline=headline_section(headline, results.county_skill))
 
 
-def build_forecast_report(results: ForecastResults, out_dir: str | Path) -> list[str]:
+def build_forecast_report(results: ForecastResults, out_dir: str | Path,
+                          diagnostics: ChildBuild[Drawn] | None = None) -> list[str]:
     """Write report.html and report.pdf for one weekly run; returns the file names written."""
-    files: ReportFiles = write_report(forecast_report_content(results), out_dir)
+    files: ReportFiles = write_report(forecast_report_content(results, diagnostics), out_dir)
     return [files.html_path.name, files.pdf_path.name]
+
+
+def start_diagnostics(results: ForecastResults) -> ChildBuild[Drawn]:
+    """The :data:`FORKED_DIAGNOSTICS` started in a forked child process
+    (:mod:`pipeline.forked`), drawn while this process writes the tables and the other
+    sections."""
+    return start_in_child(lambda: diagnostic_sections(results, FORKED_DIAGNOSTICS))
