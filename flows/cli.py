@@ -27,7 +27,7 @@ else:
 @app.command("forecast")
 def forecast_command(
     preset: Annotated[ForecastPreset, typer.Option(
-        help="default: the product (about 15 min from scratch, 1 min with a cached model); "
+        help="default: the product (about 10 min from scratch, well under a minute with cached models); "
              "tiny: a seconds-long smoke run")] = ForecastPreset("default"),
     encoder: Annotated[Encoder | None, typer.Option(
         help="context encoder (default: the preset's)")] = None,
