@@ -80,6 +80,7 @@ class WeeklyForecast:
     model_key: str | None
     model_reused: bool
     nowcast: RunNowcast | None = None       # the days still being reported, when nowcast
+    memo_reads: tuple[int, int] | None = None   # forecasts read back from the memo, of all asked
 
     @property
     def latest(self) -> QuantileForecast:
@@ -218,4 +219,5 @@ def forecast_weekly(history: EpiHistory, config: WeeklyConfig, store_root: Path,
                    for m in members]
     result = run_realtime_backtest(history, members, config.backtest_config(), progress,
                                    references=scored)
-    return WeeklyForecast(history, result, chosen.model_key, chosen.reused, nowcast)
+    reads = None if memo is None else (memo.hits, memo.hits + memo.misses)
+    return WeeklyForecast(history, result, chosen.model_key, chosen.reused, nowcast, reads)

@@ -105,6 +105,9 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
                  progress=progress("weekly-forecast"))
     run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
                     weekly.origin.date(), published_skill(weekly))
+    if weekly.memo_reads is not None:
+        run.logger.info("forecast memo: %d of %d member forecasts of the track record read "
+                        "back, the rest forecast", *weekly.memo_reads)
     counties = run("county-skill", county_skill, config, progress=progress("county-skill"))
     return ForecastResults(
         config=config, sir_frame=recent.sir_frame, vintage=series.vintage.describe(), stale=stale,

@@ -292,8 +292,6 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
         history, weekly, default_store_root(), load_reference_histories(), config.data.place,
         progress, references=references, nowcast=nowcast, mixture_from=start,
         mixed_completions=config.nowcast.completions, memo=memo)
-    log.info("forecast memo: %d of %d member forecasts read back from %s", memo.hits,
-             memo.hits + memo.misses, memo.path)
     try:
         memo.save()
     except OSError as error:    # a cache: the forecast stands, the next run re-forecasts
