@@ -431,7 +431,8 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
     # --if-empty is decided once, before the first file: an archive of several vintages goes in
     # whole, or not at all
     held_before = cache.load_or_damage(SPEC)[0]
-    skip_all = if_empty and held_before is not None and _cached_vintage(held_before, cache) is not None
+    skip_all = (if_empty and held_before is not None
+                and _cached_vintage(held_before, cache) is not None)
     for path, vintage, data in ((c.path, c.vintage, c.payload)
                                 for c in sorted(checked, key=lambda c: c.vintage.as_of)):
         live, damage = cache.load_or_damage(SPEC)
