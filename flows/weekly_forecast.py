@@ -52,6 +52,7 @@ from pipeline.forecast.config import DataSourceKind
 from pipeline.forecast.publish import PublishedRun, publish
 from pipeline.forecast.run import FETCH_STEPS, Step, StepRunner
 from pipeline.forecast.steps import REPORT_LEVELS
+from pipeline.progress import LogProgress
 from pipeline.report.headline import compute_headline, markdown
 from pipeline.report.weekly import data_banner
 
@@ -71,20 +72,6 @@ REPORTS_URL_ENV = "FLOWCAST_REPORTS_URL"
 STALE_STATE_NAME = "Completed (stale data)"
 STALE_TAG = "stale-data"
 STALE_EVENT = "flowcast.forecast.stale-data"
-
-
-class _LoggerProgress:
-    """ProgressReporter that logs every ``every`` steps (flows have no terminal bar)."""
-
-    def __init__(self, logger: logging.Logger | LoggingAdapter, label: str, every: int) -> None:
-        self.logger, self.label, self.every, self.done = logger, label, max(1, every), 0
-
-    def advance(self, steps: int = 1, **fields: float | str) -> None:
-        before, self.done = self.done, self.done + steps
-        if before // self.every != self.done // self.every:
-            status = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                              for k, v in fields.items())
-            self.logger.info("%s: %d steps %s", self.label, self.done, status)
 
 
 def artifact_key(key: str, county: str | None) -> str:
@@ -218,7 +205,7 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     logger.info("weekly forecast%s: preset=%s encoder=%s data=%s seed=%d retrain=%s",
                 "" if config.data.county is None else f" for {config.data.county}", preset,
                 config.training.encoder, data_source, seed, retrain)
-    results = fc.run_forecast(config, lambda step: _LoggerProgress(logger, step, 500),
+    results = fc.run_forecast(config, lambda step: LogProgress(logger, step, 500),
                               retrain=retrain, runner=PrefectSteps(logger, config))
     published = task(name="render-report", cache_policy=NO_CACHE, persist_result=False)(
         publish)(results)

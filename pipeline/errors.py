@@ -32,3 +32,7 @@ class OfflineError(DataSourceError):
 
 class TrainingDivergedError(FlowcastError):
     """Training produced NaN/inf or diverged; nothing was saved."""
+
+
+class ModelMissingError(FlowcastError):
+    """A model is not in the store where only stored models may be used (nothing is trained)."""

@@ -75,8 +75,10 @@ class ChildBuild(Generic[T]):
 
 
 def start_in_child(build: Callable[[], T], timeout_s: float = CHILD_TIMEOUT_S) -> ChildBuild[T]:
-    """Start ``build()`` in a forked child now (see the module docstring)."""
-    if "fork" not in multiprocessing.get_all_start_methods():
+    """Start ``build()`` in a forked child now (see the module docstring). In a child (a
+    daemonic process, which ``multiprocessing`` lets start no children) it is built in place."""
+    if ("fork" not in multiprocessing.get_all_start_methods()
+            or multiprocessing.current_process().daemon):
         return ChildBuild(build, None, None, timeout_s)
     context = multiprocessing.get_context("fork")
     receiver, sender = context.Pipe(duplex=False)

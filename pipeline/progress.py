@@ -6,8 +6,9 @@ nothing (``SilentProgress``), flows pass a reporter that logs.
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
     from rich.progress import Progress, TaskID
@@ -20,6 +21,20 @@ class ProgressReporter(Protocol):
 class SilentProgress:
     def advance(self, steps: int = 1, **fields: float | str) -> None:
         return None
+
+
+class LogProgress:
+    """Logs ``label: N steps k=v ...`` every ``every`` steps (for flows and background
+    processes, which have no terminal bar)."""
+
+    def __init__(self, logger: logging.Logger | logging.LoggerAdapter[Any], label: str,
+                 every: int) -> None:
+        self.logger, self.label, self.every, self.done = logger, label, max(1, every), 0
+
+    def advance(self, steps: int = 1, **fields: float | str) -> None:
+        before, self.done = self.done, self.done + steps
+        if before // self.every != self.done // self.every:
+            self.logger.info("%s: %d steps %s", self.label, self.done, _format_fields(fields))
 
 
 def _format_fields(fields: dict[str, float | str]) -> str:

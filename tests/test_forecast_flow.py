@@ -4,6 +4,7 @@ fetch faults: DataSF down with a cache (completes, stale) and without one (fails
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -227,9 +228,14 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
 
     root, flow_result = good_run
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
-    config = flow_config("tiny", encoder=None, data_source="import",
-                         import_from=[str(datasf_dir)], output_dir=str(root / "reports"),
-                         seed=0, datasf_base_url=None)
+    flow_run_config = flow_config("tiny", encoder=None, data_source="import",
+                                  import_from=[str(datasf_dir)],
+                                  output_dir=str(root / "reports"), seed=0,
+                                  datasf_base_url=None)
+    # the forecast's members trained in a background process (off in the flow's tiny run):
+    # the same models, so the same tables
+    config = dataclasses.replace(flow_run_config, training=dataclasses.replace(
+        flow_run_config.training, background_members=True))
     results = run_forecast(config)
 
     assert isinstance(results, ForecastResults) and results.config == config
@@ -244,8 +250,8 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     assert str(results.weekly.origin.date()) == ORIGIN
     # every step timed, in the flow's task names, and the flow ran the same steps (DataSF's
     # fetch: a county's, fetch-cdph, is the other)
-    steps = [s for s in get_args(Step) if s != "fetch-cdph"]
-    assert list(results.timings) == steps
+    steps = [s for s in get_args(Step) if s not in ("fetch-cdph", "train-forecast-members")]
+    assert list(results.timings) == [*steps, "train-forecast-members"]
     assert list(flow_result["step_seconds"]) == steps
 
     out = tmp_path / "direct"
@@ -255,3 +261,17 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     assert "hub_forecast.csv" in compared and len(compared) >= 12
     for name in compared:
         assert (out / name).read_bytes() == (flow_dir / name).read_bytes(), name
+
+    # Again on the stored models, the track record's memo removed: the weekly forecast is made
+    # in a forked child (steps.start_weekly_forecast) beside the estimates; same tables.
+    from pipeline.forecast.steps import forecast_memo_path
+
+    forecast_memo_path(config.data.place).unlink()
+    again = run_forecast(config)
+    assert again.models.reused and again.weekly.memo_reads is not None
+    assert again.weekly.memo_reads[0] < again.weekly.memo_reads[1] / 2   # made anew, not read
+    assert "train-forecast-members" not in again.timings      # nothing trained in the background
+    rerun = tmp_path / "rerun"
+    for name in write_tables(again, rerun):
+        if name.endswith(".csv"):
+            assert (rerun / name).read_bytes() == (out / name).read_bytes(), name

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+import time
+
 import pytest
 
 from pipeline.errors import CheckpointError
@@ -77,7 +79,7 @@ def test_failed_build_leaves_no_entry(tmp_path):
 
     with pytest.raises(RuntimeError, match="diverged"):
         store.get_or_build(CONFIG, "d", crashing)
-    assert list(tmp_path.iterdir()) == []
+    assert [p for p in tmp_path.iterdir() if p.name != ".locks"] == []
     with pytest.raises(CheckpointError, match="no files"):
         store.get_or_build(CONFIG, "d", lambda out_dir: None)
 
@@ -145,3 +147,46 @@ def test_forecast_config_rejects_unknown_preset_parts():
         ForecastConfig(training=TrainingSettings(recipe="slow"))
     with pytest.raises(ConfigError, match="unknown forecast preset 'huge'"):
         resolve_config("huge")
+
+
+def test_a_second_builder_of_the_same_model_waits_and_reuses_it(tmp_path):
+    """One builder per key: a process (here a thread) that asks for a model another one is
+    building waits for it and reuses it; the model is trained once."""
+    import threading
+
+    store = ModelStore(tmp_path)
+    started, calls = threading.Event(), []
+
+    def slow(out_dir):
+        calls.append(1)
+        started.set()
+        time.sleep(1.0)
+        (out_dir / "forward.pt").write_bytes(b"weights")
+
+    first: list = []
+    builder = threading.Thread(target=lambda: first.append(store.get_or_build(CONFIG, "d", slow)))
+    builder.start()
+    assert started.wait(30)
+    second = ModelStore(tmp_path).get_or_build(CONFIG, "d", slow)
+    builder.join()
+    assert len(calls) == 1
+    assert first[0].reused is False and second.reused is True
+    assert (second.path / "forward.pt").read_bytes() == b"weights"
+
+
+def test_stored_models_only_reuses_and_refuses_to_build(tmp_path):
+    """Where only stored models may be used (a step made in a forked child), a stored model is
+    reused and a missing one raises instead of being trained."""
+    from pipeline.errors import ModelMissingError
+    from pipeline.training.model_store import stored_models_only
+
+    def build(out_dir):
+        (out_dir / "forward.pt").write_bytes(b"weights")
+
+    store = ModelStore(tmp_path)
+    built = store.get_or_build(CONFIG, "d", build)
+    with stored_models_only():
+        assert store.get_or_build(CONFIG, "d", build).path == built.path
+        with pytest.raises(ModelMissingError, match="not in the store"):
+            store.get_or_build(CONFIG, "other-data", build)
+    assert store.get_or_build(CONFIG, "other-data", build).reused is False

@@ -609,6 +609,22 @@ def test_real_report_pages_are_neither_blank_nor_mixed_conventions(real_results,
 
 
 @pytest.mark.slow
+def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results):
+    """Diagnostic sections drawn in a forked child (as publish draws half of them): the report
+    holds the same sections, captions and images as when all are drawn here."""
+    from pipeline.report.weekly import forecast_report_content, start_diagnostics
+
+    def parts(content):
+        return [(s.key, [getattr(i, "png", None) for i in s.items],
+                 [getattr(i, "caption", None) for i in s.items]) for s in content.sections]
+
+    here = forecast_report_content(real_results)
+    forked = start_diagnostics(real_results.model_outputs())
+    assert forked.build.process is not None          # drawn in a child process
+    assert parts(forecast_report_content(real_results, forked)) == parts(here)
+
+
+@pytest.mark.slow
 def test_malformed_diagnostic_is_named_and_a_renamed_field_fails(real_results):
     from pipeline.report.weekly import forecast_report_content
 

@@ -209,13 +209,16 @@ class FineTunedGrowthMember:
 def fit_finetuned_member(base: NFGrowthMember, synthetic: WindowedDataset,
                          histories: Sequence[EpiHistory], dates: Sequence[pd.Timestamp],
                          config: FineTuneConfig, store_root: Path | None = None,
-                         progress: ProgressReporter | None = None) -> FineTunedGrowthMember:
+                         progress: ProgressReporter | None = None, *,
+                         newest_first: bool = False) -> FineTunedGrowthMember:
     """Fine-tune at each refit date on ``histories`` as they stood then (module docstring);
     with ``store_root`` every model is kept in the model store (key: the configs and the
-    windows' hash), so a rerun on the same data trains nothing."""
+    windows' hash), so a rerun on the same data trains nothing. ``newest_first``: fine-tune the
+    latest date first (a second process filling the same store from the other end,
+    :mod:`pipeline.forecast.member_training`); the models are the same either way."""
     progress = progress or SilentProgress()
     models: dict[pd.Timestamp, ConditionalEstimator] = {}
-    for date in dates:
+    for date in (sorted(dates, reverse=True) if newest_first else dates):
         cutoff = date - pd.Timedelta(days=config.revision_days)
         real = real_windows([h.up_to(date) for h in histories if h.dates[0] <= date], cutoff,
                             base.config)

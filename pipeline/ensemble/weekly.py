@@ -116,7 +116,8 @@ class WeeklyMembers:
 def build_weekly_members(config: WeeklyConfig, store_root: Path,
                          reference: Mapping[str, EpiHistory] | None = None,
                          history: EpiHistory | None = None, place: str | None = None,
-                         progress: ProgressReporter | None = None) -> WeeklyMembers:
+                         progress: ProgressReporter | None = None, *,
+                         newest_refits_first: bool = False) -> WeeklyMembers:
     """The one place the published ensemble's members are chosen, for one place's forecast.
 
     * ``hub-baseline`` — the flat Forecast Hub baseline: in the log-scale average it damps the
@@ -132,27 +133,31 @@ def build_weekly_members(config: WeeklyConfig, store_root: Path,
       series alone is too few windows to fine-tune a flow on).
 
     AutoETS is scored beside them as a reference, not a member (cross-county relative WIS 1.17:
-    worse than the baseline it would be averaged with)."""
+    worse than the baseline it would be averaged with). ``newest_refits_first``: see
+    :func:`~pipeline.ensemble.nf_finetune.fit_finetuned_member`."""
     reference = dict(reference or {})
     others = tuple(h for name, h in reference.items() if name != place)
     members: list[Member] = [HubBaseline(HubBaselineConfig(n_samples=BASELINE_SAMPLES)),
                              PooledGrowthMember(others, config.regression)]
     origins = (backtest_origins(history, config.backtest_config())
                if history is not None else [])
-    return _with_flows(members, config, store_root, list(reference.values()), origins, progress)
+    return _with_flows(members, config, store_root, list(reference.values()), origins, progress,
+                       newest_refits_first)
 
 
 
 
 def build_panel_members(places: Sequence[EpiHistory], origins: Sequence[pd.Timestamp],
                         config: WeeklyConfig, store_root: Path,
-                        progress: ProgressReporter | None = None) -> WeeklyMembers:
+                        progress: ProgressReporter | None = None, *,
+                        newest_refits_first: bool = False) -> WeeklyMembers:
     """The same members for a panel of places forecast together (the cross-county backtest):
     growth-qr pools the panel itself, nf-real is refitted on the panel's windows."""
     members: list[Member] = [
         HubBaseline(HubBaselineConfig(n_samples=BASELINE_SAMPLES)),
         PooledGrowthMember((), config.regression)]
-    return _with_flows(members, config, store_root, list(places), list(origins), progress)
+    return _with_flows(members, config, store_root, list(places), list(origins), progress,
+                       newest_refits_first)
 
 
 def build_vintage_ensemble(config: WeeklyConfig, store_root: Path,
@@ -172,7 +177,8 @@ def build_vintage_ensemble(config: WeeklyConfig, store_root: Path,
 
 def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
                 pool: list[EpiHistory], origins: list[pd.Timestamp],
-                progress: ProgressReporter | None) -> WeeklyMembers:
+                progress: ProgressReporter | None,
+                newest_refits_first: bool = False) -> WeeklyMembers:
     """``members`` + nf-growth (trained or reused) + nf-real fine-tuned on ``pool`` at the refit
     dates among ``origins`` (when both are non-empty)."""
     if not config.include_nf:
@@ -185,7 +191,8 @@ def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
     dates = refit_dates(origins, config.finetune.refit_every_weeks)
     if config.include_real and pool and dates:
         members.append(fit_finetuned_member(flow, synthetic, pool, dates, config.finetune,
-                                            store_root, progress))
+                                            store_root, progress,
+                                            newest_first=newest_refits_first))
     return WeeklyMembers(members, stored.key, stored.reused)
 
 

@@ -135,6 +135,10 @@ class TrainingSettings:
     iterations: int | None = None
     batch_size: int | None = None
     eval_every: int | None = None
+    # When the pair must be trained, the forecast's own models train meanwhile in a background
+    # process (pipeline.forecast.member_training); the same models either way. Off for toy
+    # sizes, where starting a second Python costs more than their training.
+    background_members: bool = True
 
     def __post_init__(self) -> None:
         _require_positive("TrainingSettings", n_trajectories=self.n_trajectories,
@@ -290,7 +294,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
     "tiny": ForecastConfig(
         preset="tiny",
         training=TrainingSettings(n_trajectories=16, iterations=30, batch_size=256,
-                                  eval_every=10),
+                                  eval_every=10, background_members=False),
         estimates=EstimateSettings(n_samples=128, parameter_stride_days=7, nll_locations=20),
         rollouts=RolloutSettings(paths=16, future_paths=200),
         smc=SMCSettings(particles=200, days=28, member_particles=100),

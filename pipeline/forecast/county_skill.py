@@ -15,6 +15,7 @@ import hashlib
 import json
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import pandas as pd
@@ -25,7 +26,7 @@ from pipeline.data.cdph_source import load_cdph_vintage
 from pipeline.ensemble.county_backtest import (CountyBacktestConfig, county_panel,
                                                run_panel_backtest, select_counties,
                                                summarize_panel)
-from pipeline.ensemble.panel import weekly_origins
+from pipeline.ensemble.panel import Panel, weekly_origins
 from pipeline.ensemble.weekly import build_panel_members
 from pipeline.errors import OfflineError
 from pipeline.forecast.config import ForecastConfig
@@ -74,7 +75,7 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
         log.warning("no county skill: %s", exc)
         return None
     backtest = CountyBacktestConfig()
-    path = data_dir() / FOLDER / f"{skill_key(vintage, backtest, config)[:24]}.json"
+    path = skill_path(vintage, backtest, config)
     as_of = str(vintage.as_of.date())
     if path.is_file():
         try:
@@ -83,13 +84,42 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("recomputing the county skill: %s is unreadable (%s)", path, exc)
     started = time.perf_counter()
-    counties = select_counties(vintage, backtest)
-    panel = county_panel(vintage, counties, backtest.trailing_days)
-    origins = weekly_origins(panel.dates, min_history_weeks=backtest.min_history_weeks,
-                             horizon_weeks=max(backtest.horizons))
+    panel, origins = panel_and_origins(vintage, backtest)
     members = build_panel_members(list(panel.histories.values()), origins,
                                   config.weekly_config(), default_store_root(), progress).members
     summary = summarize_panel(run_panel_backtest(panel, members, backtest, progress=progress))
     atomic_write_json(path, summary | {"vintage": as_of,
                                        "seconds": time.perf_counter() - started})
     return _from_summary(summary, as_of)
+
+
+def skill_path(vintage: CDPHVintage, backtest: CountyBacktestConfig, config: ForecastConfig
+               ) -> Path:
+    """Where the county skill of this vintage and these settings is kept."""
+    return data_dir() / FOLDER / f"{skill_key(vintage, backtest, config)[:24]}.json"
+
+
+def panel_and_origins(vintage: CDPHVintage, backtest: CountyBacktestConfig
+                      ) -> tuple[Panel, list[pd.Timestamp]]:
+    """The counties' panel and the weekly origins the county skill forecasts from."""
+    panel = county_panel(vintage, select_counties(vintage, backtest), backtest.trailing_days)
+    origins = weekly_origins(panel.dates, min_history_weeks=backtest.min_history_weeks,
+                             horizon_weeks=max(backtest.horizons))
+    return panel, origins
+
+
+def train_county_members(config: ForecastConfig, store_root: Path,
+                         progress: ProgressReporter | None = None) -> None:
+    """Train (into the model store) the models :func:`county_skill` will use, unless the cached
+    vintage's skill is kept already or there is no CDPH data (then it needs none); the latest
+    refits first (:mod:`pipeline.forecast.member_training`)."""
+    try:
+        vintage = load_cdph_vintage(offline=True)
+    except OfflineError:
+        return
+    backtest = CountyBacktestConfig()
+    if skill_path(vintage, backtest, config).is_file():
+        return
+    panel, origins = panel_and_origins(vintage, backtest)
+    build_panel_members(list(panel.histories.values()), origins, config.weekly_config(),
+                        store_root, progress, newest_refits_first=True)

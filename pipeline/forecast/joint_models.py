@@ -73,6 +73,13 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
     return load_models(config, entry)
 
 
+def models_stored(config: ForecastConfig, data: TrainingData,
+                  store_root: Path | None = None) -> bool:
+    """Whether the store holds a valid pair for ``config`` and ``data`` (nothing to train)."""
+    store = ModelStore(store_root or default_store_root())
+    return store.get(model_key(config.training_identity(), data.data_sha256)) is not None
+
+
 def _train_direction(config: ForecastConfig, data: TrainingData, direction: Direction,
                      out_dir: Path, progress: ProgressReporter | None) -> float:
     train_ds, val_ds = training_windows(config, data, direction)

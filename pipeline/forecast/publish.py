@@ -23,8 +23,8 @@ from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission,
                                        SubmissionConfig, load_tasks_config, write_model_output)
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
-from pipeline.forked import ChildBuild
-from pipeline.report.weekly import Drawn, build_forecast_report, start_diagnostics
+from pipeline.report.weekly import (FORKED_DIAGNOSTICS, DiagnosticsUnderWay,
+                                    build_forecast_report, start_diagnostics)
 from pipeline.report.headline import compute_headline
 
 HUB_TASKS = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"
@@ -46,7 +46,8 @@ def publish(results: ForecastResults) -> PublishedRun:
     outputs = RunOutputs(output_root(results.config), place=results.config.data.place)
     run_id = new_run_id()
     with outputs.staged(results.reference_date, run_id) as staging:
-        diagnostics = start_diagnostics(results)    # drawn meanwhile, in a child process
+        # about half the report's drawing, done meanwhile in a child process
+        diagnostics = start_diagnostics(results.model_outputs(), FORKED_DIAGNOSTICS)
         files = write_tables(results, staging) + write_report(results, staging, diagnostics)
         record = RunRecord(
             reference_date=results.reference_date, run_id=run_id,
@@ -182,6 +183,6 @@ def headline_record(results: ForecastResults) -> dict[str, object]:
 
 
 def write_report(results: ForecastResults, out_dir: Path,
-                 diagnostics: ChildBuild[Drawn] | None = None) -> list[str]:
+                 diagnostics: DiagnosticsUnderWay | None = None) -> list[str]:
     """report.html + report.pdf (:mod:`pipeline.report.weekly`); returns the file names."""
     return list(build_forecast_report(results, out_dir, diagnostics))

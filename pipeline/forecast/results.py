@@ -119,6 +119,20 @@ class CountySkill:
 
 
 @dataclass(frozen=True)
+class ModelOutputs:
+    """The epidemic model's part of a run: what the report's diagnostic sections draw."""
+
+    config: ForecastConfig
+    sir_frame: pd.DataFrame
+    vintage: str
+    models: TrainedModels
+    parameters: pd.DataFrame
+    rollouts: Rollouts
+    nll: pd.DataFrame
+    smc: SMCRun
+
+
+@dataclass(frozen=True)
 class ForecastResults:
     config: ForecastConfig
     sir_frame: pd.DataFrame     # the S/I/R the run read (days being reported: nowcast median)
@@ -141,3 +155,8 @@ class ForecastResults:
     @property
     def reference_date(self) -> str:
         return str(self.future.reference_date)
+
+    def model_outputs(self) -> ModelOutputs:
+        return ModelOutputs(config=self.config, sir_frame=self.sir_frame, vintage=self.vintage,
+                            models=self.models, parameters=self.parameters,
+                            rollouts=self.rollouts, nll=self.nll, smc=self.smc)

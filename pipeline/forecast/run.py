@@ -19,20 +19,22 @@ import requests
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.county_skill import county_skill
 from pipeline.forecast.nowcasting import nowcast_recent_days
-from pipeline.forecast.joint_models import (cached_variant_models, simulate_training_data,
-                                            train_or_reuse_models)
+from pipeline.forecast.joint_models import (cached_variant_models, models_stored,
+                                            simulate_training_data, train_or_reuse_models)
+from pipeline.forecast.member_training import member_training, wait_for_members
 from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels, TrainingData
 from pipeline.forecast.sources import (data_is_stale, load_series, series_to_sir, sir_arrays,
                                        staleness_notes)
 from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_variants,
                                      parameter_track, published_skill, rollouts, seeded_smc,
-                                     weekly_forecast)
+                                     start_weekly_forecast, weekly_forecast_step)
 from pipeline.progress import ProgressReporter, SilentProgress
+from pipeline.training.model_store import default_store_root
 
 Step = Literal["fetch-datasf", "fetch-cdph", "convert-to-sir", "nowcast-recent-days", "simulate-training-data",
                "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
                "beta-gamma-estimates", "nll-table", "nf-seeded-smc", "weekly-forecast",
-               "county-skill"]
+               "county-skill", "train-forecast-members"]
 # The fetch step is named after the publisher (the Prefect flow retries either).
 FETCH_STEPS: tuple[Step, ...] = ("fetch-datasf", "fetch-cdph")
 P = ParamSpec("P")
@@ -90,25 +92,35 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
                     f"no nowcast: last {config.nowcast.fallback_trailing_days} days dropped")
     arrays = sir_arrays(recent.sir_frame)
     data = run("simulate-training-data", simulate_training_data, config)
-    models = run("train-or-reuse-models", train_or_reuse_models, config, data, retrain=retrain,
-                 progress=progress("train-or-reuse-models"))
-    _log_models(run, models)
-    latest = run("latest-estimates", latest_estimates, models, arrays, config)
-    rolled = run("rollouts", rollouts, models, arrays, config)
-    future = run("future-paths", future_paths, models, arrays, config)
-    parameters = run("beta-gamma-estimates", parameter_track, models, arrays, config)
-    nll = run("nll-table", nll_with_cached_variants, models, data, arrays, config)
-    smc = run("nf-seeded-smc", seeded_smc, models, recent.history, arrays, config)
-    run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles", len(smc.dates),
-                    float(smc.result.ess.min()), config.smc.particles)
-    weekly = run("weekly-forecast", weekly_forecast, recent, models, config,
-                 progress=progress("weekly-forecast"))
-    run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
-                    weekly.origin.date(), published_skill(weekly))
-    if weekly.memo_reads is not None:
-        run.logger.info("forecast memo: %d of %d member forecasts of the track record read "
-                        "back, the rest forecast", *weekly.memo_reads)
-    counties = run("county-skill", county_skill, config, progress=progress("county-skill"))
+    # From scratch, the forecast's members train in a background process beside the joint pair,
+    # sharing the work through the model store (pipeline.forecast.member_training).
+    needed = config.training.background_members and (retrain or not models_stored(config, data))
+    with member_training(config, recent.history, default_store_root(), needed,
+                         run.logger) as background:
+        models = run("train-or-reuse-models", train_or_reuse_models, config, data,
+                     retrain=retrain, progress=progress("train-or-reuse-models"))
+        _log_models(run, models)
+        # Every model stored: the weekly forecast is made in a forked child meanwhile.
+        ahead = (start_weekly_forecast(recent, models, config)
+                 if models.reused and not background.running else None)
+        latest = run("latest-estimates", latest_estimates, models, arrays, config)
+        rolled = run("rollouts", rollouts, models, arrays, config)
+        future = run("future-paths", future_paths, models, arrays, config)
+        parameters = run("beta-gamma-estimates", parameter_track, models, arrays, config)
+        nll = run("nll-table", nll_with_cached_variants, models, data, arrays, config)
+        smc = run("nf-seeded-smc", seeded_smc, models, recent.history, arrays, config)
+        run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles",
+                        len(smc.dates), float(smc.result.ess.min()), config.smc.particles)
+        weekly = run("weekly-forecast", weekly_forecast_step, recent, models, config,
+                     progress("weekly-forecast"), ahead)
+        run.logger.info("published forecast from %s; relative WIS vs hub baseline %s",
+                        weekly.origin.date(), published_skill(weekly))
+        if weekly.memo_reads is not None:
+            run.logger.info("forecast memo: %d of %d member forecasts of the track record "
+                            "read back, the rest forecast", *weekly.memo_reads)
+        counties = run("county-skill", county_skill, config, progress=progress("county-skill"))
+        if background.running:
+            run("train-forecast-members", wait_for_members, background)
     return ForecastResults(
         config=config, sir_frame=recent.sir_frame, vintage=series.vintage.describe(), stale=stale,
         stale_notes=tuple(notes) if stale else (), models=models, latest=latest,

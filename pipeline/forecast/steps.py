@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,8 @@ from pipeline.ensemble.smc_member import (BatchedForecasts, NFSeededSMCMember,
 from pipeline.ensemble.targets import EpiHistory
 from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
-from pipeline.forked import start_in_child
+from pipeline.forked import ChildBuild, start_in_child
+from pipeline.errors import ModelMissingError
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.nowcasting import RecentDays, mixture_start
@@ -58,7 +60,7 @@ from pipeline.inference.smc import DEFAULT_QUANTILES
 from pipeline.names import DIRECTIONS, JOINT_NAMES, Direction
 from pipeline.training.datasets import WAVE_TARGET_FEATURES
 from pipeline.progress import ProgressReporter
-from pipeline.training.model_store import default_store_root
+from pipeline.training.model_store import default_store_root, stored_models_only
 
 log = logging.getLogger(__name__)
 
@@ -297,6 +299,44 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
     except OSError as error:    # a cache: the forecast stands, the next run re-forecasts
         log.warning("could not write the forecast memo %s: %s", memo.path, error)
     return result
+
+
+@dataclasses.dataclass(frozen=True)
+class WeeklyInChild:
+    """The weekly forecast under way in a forked child (:func:`start_weekly_forecast`)."""
+
+    build: ChildBuild[tuple[WeeklyForecast, float]]
+
+
+def start_weekly_forecast(recent: RecentDays, models: TrainedModels,
+                          config: ForecastConfig) -> WeeklyInChild:
+    """The weekly forecast started in a forked child (:mod:`pipeline.forked`), made while this
+    process computes the epidemic model's estimates. Only when every member's model is stored:
+    the child trains nothing (:func:`~pipeline.training.model_store.stored_models_only`; a
+    missing model makes :func:`weekly_forecast_step` forecast here, training it). The members
+    sample on one torch thread wherever they run, so the forecast is the same as here."""
+    def build() -> tuple[WeeklyForecast, float]:
+        started = time.perf_counter()
+        with stored_models_only():
+            weekly = weekly_forecast(recent, models, config)
+        return weekly, time.perf_counter() - started
+
+    return WeeklyInChild(start_in_child(build))
+
+
+def weekly_forecast_step(recent: RecentDays, models: TrainedModels, config: ForecastConfig,
+                         progress: ProgressReporter | None = None,
+                         ahead: WeeklyInChild | None = None) -> WeeklyForecast:
+    """Step ``weekly-forecast``: the forecast ``ahead`` made in a child, else made here."""
+    if ahead is not None:
+        try:
+            weekly, seconds = ahead.build.result()
+            log.info("weekly forecast made in a child process beside the model's estimates "
+                     "(%.1f s)", seconds)
+            return weekly
+        except ModelMissingError as missing:
+            log.info("weekly forecast made here: %s", missing)
+    return weekly_forecast(recent, models, config, progress)
 
 
 def forecast_memo_path(place: str) -> Path:

@@ -467,27 +467,27 @@ def validate_model_output_frame(frame: pd.DataFrame, tasks: Mapping[str, Any], *
         raise HubValidationError(f"{source}: no rows")
     records = _typed_rows(frame, model_task, source)
     schemas = {name: _row_schema(model_task, name) for name in model_task["output_type"]}
-    # The task-id columns repeat across rows (and their enums of every location are slow to
-    # scan): each distinct combination is checked once, each row's value on its own.
-    ids = {name: Draft202012Validator({**schema, "properties": {
-               k: v for k, v in schema["properties"].items() if k != "value"},
-               "required": [k for k in schema["required"] if k != "value"]})
-           for name, schema in schemas.items()}
-    values = {name: Draft202012Validator(schema["properties"]["value"])
-              for name, schema in schemas.items()}
-    checked: dict[tuple[Any, ...], list[Any]] = {}
+    # Every property of a row schema stands alone (an enum, a const, a type), and the task-id
+    # cells repeat down the rows (their enums of every location are slow to scan): each column's
+    # distinct cells are checked once, each row's value on its own.
+    columns = {name: {column: Draft202012Validator(spec)
+                      for column, spec in schema["properties"].items()}
+               for name, schema in schemas.items()}
+    checked: dict[tuple[Any, str, str], list[Any]] = {}
     for row, record in enumerate(records):
         kind = record.get("output_type")
         if kind not in schemas:
             raise HubValidationError(f"{source} row {row + 2}: output_type {kind!r} is not one of "
                                      f"{sorted(schemas)}")
-        rest = {k: v for k, v in record.items() if k != "value"}
-        key = (kind, *sorted((k, repr(v)) for k, v in rest.items()))
-        if key not in checked:
-            checked[key] = list(ids[kind].iter_errors(rest))
-        errors = [(e.path[0] if e.path else "row", e) for e in checked[key]]
-        if "value" in record:
-            errors += [("value", e) for e in values[kind].iter_errors(record["value"])]
+        errors = []
+        for column, cell in record.items():
+            if column == "value":
+                errors += [(column, e) for e in columns[kind][column].iter_errors(cell)]
+                continue
+            key = (kind, column, repr(cell))
+            if key not in checked:
+                checked[key] = list(columns[kind][column].iter_errors(cell))
+            errors += [(column, e) for e in checked[key]]
         if errors:
             column, error = min(errors, key=lambda ce: str(ce[1]))
             raise HubValidationError(f"{source} row {row + 2}: column {column!r}: "

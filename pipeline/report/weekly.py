@@ -45,7 +45,7 @@ from pipeline.report.render import ReportFiles, write_report
 from pipeline.names import COMPARTMENTS, DIRECTIONS
 
 if TYPE_CHECKING:
-    from pipeline.forecast.results import CountySkill, ForecastResults
+    from pipeline.forecast.results import CountySkill, ForecastResults, ModelOutputs
     from pipeline.ensemble.weekly import WeeklyForecast
     from pipeline.inference.smc import SMCResult
 
@@ -280,7 +280,7 @@ def backtest_section(results: ForecastResults) -> Section:
 
 # ----------------------------------------------------------------------------- diagnostics
 
-def series_section(results: ForecastResults) -> Section:
+def series_section(results: ModelOutputs) -> Section:
     sir = results.sir_frame
     last = pd.to_datetime(sir["date"]).max().date()
     place = results.config.data.place
@@ -314,7 +314,7 @@ def _q(wide: pd.DataFrame) -> NDArray[np.float64]:
     return wide[list(Q_COLUMNS)].to_numpy(dtype=np.float64)
 
 
-def estimates_section(results: ForecastResults) -> Section:
+def estimates_section(results: ModelOutputs) -> Section:
     items = []
     for direction in DIRECTIONS:
         dates, wide = _long_to_arrays(results.parameters, direction)
@@ -344,7 +344,7 @@ def _path_quantiles(samples: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-def rollout_section(results: ForecastResults) -> Section:
+def rollout_section(results: ModelOutputs) -> Section:
     sir = results.sir_frame
     start = pd.to_datetime(sir["date"]).min()
     items = []
@@ -381,7 +381,7 @@ ONE_MODEL = (
     "(“nf-smc”) and enters the published forecast only if it earns weight there.")
 
 
-def parameter_section(results: ForecastResults) -> Section:
+def parameter_section(results: ModelOutputs) -> Section:
     dates, wide = _long_to_arrays(results.parameters, "forward")
     resolved = results.config.resolved
     gamma = resolved.gamma
@@ -429,7 +429,7 @@ def _smc_quantiles(res: SMCResult, idx: list[int]) -> NDArray[np.float64]:
     return np.stack(picks)
 
 
-def smc_section(results: ForecastResults) -> Section:
+def smc_section(results: ModelOutputs) -> Section:
     res = results.smc.result
     idx = _indices(res.state_names, STATES, "the SMC result")
     q = _smc_quantiles(res, idx)
@@ -454,7 +454,7 @@ def smc_section(results: ForecastResults) -> Section:
 _PAPER_VARIANTS = ("Transformer", "Transformer + KE", "Mamba-SSM")
 
 
-def nll_section(results: ForecastResults) -> Section:
+def nll_section(results: ModelOutputs) -> Section:
     frame = results.nll
     short = {"forward": "fw", "backward": "bw"}
     ours = list(dict.fromkeys(frame["variant"].astype(str)))
@@ -475,7 +475,7 @@ def nll_section(results: ForecastResults) -> Section:
         highlight="row-min")])
 
 
-def training_section(results: ForecastResults) -> Section:
+def training_section(results: ModelOutputs) -> Section:
     frames = []
     for direction, history in results.models.histories.items():
         h = pd.DataFrame(list(history))
@@ -495,7 +495,7 @@ def training_section(results: ForecastResults) -> Section:
 
 
 # Diagnostics: a malformed input (ReportError) leaves the section out, named in the warnings.
-_DIAGNOSTICS: Sequence[tuple[str, Callable[[ForecastResults], Section]]] = (
+_DIAGNOSTICS: Sequence[tuple[str, Callable[[ModelOutputs], Section]]] = (
     ("S/I/R series", series_section), ("β, γ, R_t", parameter_section),
     ("state estimates", estimates_section), ("rollouts", rollout_section),
     ("SMC", smc_section), ("NLL table", nll_section), ("loss curves", training_section))
@@ -550,40 +550,60 @@ def data_banner(results: ForecastResults, today: dt.date | None = None) -> str |
                               provider=results.config.data.provider)
 
 
-# The two heaviest diagnostics (5 of the 13 figures, about half the drawing): a child process
-# draws them while this one writes the tables and the other sections (start_diagnostics).
-FORKED_DIAGNOSTICS = ("state estimates", "rollouts")
+# About half the report's drawing (3.9 of 7.5 s here: 6 of the 13 figures): a child process
+# draws these while this one writes the tables and the other sections (publish).
+FORKED_DIAGNOSTICS = ("S/I/R series", "rollouts", "loss curves")
+DIAGNOSTICS = tuple(name for name, _ in _DIAGNOSTICS)
 Drawn = dict[str, "Section | str"]          # a diagnostic's section, or why it is missing
 
 
-def diagnostic_sections(results: ForecastResults, names: Sequence[str] | None = None) -> Drawn:
-    """The report's diagnostic sections named ``names`` (default: all, :data:`_DIAGNOSTICS`);
+@dataclasses.dataclass(frozen=True)
+class DiagnosticsUnderWay:
+    """Diagnostic sections ``names`` being drawn in a child process (:func:`start_diagnostics`)."""
+
+    names: tuple[str, ...]
+    build: ChildBuild[Drawn]
+
+
+def diagnostic_sections(outputs: ModelOutputs, names: Sequence[str] | None = None) -> Drawn:
+    """The report's diagnostic sections named ``names`` (default: all, :data:`DIAGNOSTICS`);
     a section that cannot be drawn is replaced by a note saying so (the rest is published)."""
     drawn: Drawn = {}
     for name, build in _DIAGNOSTICS:
         if names is not None and name not in names:
             continue
         try:
-            drawn[name] = build(results)
+            drawn[name] = build(outputs)
         except ReportError as exc:   # malformed inputs: publish the rest, say what is missing
             log.exception("report section %s failed", name)
             drawn[name] = f"The {name} section could not be drawn: {exc}"
     return drawn
 
 
+def start_diagnostics(outputs: ModelOutputs, names: Sequence[str] = DIAGNOSTICS
+                      ) -> DiagnosticsUnderWay:
+    """The diagnostic sections ``names`` started in a forked child process
+    (:mod:`pipeline.forked`): drawn while this process goes on (the weekly forecast, or the
+    rest of the report)."""
+    chosen = tuple(names)
+    return DiagnosticsUnderWay(chosen, start_in_child(lambda: diagnostic_sections(outputs,
+                                                                                  chosen)))
+
+
 def forecast_report_content(results: ForecastResults,
-                            diagnostics: ChildBuild[Drawn] | None = None) -> ReportContent:
+                            diagnostics: DiagnosticsUnderWay | None = None) -> ReportContent:
     """The ``ReportContent`` of one weekly run. ``diagnostics``: some of
-    :func:`diagnostic_sections` already under way in a child process
-    (:func:`start_diagnostics`); the rest are drawn here."""
+    :func:`diagnostic_sections` already under way in a child process; the rest are drawn
+    here."""
     headline = compute_headline(results)
     banner = data_banner(results)
     notes = [banner] if banner else []
     sections = [forecast_section(results, headline), backtest_section(results)]
-    in_child = FORKED_DIAGNOSTICS if diagnostics is not None else ()
-    here = diagnostic_sections(results, [n for n, _ in _DIAGNOSTICS if n not in in_child])
-    forked = diagnostics.result() if diagnostics is not None else {}
-    for name, _ in _DIAGNOSTICS:
+    in_child = diagnostics.names if diagnostics is not None else ()
+    here = diagnostic_sections(results.model_outputs(),
+                               [n for n in DIAGNOSTICS if n not in in_child])
+    forked = diagnostics.build.result() if diagnostics is not None else {}
+    for name in DIAGNOSTICS:
         part = forked.get(name, here.get(name))
         if isinstance(part, Section):
             sections.append(part)
@@ -600,14 +620,7 @@ def forecast_report_content(results: ForecastResults,
 
 
 def build_forecast_report(results: ForecastResults, out_dir: str | Path,
-                          diagnostics: ChildBuild[Drawn] | None = None) -> list[str]:
+                          diagnostics: DiagnosticsUnderWay | None = None) -> list[str]:
     """Write report.html and report.pdf for one weekly run; returns the file names written."""
     files: ReportFiles = write_report(forecast_report_content(results, diagnostics), out_dir)
     return [files.html_path.name, files.pdf_path.name]
-
-
-def start_diagnostics(results: ForecastResults) -> ChildBuild[Drawn]:
-    """The :data:`FORKED_DIAGNOSTICS` started in a forked child process
-    (:mod:`pipeline.forked`), drawn while this process writes the tables and the other
-    sections."""
-    return start_in_child(lambda: diagnostic_sections(results, FORKED_DIAGNOSTICS))

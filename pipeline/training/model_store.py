@@ -6,6 +6,7 @@ store schema version). Layout of one key (a tiny transactional store, like the D
     <root>/<key>/current.json          which version is live (swapped atomically)
     <root>/<key>/v-<content>-<nonce>/  one immutable version: the builder's files + entry.json
     <root>/.locks/<key>.lock           held while committing (``filelock``)
+    <root>/.locks/<key>.build.lock     held while building (one builder per key)
 
 Whatever the builder writes (checkpoints, loss curves; sub-folders allowed) is listed with its
 SHA-256 in ``entry.json``; a version whose files no longer match is treated as absent (logged,
@@ -21,6 +22,12 @@ delete-then-rename lost 18 of 80 concurrent writes, issue 15). Readers take no l
 that finds its version collected reads the (newer) pointer again. ``.building`` directories of
 killed runs are swept after a day.
 
+One builder per key: :meth:`ModelStore.get_or_build` builds under the key's build lock, so a
+process that finds another building the same model (two runs at once, or a weekly run and its
+background member training, :mod:`pipeline.forecast.member_training`) waits for it and reuses
+its model instead of training it a second time. The lock is the kernel's: a builder that dies
+releases it, and the waiter builds.
+
 Entries of the first layout (files and ``entry.json`` directly in ``<root>/<key>/``) are still
 read, so upgrading does not retrain.
 
@@ -29,6 +36,7 @@ Assumption: the training config fully determines the model given the training da
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as dt
 import json
@@ -38,11 +46,11 @@ import shutil
 import tempfile
 import time
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import CheckpointError
+from pipeline.errors import CheckpointError, ModelMissingError
 from pipeline.io import atomic_write_json, file_lock, sha256_bytes, sha256_file, sweep_stale
 
 log = logging.getLogger(__name__)
@@ -50,6 +58,10 @@ log = logging.getLogger(__name__)
 ENTRY_FILE = "entry.json"
 CURRENT_FILE = "current.json"
 LOCKS_DIR = ".locks"
+# How long a process waits for another one building the same model (a training: minutes).
+BUILD_LOCK_TIMEOUT_S = 3600.0
+# Set by stored_models_only(): get_or_build raises instead of building.
+_builds_forbidden = False
 _VERSION_PREFIX = "v-"
 _BUILDING_SUFFIX = ".building"
 # A version no pointer names may still be in use by a reader that resolved it just before the
@@ -102,6 +114,9 @@ class ModelStore:
 
     def lock_path(self, key: str) -> Path:
         return self.root / LOCKS_DIR / f"{key}.lock"
+
+    def build_lock_path(self, key: str) -> Path:
+        return self.root / LOCKS_DIR / f"{key}.build.lock"
 
     def _live_version(self, key: str) -> Path | None:
         """The directory the key's pointer names; a first-layout entry is its own version."""
@@ -198,15 +213,28 @@ class ModelStore:
                      retrain: bool = False) -> StoreEntry:
         """Reuse the entry for (config, data) unless missing, damaged, or ``retrain`` is set."""
         key = model_key(config, data_sha256)
-        if not retrain:
-            hit = self.get(key)
-            if hit is not None:
-                log.info("reusing trained model %s (built %s)", key[:12], hit.created_at)
+        if not retrain and (hit := self._reused(key)) is not None:
+            return hit
+        if _builds_forbidden:
+            raise ModelMissingError(f"model {key[:12]} is not in the store {self.root} "
+                                    "(only stored models may be used here)")
+        with file_lock(self.build_lock_path(key), timeout_s=BUILD_LOCK_TIMEOUT_S,
+                       what=f"the build of model {key[:12]}"):
+            # another process may have built it while this one waited for the lock
+            if not retrain and (hit := self._reused(key)) is not None:
                 return hit
-            log.info("no trained model for key %s: training", key[:12])
-        else:
-            log.info("retrain requested: rebuilding model %s", key[:12])
-        return self.put(key, build, meta={"config": dict(config), "data_sha256": data_sha256})
+            if retrain:
+                log.info("retrain requested: rebuilding model %s", key[:12])
+            else:
+                log.info("no trained model for key %s: training", key[:12])
+            return self.put(key, build, meta={"config": dict(config),
+                                              "data_sha256": data_sha256})
+
+    def _reused(self, key: str) -> StoreEntry | None:
+        hit = self.get(key)
+        if hit is not None:
+            log.info("reusing trained model %s (built %s)", key[:12], hit.created_at)
+        return hit
 
 
 def _verified(key: str, path: Path) -> tuple[StoreEntry | None, str]:
@@ -228,3 +256,17 @@ def default_store_root() -> Path:
     from pipeline.data.cache import data_dir
 
     return data_dir() / "models"
+
+
+@contextlib.contextmanager
+def stored_models_only() -> Iterator[None]:
+    """Within the block, :meth:`ModelStore.get_or_build` reuses stored models and raises
+    :class:`~pipeline.errors.ModelMissingError` where it would train one (a step computed in a
+    forked child, whose models must be trained in the parent: on another number of torch
+    threads a training would give other weights)."""
+    global _builds_forbidden
+    before, _builds_forbidden = _builds_forbidden, True
+    try:
+        yield
+    finally:
+        _builds_forbidden = before
