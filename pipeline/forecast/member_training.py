@@ -113,6 +113,15 @@ class MemberTraining:
             self.process.kill()
             self.process.wait()
 
+    def relay_log(self) -> None:
+        """Relay the process's log lines from a thread, in this context (a Prefect run's logger
+        needs its run's context and settings, which a new thread does not inherit: without
+        them it would start an API of its own)."""
+        context = contextvars.copy_context()
+        self._relay = threading.Thread(target=context.run, args=(self._relay_log,),
+                                       daemon=True, name="member-training-log")
+        self._relay.start()
+
     def _relay_log(self) -> None:
         """Each line the background process logs, logged here (progress included)."""
         assert self.process is not None and self.process.stderr is not None
@@ -148,12 +157,7 @@ def start_member_training(config: ForecastConfig, history: EpiHistory, store_roo
     except OSError as exc:          # it died at once; wait() reports its error
         logger.warning("could not hand the request to the background member training: %s", exc)
     training = MemberTraining(process, logger)
-    # The relay logs in this context (a Prefect run's logger needs its run's context and
-    # settings, which a new thread does not inherit: without them it would start an API).
-    context = contextvars.copy_context()
-    training._relay = threading.Thread(target=context.run, args=(training._relay_log,),
-                                       daemon=True, name="member-training-log")
-    training._relay.start()
+    training.relay_log()
     logger.info("training the forecast's members in the background (pid %d)", process.pid)
     return training
 

@@ -301,11 +301,8 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
     return result
 
 
-@dataclasses.dataclass(frozen=True)
-class WeeklyInChild:
-    """The weekly forecast under way in a forked child (:func:`start_weekly_forecast`)."""
-
-    build: ChildBuild[tuple[WeeklyForecast, float]]
+# The weekly forecast under way in a forked child, with its seconds there.
+WeeklyInChild = ChildBuild[tuple[WeeklyForecast, float]]
 
 
 def start_weekly_forecast(recent: RecentDays, models: TrainedModels,
@@ -321,7 +318,7 @@ def start_weekly_forecast(recent: RecentDays, models: TrainedModels,
             weekly = weekly_forecast(recent, models, config)
         return weekly, time.perf_counter() - started
 
-    return WeeklyInChild(start_in_child(build))
+    return start_in_child(build)
 
 
 def weekly_forecast_step(recent: RecentDays, models: TrainedModels, config: ForecastConfig,
@@ -330,7 +327,7 @@ def weekly_forecast_step(recent: RecentDays, models: TrainedModels, config: Fore
     """Step ``weekly-forecast``: the forecast ``ahead`` made in a child, else made here."""
     if ahead is not None:
         try:
-            weekly, seconds = ahead.build.result()
+            weekly, seconds = ahead.result()
             log.info("weekly forecast made in a child process beside the model's estimates "
                      "(%.1f s)", seconds)
             return weekly

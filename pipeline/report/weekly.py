@@ -21,7 +21,6 @@ import dataclasses
 import datetime as dt
 import logging
 import platform
-import warnings
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
