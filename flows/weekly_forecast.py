@@ -31,6 +31,7 @@ import dataclasses
 import logging
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -53,6 +54,7 @@ from pipeline.forecast.publish import PublishedRun, publish
 from pipeline.forecast.run import FETCH_STEPS, Step, StepRunner
 from pipeline.forecast.steps import REPORT_LEVELS
 from pipeline.progress import LogProgress
+from pipeline.report.render import preload_pdf_renderer
 from pipeline.report.headline import compute_headline, markdown
 from pipeline.report.weekly import data_banner
 
@@ -199,6 +201,7 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     """
     logger = get_run_logger()
     started = time.monotonic()
+    _preload_done()
     config = flow_config(preset, encoder=encoder, data_source=data_source,
                          import_from=import_from, output_dir=output_dir, seed=seed,
                          datasf_base_url=datasf_base_url, county=county)
@@ -317,8 +320,24 @@ def local_api() -> Iterator[int | None]:
 
     from flows.server_guard import ephemeral_api
 
+    # WeasyPrint (1.1 s of imports, needed only for the report's PDF at the end) loads on the
+    # core the run leaves idle while it waits for the server and for its flow run to be created
+    global _PRELOAD
+    _PRELOAD = threading.Thread(target=preload_pdf_renderer, name="preload-weasyprint",
+                                daemon=True)
+    _PRELOAD.start()
     with ephemeral_api() as pid:
         yield pid
+
+
+_PRELOAD: threading.Thread | None = None
+
+
+def _preload_done() -> None:
+    """Wait for the WeasyPrint import of :func:`local_api`: the run forks children, and a child
+    forked while another thread imports a module could deadlock importing it."""
+    if _PRELOAD is not None:
+        _PRELOAD.join()
 
 
 if __name__ == "__main__":

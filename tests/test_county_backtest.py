@@ -25,13 +25,12 @@ from pipeline.ensemble.growth_regression import (GrowthRegressionConfig, PooledG
                                                  growth_regression_quantiles, weekly_sums_ending)
 from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.ensemble.nf_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
-from pipeline.ensemble.nf_member import GrowthModelConfig, NFGrowthMember, growth_dataset, \
-    train_growth_model
+from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
+                                         train_growth_model)
 from pipeline.ensemble.panel import Panel, weekly_grid, weekly_origins
 from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, history_from_county
 from pipeline.errors import FlowcastError
 from pipeline.systems.waves import WavePrior
-from pipeline.training.datasets import WindowedDataset
 
 REPO = Path(__file__).resolve().parents[1]
 LATEST = (REPO.parent / "shared" / "data" / "cdph" / "ofaye98__CSC508_Mentor_Class"
@@ -68,14 +67,14 @@ def _panel(vintage: CDPHVintage, altered: str | None = None,
 
 
 @pytest.fixture(scope="module")
-def tiny_flow() -> tuple[NFGrowthMember, WindowedDataset]:
-    dataset = growth_dataset(TINY_FLOW)
-    return (NFGrowthMember(train_growth_model(TINY_FLOW, dataset)[0], TINY_FLOW, n_samples=200),
-            dataset)
+def tiny_flow() -> tuple[NFGrowthMember, SyntheticWindows]:
+    synthetic = SyntheticWindows(TINY_FLOW)
+    return (NFGrowthMember(train_growth_model(TINY_FLOW, synthetic.dataset)[0], TINY_FLOW,
+                           n_samples=200), synthetic)
 
 
 def _members(panel: Panel, origins: list[pd.Timestamp],
-             tiny_flow: tuple[NFGrowthMember, WindowedDataset]) -> list:
+             tiny_flow: tuple[NFGrowthMember, SyntheticWindows]) -> list:
     flow, synthetic = tiny_flow
     real = fit_finetuned_member(flow, synthetic, list(panel.histories.values()),
                                 refit_dates(origins, 13),

@@ -12,7 +12,8 @@ import pytest
 from pipeline.ensemble.backtest import BacktestConfig, run_realtime_backtest
 from pipeline.ensemble.growth_regression import PooledGrowthMember
 from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.ensemble.memo import ForecastMemo, fingerprint
+from pipeline.ensemble.memo import ForecastMemo
+from pipeline.fingerprint import fingerprint
 from pipeline.ensemble.nf_member import GrowthModelConfig, NFGrowthMember, \
     train_or_reuse_growth_model
 from pipeline.ensemble.targets import EpiHistory, HUB_QUANTILE_LEVELS

@@ -22,9 +22,6 @@ grow; it is a cache: an unreadable file is reported and replaced, never an error
 """
 from __future__ import annotations
 
-import dataclasses
-import functools
-import hashlib
 import io
 import logging
 import zipfile
@@ -35,94 +32,16 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 from numpy.typing import NDArray
 
 from pipeline.ensemble.members import Member
 from pipeline.ensemble.targets import EpiHistory, QuantileForecast, TargetError
-from pipeline.errors import FlowcastError
+from pipeline.fingerprint import code_fingerprint, fingerprint
 from pipeline.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
-PACKAGE_ROOT = Path(__file__).resolve().parents[1]     # the pipeline package
 FORMAT = "flowcast-forecast-memo-1"
 _FIELDS = ("keys", "forecaster", "origin_ns", "horizons", "levels", "cases", "I")
-
-
-class FingerprintError(FlowcastError):
-    """An object the memo cannot fingerprint (its forecasts would be keyed unsafely)."""
-
-
-def _update(h: Any, obj: object) -> None:
-    """Feed ``obj`` into the hash ``h``: its type, then its content (recursively)."""
-    h.update(type(obj).__qualname__.encode())
-    if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
-        h.update(repr(obj).encode())
-    elif isinstance(obj, pd.Timestamp):
-        h.update(str(obj.value).encode())
-    elif isinstance(obj, pd.DatetimeIndex):
-        _update_array(h, obj.as_unit("ns").to_numpy(dtype=np.int64))
-    elif isinstance(obj, np.ndarray):
-        _update_array(h, obj)
-    elif isinstance(obj, (np.generic,)):
-        _update_array(h, np.asarray(obj))
-    elif isinstance(obj, torch.Tensor):
-        _update_array(h, obj.detach().cpu().numpy())
-    elif isinstance(obj, torch.nn.Module):
-        _update_module(h, obj)
-    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        for f in dataclasses.fields(obj):
-            if not f.name.startswith("_"):
-                h.update(f.name.encode())
-                _update(h, getattr(obj, f.name))
-    elif isinstance(obj, Mapping):
-        for key, value in obj.items():
-            _update(h, key)
-            _update(h, value)
-    elif isinstance(obj, (list, tuple)):
-        h.update(str(len(obj)).encode())
-        for item in obj:
-            _update(h, item)
-    elif hasattr(obj, "__dict__") and not callable(obj):
-        _update(h, {k: v for k, v in vars(obj).items() if not k.startswith("_")})
-    else:
-        raise FingerprintError(f"cannot fingerprint a {type(obj).__qualname__} for the "
-                               "forecast memo")
-
-
-def _update_array(h: Any, array: NDArray[Any]) -> None:
-    h.update(f"{array.dtype.str}{array.shape}".encode())
-    h.update(np.ascontiguousarray(array).tobytes())
-
-
-def _update_module(h: Any, module: torch.nn.Module) -> None:
-    """A torch module: its layers' classes, its weights and buffers, its public settings."""
-    for name, child in module.named_modules():
-        h.update(f"{name}:{type(child).__qualname__}".encode())
-    for name, tensor in module.state_dict().items():
-        h.update(name.encode())
-        _update_array(h, tensor.detach().cpu().numpy())
-    _update(h, {k: v for k, v in vars(module).items()
-                if not k.startswith("_") and k != "training"
-                and not isinstance(v, (torch.nn.Module, torch.Tensor))})
-
-
-def fingerprint(*objects: object) -> str:
-    """Hex SHA-256 of ``objects`` (see the module docstring for what counts)."""
-    h = hashlib.sha256()
-    for obj in objects:
-        _update(h, obj)
-    return h.hexdigest()
-
-
-@functools.lru_cache(maxsize=1)
-def code_fingerprint() -> str:
-    """SHA-256 of every source file of the ``pipeline`` package (path and bytes)."""
-    h = hashlib.sha256()
-    for path in sorted(PACKAGE_ROOT.rglob("*.py")):
-        h.update(path.relative_to(PACKAGE_ROOT).as_posix().encode())
-        h.update(path.read_bytes())
-    return h.hexdigest()
 
 
 def history_fingerprint(history: EpiHistory) -> str:

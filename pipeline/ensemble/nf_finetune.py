@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,16 +30,18 @@ import pandas as pd
 import torch
 from numpy.typing import NDArray
 
+from pipeline.ensemble.memo import history_fingerprint
 from pipeline.ensemble.nf_member import (CHECKPOINT_NAME, N_WEEKS, GrowthModelConfig,
-                                         NFGrowthMember, context_features, estimator_config,
-                                         growth_targets, trailing_week_sums)
+                                         NFGrowthMember, SyntheticWindows, context_features,
+                                         estimator_config, growth_targets, trailing_week_sums)
 from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast
 from pipeline.errors import CheckpointError, ConfigError
-from pipeline.models.estimator import ConditionalEstimator
+from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
 from pipeline.training.datasets import WindowedDataset, dataset_sha256, validation_trajectories
-from pipeline.training.model_store import ModelStore
+from pipeline.training.digests import DataDigests, Digests
+from pipeline.training.model_store import ModelStore, StoreEntry
 from pipeline.training.trainer import TrainConfig, train
 
 NF_REAL = "nf-real"
@@ -164,12 +167,40 @@ def finetune(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: Wind
 
 
 @dataclass(frozen=True, eq=False)
+class StoredRefit:
+    """A refit's model in the model store, loaded at its first forecast: a run whose forecasts
+    the memo holds (:mod:`pipeline.ensemble.memo`) loads only the refits it forecasts with. The
+    memo knows it by its store key and version (the version's name carries the hash of its
+    files, so a model rebuilt with other weights is another version)."""
+
+    key: str
+    version: str
+    expected: EstimatorConfig
+    _path: Path
+
+    @classmethod
+    def of(cls, entry: StoreEntry, expected: EstimatorConfig) -> StoredRefit:
+        return cls(entry.key, entry.path.name, expected, entry.path)
+
+    @functools.cached_property
+    def estimator(self) -> ConditionalEstimator:
+        loaded = load_checkpoint(self._path / CHECKPOINT_NAME, expected_config=self.expected)
+        if not isinstance(loaded.estimator, ConditionalEstimator):
+            raise CheckpointError(f"{self._path} does not hold a conditional estimator")
+        loaded.estimator.eval()
+        return loaded.estimator
+
+
+Refit = ConditionalEstimator | StoredRefit
+
+
+@dataclass(frozen=True, eq=False)
 class FineTunedGrowthMember:
     """``models[r]``: the flow fine-tuned at refit date r; a cell at origin o is forecast by the
     model of the latest r ≤ o (the synthetic flow before the first refit)."""
 
     base: NFGrowthMember
-    models: Mapping[pd.Timestamp, ConditionalEstimator]
+    models: Mapping[pd.Timestamp, Refit]
     name: str = NF_REAL
 
     @property
@@ -185,7 +216,9 @@ class FineTunedGrowthMember:
         refit = self.refit_for(origin)
         if refit is None:
             return self.base
-        return dataclasses.replace(self.base, estimator=self.models[refit])
+        model = self.models[refit]
+        estimator = model.estimator if isinstance(model, StoredRefit) else model
+        return dataclasses.replace(self.base, estimator=estimator)
 
     def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
                  levels: NDArray[np.float64], seed: int) -> QuantileForecast:
@@ -206,48 +239,79 @@ class FineTunedGrowthMember:
         return out
 
 
-def fit_finetuned_member(base: NFGrowthMember, synthetic: WindowedDataset,
+def fit_finetuned_member(base: NFGrowthMember, synthetic: SyntheticWindows,
                          histories: Sequence[EpiHistory], dates: Sequence[pd.Timestamp],
                          config: FineTuneConfig, store_root: Path | None = None,
                          progress: ProgressReporter | None = None, *,
                          newest_first: bool = False) -> FineTunedGrowthMember:
     """Fine-tune at each refit date on ``histories`` as they stood then (module docstring);
     with ``store_root`` every model is kept in the model store (key: the configs and the
-    windows' hash), so a rerun on the same data trains nothing. ``newest_first``: fine-tune the
-    latest date first (a second process filling the same store from the other end,
-    :mod:`pipeline.forecast.member_training`); the models are the same either way."""
+    windows' hash), so a rerun on the same data trains nothing, and the windows' hashes in the
+    store's digests (:mod:`pipeline.training.digests`), so it cuts no windows either.
+    ``newest_first``: fine-tune the latest date first (a second process filling the same store
+    from the other end, :mod:`pipeline.forecast.member_training`); the models are the same
+    either way."""
     progress = progress or SilentProgress()
-    models: dict[pd.Timestamp, ConditionalEstimator] = {}
+    models: dict[pd.Timestamp, Refit] = {}
     for date in (sorted(dates, reverse=True) if newest_first else dates):
-        cutoff = date - pd.Timedelta(days=config.revision_days)
-        real = real_windows([h.up_to(date) for h in histories if h.dates[0] <= date], cutoff,
-                            base.config)
-        if len(real[2]) < config.min_windows or len(np.unique(real[2])) < 2:
-            continue
-        train_ds, val_ds = training_windows(real, synthetic, config)
+        known = [h.up_to(date) for h in histories if h.dates[0] <= date]
+        windows = functools.cache(functools.partial(
+            _refit_windows, known, date - pd.Timedelta(days=config.revision_days), base.config,
+            synthetic, config))
         if store_root is None:
-            models[date] = finetune(base.estimator, train_ds, val_ds, config)
+            cut = windows()
+            if cut is not None:
+                models[date] = finetune(base.estimator, *cut, config)
         else:
-            models[date] = _stored_finetune(base, train_ds, val_ds, config, store_root)
-        progress.advance(1, refit=str(date.date()), windows=float(len(real[2])))
+            stored = _stored_finetune(base, known, date, synthetic, config, store_root, windows)
+            if stored is not None:
+                models[date] = stored
+        if date in models:
+            progress.advance(1, refit=str(date.date()))
     return FineTunedGrowthMember(base, models)
 
 
-def _stored_finetune(base: NFGrowthMember, train_ds: WindowedDataset, val_ds: WindowedDataset,
-                     config: FineTuneConfig, store_root: Path) -> ConditionalEstimator:
+def _refit_windows(known: Sequence[EpiHistory], cutoff: pd.Timestamp, growth: GrowthModelConfig,
+                   synthetic: SyntheticWindows, config: FineTuneConfig
+                   ) -> tuple[WindowedDataset, WindowedDataset] | None:
+    """A refit's (train, validation) windows; None when the places known then have too few."""
+    real = real_windows(known, cutoff, growth)
+    if len(real[2]) < config.min_windows or len(np.unique(real[2])) < 2:
+        return None
+    return training_windows(real, synthetic.dataset, config)
+
+
+def _refit_digests(windows: tuple[WindowedDataset, WindowedDataset] | None) -> Digests:
+    if windows is None:
+        return {"skipped": "too few real windows"}
+    train_ds, val_ds = windows
+    return {"train_sha256": train_ds.meta.data_sha256,
+            "validation_sha256": val_ds.meta.data_sha256}
+
+
+def _stored_finetune(base: NFGrowthMember, known: Sequence[EpiHistory], date: pd.Timestamp,
+                     synthetic: SyntheticWindows, config: FineTuneConfig, store_root: Path,
+                     windows: Callable[[], tuple[WindowedDataset, WindowedDataset] | None]
+                     ) -> StoredRefit | None:
+    """The refit at ``date`` from the store (fine-tuned first if absent); None when skipped."""
+    inputs = ("nf-real windows", config.identity(), base.config.identity(),
+              synthetic.data_sha256, date, [history_fingerprint(h) for h in known])
+    digests = DataDigests(store_root).get_or_compute(inputs, lambda: _refit_digests(windows()))
+    if "skipped" in digests:
+        return None
+
     def build(out_dir: Path) -> dict[str, object]:
-        model = finetune(base.estimator, train_ds, val_ds, config)
+        cut = windows()
+        if cut is None or _refit_digests(cut) != digests:
+            raise CheckpointError(f"the refit windows of {date.date()} do not match their "
+                                  f"recorded digests in {store_root}")
+        model = finetune(base.estimator, *cut, config)
         save_checkpoint(out_dir / CHECKPOINT_NAME, model, config=estimator_config(base.config),
-                        stats=model.stats, data_sha256=train_ds.meta.data_sha256,
+                        stats=model.stats, data_sha256=digests["train_sha256"],
                         extra={"kind": NF_REAL})
         return {}
 
     key = {NF_REAL: config.identity(), "nf-growth": base.config.identity(),
-           "validation_sha256": val_ds.meta.data_sha256}
-    entry = ModelStore(store_root).get_or_build(key, train_ds.meta.data_sha256, build)
-    loaded = load_checkpoint(entry.path / CHECKPOINT_NAME,
-                             expected_config=estimator_config(base.config))
-    if not isinstance(loaded.estimator, ConditionalEstimator):
-        raise CheckpointError(f"{entry.path} does not hold a conditional estimator")
-    loaded.estimator.eval()
-    return loaded.estimator
+           "validation_sha256": digests["validation_sha256"]}
+    entry = ModelStore(store_root).get_or_build(key, digests["train_sha256"], build)
+    return StoredRefit.of(entry, estimator_config(base.config))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -37,6 +38,7 @@ from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
 from pipeline.training.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDataset,
                                compute_standardization, dataset_sha256, split_by_trajectory)
 from pipeline.errors import CheckpointError, ConfigError
+from pipeline.training.digests import DataDigests
 from pipeline.training.model_store import ModelStore
 from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig
@@ -209,6 +211,28 @@ def growth_dataset(config: GrowthModelConfig) -> WindowedDataset:
                                 config)
 
 
+@dataclass(frozen=True, eq=False)
+class SyntheticWindows:
+    """:func:`growth_dataset` of ``config``, simulated and cut only when a model trains on it;
+    its hash (a model-store key's data part) comes from the store's training-data digests
+    (:mod:`pipeline.training.digests`) when ``digests`` is given and they hold it."""
+
+    config: GrowthModelConfig
+    digests: DataDigests | None = None
+
+    @functools.cached_property
+    def dataset(self) -> WindowedDataset:
+        return growth_dataset(self.config)
+
+    @functools.cached_property
+    def data_sha256(self) -> str:
+        if self.digests is None:
+            return self.dataset.meta.data_sha256
+        return self.digests.get_or_compute(
+            ("nf-growth windows", self.config.identity()),
+            lambda: {"data_sha256": self.dataset.meta.data_sha256})["data_sha256"]
+
+
 def train_growth_model(config: GrowthModelConfig, dataset: WindowedDataset | None = None,
                        progress: ProgressReporter | None = None) -> tuple[ConditionalEstimator,
                                                                            TrainResult]:
@@ -231,23 +255,24 @@ class StoredGrowthModel:
 def train_or_reuse_growth_model(config: GrowthModelConfig, store_root: Path, *,
                                 retrain: bool = False,
                                 progress: ProgressReporter | None = None,
-                                dataset: WindowedDataset | None = None) -> StoredGrowthModel:
+                                synthetic: SyntheticWindows | None = None) -> StoredGrowthModel:
     """The trained member from the model store (key: config + training-data hash), training it
-    only when the store has no valid entry. ``dataset``: :func:`growth_dataset` of ``config``
-    when the caller has it already (simulating it takes seconds)."""
-    dataset = dataset if dataset is not None else growth_dataset(config)
+    only when the store has no valid entry. ``synthetic``: the caller's
+    :class:`SyntheticWindows` of ``config`` (default: new ones, hashed through the store's
+    digests), so that the windows are cut at most once."""
+    synthetic = synthetic or SyntheticWindows(config, DataDigests(store_root))
 
     def build(out_dir: Path) -> dict[str, object]:
-        estimator, result = train_growth_model(config, dataset, progress)
+        estimator, result = train_growth_model(config, synthetic.dataset, progress)
         save_checkpoint(out_dir / CHECKPOINT_NAME, estimator, config=estimator_config(config),
                         stats=estimator.stats, history=result.history_dicts(),
-                        data_sha256=dataset.meta.data_sha256,
+                        data_sha256=synthetic.dataset.meta.data_sha256,
                         extra={"kind": "nf-growth", "growth_config": config.identity(),
                                "best_val_nll_original": result.best_val_nll_original})
         return {"best_val_nll": result.best_val_nll_original}
 
     entry = ModelStore(store_root).get_or_build({"nf-growth": config.identity()},
-                                                dataset.meta.data_sha256, build, retrain=retrain)
+                                                synthetic.data_sha256, build, retrain=retrain)
     path = entry.path / CHECKPOINT_NAME
     loaded = load_checkpoint(path, expected_config=estimator_config(config))
     if not isinstance(loaded.estimator, ConditionalEstimator):

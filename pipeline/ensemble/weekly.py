@@ -29,11 +29,12 @@ from pipeline.ensemble.members import Member
 from pipeline.ensemble.memo import ForecastMemo
 from pipeline.ensemble.nf_finetune import (FineTuneConfig, fit_finetuned_member,
                                            latest_refit_date, refit_dates)
-from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, growth_dataset,
+from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
                                          train_or_reuse_growth_model)
 from pipeline.ensemble.nowcast_forecast import CompletionMixture, RunNowcast
 from pipeline.ensemble.published import BeyondReach, PublishedEnsemble
 from pipeline.ensemble.targets import EpiHistory, QuantileForecast
+from pipeline.training.digests import DataDigests
 from pipeline.progress import ProgressReporter
 
 SATURDAY = 5
@@ -183,9 +184,9 @@ def _with_flows(members: list[Member], config: WeeklyConfig, store_root: Path,
     dates among ``origins`` (when both are non-empty)."""
     if not config.include_nf:
         return WeeklyMembers(members, None, False)
-    synthetic = growth_dataset(config.growth)
+    synthetic = SyntheticWindows(config.growth, DataDigests(store_root))
     stored = train_or_reuse_growth_model(config.growth, store_root, progress=progress,
-                                         dataset=synthetic)
+                                         synthetic=synthetic)
     flow = NFGrowthMember(stored.estimator, config.growth, n_samples=config.flow_samples)
     members = [*members, flow]
     dates = refit_dates(origins, config.finetune.refit_every_weeks)

@@ -23,8 +23,9 @@ from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission,
                                        SubmissionConfig, load_tasks_config, write_model_output)
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
-from pipeline.report.weekly import (FORKED_DIAGNOSTICS, DiagnosticsUnderWay,
-                                    build_forecast_report, start_diagnostics)
+from pipeline.report.render import start_report
+from pipeline.report.weekly import (FORKED_DIAGNOSTICS, forecast_report_content,
+                                    start_diagnostics)
 from pipeline.report.headline import compute_headline
 
 HUB_TASKS = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"
@@ -46,9 +47,13 @@ def publish(results: ForecastResults) -> PublishedRun:
     outputs = RunOutputs(output_root(results.config), place=results.config.data.place)
     run_id = new_run_id()
     with outputs.staged(results.reference_date, run_id) as staging:
-        # about half the report's drawing, done meanwhile in a child process
+        # about half the report's drawing is done meanwhile in a child process, and the PDF's
+        # layout in another while the tables are written
         diagnostics = start_diagnostics(results.model_outputs(), FORKED_DIAGNOSTICS)
-        files = write_tables(results, staging) + write_report(results, staging, diagnostics)
+        report = start_report(forecast_report_content(results, diagnostics))
+        files = write_tables(results, staging)
+        written = report.write(staging)
+        files += [written.html_path.name, written.pdf_path.name]
         record = RunRecord(
             reference_date=results.reference_date, run_id=run_id,
             finished_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -181,8 +186,3 @@ def headline_record(results: ForecastResults) -> dict[str, object]:
     """The report's page-1 headline as JSON (``results.json``, the run index)."""
     return compute_headline(results).to_dict()
 
-
-def write_report(results: ForecastResults, out_dir: Path,
-                 diagnostics: DiagnosticsUnderWay | None = None) -> list[str]:
-    """report.html + report.pdf (:mod:`pipeline.report.weekly`); returns the file names."""
-    return list(build_forecast_report(results, out_dir, diagnostics))

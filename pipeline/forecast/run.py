@@ -26,8 +26,9 @@ from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels,
 from pipeline.forecast.sources import (data_is_stale, load_series, series_to_sir, sir_arrays,
                                        staleness_notes)
 from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_variants,
-                                     parameter_track, published_skill, rollouts, seeded_smc,
-                                     start_weekly_forecast, weekly_forecast_step)
+                                     published_skill, rollouts, seeded_smc,
+                                     start_parameter_track, start_weekly_forecast,
+                                     weekly_forecast_step)
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.training.model_store import default_store_root
 
@@ -100,13 +101,15 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
         models = run("train-or-reuse-models", train_or_reuse_models, config, data,
                      retrain=retrain, progress=progress("train-or-reuse-models"))
         _log_models(run, models)
-        # Every model stored: the weekly forecast is made in a forked child meanwhile.
+        # Every model stored: the weekly forecast is made in a forked child meanwhile; the β
+        # track is drawn in another while this process draws the rollouts.
         ahead = (start_weekly_forecast(recent, models, config)
                  if models.reused and not background.running else None)
+        track = start_parameter_track(models, arrays, config)
         latest = run("latest-estimates", latest_estimates, models, arrays, config)
         rolled = run("rollouts", rollouts, models, arrays, config)
         future = run("future-paths", future_paths, models, arrays, config)
-        parameters = run("beta-gamma-estimates", parameter_track, models, arrays, config)
+        parameters = run("beta-gamma-estimates", track.result)
         nll = run("nll-table", nll_with_cached_variants, models, data, arrays, config)
         smc = run("nf-seeded-smc", seeded_smc, models, recent.history, arrays, config)
         run.logger.info("NF-seeded SMC over %d days, min ESS %.0f of %d particles",

@@ -25,6 +25,7 @@ same numbers.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from pathlib import Path
@@ -185,14 +186,17 @@ def parameter_track(models: TrainedModels, sir: SIRArrays,
     q0.95, q0.975; one flow call per direction for all days at once. Component ``Rt`` is the
     effective reproduction number β·S/γ computed per joint sample (its posterior, not a ratio of
     medians); γ is the conversion's fixed 1/L (its rows are that constant); the report's
-    intervals are the 50 % and 90 % ones.
+    intervals are the 50 % and 90 % ones. Drawn on one torch thread, so the track is the same
+    whether it is drawn here or in a child (:func:`start_parameter_track`).
     """
     r, n, stride = config.resolved.window, len(sir.times), config.estimates.parameter_stride_days
     frames = []
     for direction in DIRECTIONS:
         targets = (np.arange(r, n, stride) if direction == "forward"
                    else np.arange(0, n - r, stride))
-        samples = _draws_at(models, sir, targets, direction, config, config.step_seed("params"))
+        with single_thread():
+            samples = _draws_at(models, sir, targets, direction, config,
+                                config.step_seed("params"))
         rt = samples[:, :, 3] * samples[:, :, 0] / samples[:, :, 4]                 # β S / γ
         samples = torch.cat([samples, rt[..., None]], dim=-1)
         q = torch.quantile(samples, torch.tensor(PARAMETER_LEVELS, dtype=torch.float64), dim=1)
@@ -204,6 +208,13 @@ def parameter_track(models: TrainedModels, sir: SIRArrays,
                 **{f"q{level:g}": q[k, :, d].numpy()
                    for k, level in enumerate(PARAMETER_LEVELS)}}))
     return pd.concat(frames, ignore_index=True)
+
+
+def start_parameter_track(models: TrainedModels, sir: SIRArrays,
+                          config: ForecastConfig) -> ChildBuild[pd.DataFrame]:
+    """:func:`parameter_track` started in a forked child (:mod:`pipeline.forked`), drawn while
+    this process draws the rollouts; step ``beta-gamma-estimates`` collects it."""
+    return start_in_child(functools.partial(parameter_track, models, sir, config))
 
 
 def nll_table(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) -> pd.DataFrame:

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal, cast
 
 import matplotlib
 import matplotlib.dates as mdates
+import matplotlib.ticker as mticker
 import numpy as np
 import pandas as pd
 from matplotlib.axes import Axes
@@ -83,8 +84,27 @@ def _figure(height_in: float, nrows: int = 1, ncols: int = 1, *,
 def _png(fig: Figure) -> bytes:
     buffer = io.BytesIO()
     with matplotlib.rc_context(_RC):
+        _freeze_ticks(fig)
         fig.savefig(buffer, format="png", dpi=DPI, facecolor="white")
     return buffer.getvalue()
+
+
+def _freeze_ticks(fig: Figure) -> None:
+    """Fix every axis' ticks, labels and offset text at what its locator and formatter give
+    now, before the layout. Constrained layout measures each axis twice before the figure is
+    drawn, and each measure ran the date locators and the formatters again: a fifth of the
+    report's drawing time. The pictures are the same, except that a linear axis keeps the ticks
+    chosen for its height before the layout shrank it (e.g. steps of 0.2, not 0.25)."""
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            for which, locs in (("major", axis.get_majorticklocs()),
+                                ("minor", axis.get_minorticklocs())):
+                ticker = axis.major if which == "major" else axis.minor
+                labels = ticker.formatter.format_ticks(locs)
+                formatter = mticker.FixedFormatter(labels)
+                formatter.set_offset_string(ticker.formatter.get_offset())
+                ticker.locator = mticker.FixedLocator(locs)
+                ticker.formatter = formatter
 
 
 def _dates(dates: Sequence[dt.date] | ArrayLike, name: str = "dates") -> NDArray:

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import base64
+import functools
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -27,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline import __version__
+from pipeline.forked import ChildBuild, start_in_child
 from pipeline.io import atomic_write_bytes, atomic_write_text, sha256_bytes
 from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
                                      TableItem)
@@ -234,6 +236,13 @@ def _data_only_fetcher() -> Any:
     return fetch
 
 
+def preload_pdf_renderer() -> None:
+    """Import WeasyPrint (Pango, fonts: about a second) ahead of the first PDF, e.g. in a thread
+    while a run waits for something else."""
+    import weasyprint  # noqa: F401
+    import weasyprint.urls  # noqa: F401
+
+
 def pdf_bytes(html: str) -> tuple[bytes, int]:
     """Render HTML to PDF bytes with WeasyPrint; returns (pdf, number of pages).
 
@@ -259,8 +268,14 @@ def render_pdf(html: str, path: str | os.PathLike[str]) -> int:
 
 
 def _write_pair(html: str, out_dir: str | os.PathLike[str], stem: str) -> ReportFiles:
+    # everything rendered before anything is replaced
+    return _write_rendered(html, pdf_bytes(html), out_dir, stem)
+
+
+def _write_rendered(html: str, rendered_pdf: tuple[bytes, int], out_dir: str | os.PathLike[str],
+                    stem: str) -> ReportFiles:
     out = Path(out_dir)
-    pdf, n_pages = pdf_bytes(html)            # everything rendered before anything is replaced
+    pdf, n_pages = rendered_pdf
     html_path, pdf_path = out / f"{stem}.html", out / f"{stem}.pdf"
     atomic_write_bytes(pdf_path, pdf)
     atomic_write_text(html_path, html)
@@ -276,6 +291,26 @@ def write_report(content: ReportContent, out_dir: str | os.PathLike[str]) -> Rep
     while rendering leaves any previous report in ``out_dir`` intact.
     """
     return _write_pair(render_html(content), out_dir, "report")
+
+
+@dataclass(frozen=True, eq=False)
+class RenderingReport:
+    """A report's HTML and its PDF under way in a forked child (:func:`start_report`)."""
+
+    html: str
+    pdf: ChildBuild[tuple[bytes, int]]
+
+    def write(self, out_dir: str | os.PathLike[str], stem: str = "report") -> ReportFiles:
+        """Wait for the PDF, then write both as :func:`write_report` does."""
+        return _write_rendered(self.html, self.pdf.result(), out_dir, stem)
+
+
+def start_report(content: ReportContent) -> RenderingReport:
+    """The report's HTML, and its PDF laid out by WeasyPrint in a forked child
+    (:mod:`pipeline.forked`: the same bytes as here): seconds of layout while this process goes
+    on, e.g. writing a run's tables. :meth:`RenderingReport.write` writes both files."""
+    html = render_html(content)
+    return RenderingReport(html, start_in_child(functools.partial(pdf_bytes, html)))
 
 
 def _reproduction_sections(tables: Sequence[tuple[str, pd.DataFrame] | TableItem],

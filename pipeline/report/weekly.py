@@ -1,9 +1,10 @@
 """The weekly report of one run's :class:`pipeline.forecast.results.ForecastResults`.
 
-``build_forecast_report(results, out_dir)`` is what :func:`pipeline.forecast.publish.write_report`
-calls. It is annotated against ``ForecastResults`` (imported for type checking only: the forecast
-package imports this module), turns arrays into figures and frames into tables, and writes
-``report.html`` + ``report.pdf`` with :func:`pipeline.report.render.write_report`.
+:func:`forecast_report_content` is what :func:`pipeline.forecast.publish.publish` renders (with
+:func:`pipeline.report.render.start_report`), :func:`build_forecast_report` the same written in
+one call. It is annotated against ``ForecastResults`` (imported for type checking only: the
+forecast package imports this module), turns arrays into figures and frames into tables, and
+``report.html`` + ``report.pdf`` are written by :mod:`pipeline.report.render`.
 
 A decision document: page 1 is the headline (:mod:`pipeline.report.headline`, the published
 forecast ``results.weekly.latest`` and its backtest), then the forecast and its track record, then
