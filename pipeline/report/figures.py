@@ -97,14 +97,20 @@ def _freeze_ticks(fig: Figure) -> None:
     chosen for its height before the layout shrank it (e.g. steps of 0.2, not 0.25)."""
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
-            for which, locs in (("major", axis.get_majorticklocs()),
-                                ("minor", axis.get_minorticklocs())):
-                ticker = axis.major if which == "major" else axis.minor
-                labels = ticker.formatter.format_ticks(locs)
-                formatter = mticker.FixedFormatter(labels)
-                formatter.set_offset_string(ticker.formatter.get_offset())
-                ticker.locator = mticker.FixedLocator(locs)
-                ticker.formatter = formatter
+            major = _frozen(axis.get_majorticklocs(), axis.get_major_formatter())
+            minor = _frozen(axis.get_minorticklocs(), axis.get_minor_formatter())
+            axis.set_major_locator(major[0])
+            axis.set_major_formatter(major[1])
+            axis.set_minor_locator(minor[0])
+            axis.set_minor_formatter(minor[1])
+
+
+def _frozen(locs: NDArray, formatter: mticker.Formatter
+            ) -> tuple[mticker.FixedLocator, mticker.FixedFormatter]:
+    values = [float(v) for v in locs]
+    fixed = mticker.FixedFormatter(formatter.format_ticks(values))
+    fixed.set_offset_string(formatter.get_offset())
+    return mticker.FixedLocator(values), fixed
 
 
 def _dates(dates: Sequence[dt.date] | ArrayLike, name: str = "dates") -> NDArray:
