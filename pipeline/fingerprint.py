@@ -29,7 +29,7 @@ PACKAGE_ROOT = Path(__file__).resolve().parent     # the pipeline package
 
 
 class FingerprintError(FlowcastError):
-    """An object the memo cannot fingerprint (its forecasts would be keyed unsafely)."""
+    """An object that cannot be fingerprinted (a result would be keyed unsafely)."""
 
 
 def _update(h: Any, obj: object) -> None:
@@ -65,8 +65,7 @@ def _update(h: Any, obj: object) -> None:
     elif hasattr(obj, "__dict__") and not callable(obj):
         _update(h, {k: v for k, v in vars(obj).items() if not k.startswith("_")})
     else:
-        raise FingerprintError(f"cannot fingerprint a {type(obj).__qualname__} for the "
-                               "forecast memo")
+        raise FingerprintError(f"cannot fingerprint a {type(obj).__qualname__}")
 
 
 def _update_array(h: Any, array: NDArray[Any]) -> None:

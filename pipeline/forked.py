@@ -1,10 +1,10 @@
 """Part of a step computed in a forked child process while this process does the rest.
 
 The weekly run is single-threaded Python and small torch calls for most of its time, so on 2
-cores one sits idle. Independent parts of a step — two of the four rollouts, the NF-seeded
-SMC's batch beside the other members, five of the report's 13 figures — run in a child
-meanwhile. :func:`start_in_child` forks the process (the child shares
-everything already in memory, nothing is pickled on the way in), runs the build there and sends
+cores one sits idle. Independent parts of a step — two of the four rollouts, the β track, the
+NF-seeded SMC's batch beside the other members, half of the report's figures, the PDF's layout —
+run in a child meanwhile. :func:`start_in_child` forks the process (the child shares everything
+already in memory, nothing is pickled on the way in), runs the build there and sends
 back its pickled value; :meth:`ChildBuild.result` waits for it. Builds whose numbers must not
 depend on where they ran use torch on one thread in both places (matrix products may sum in
 another order on two threads).

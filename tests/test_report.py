@@ -508,10 +508,14 @@ def real_results(datasf_dir, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def real_report(real_results, tmp_path_factory):
-    from pipeline.report.weekly import build_forecast_report
+    from pipeline.report.render import pdf_bytes, start_report
+    from pipeline.report.weekly import forecast_report_content
 
     out = tmp_path_factory.mktemp("real-report")
-    assert build_forecast_report(real_results, out) == ["report.html", "report.pdf"]
+    written = start_report(forecast_report_content(real_results)).write(out)  # as publish does
+    assert sorted(p.name for p in out.iterdir()) == ["report.html", "report.pdf"]
+    # the PDF laid out in a forked child is the one laid out here, byte for byte
+    assert written.pdf_path.read_bytes() == pdf_bytes(written.html_path.read_text())[0]
     return out
 
 

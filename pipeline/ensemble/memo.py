@@ -7,8 +7,10 @@ ones). Under real-time discipline a forecast from origin t depends only on what 
 horizons, levels and seed — and on the code. The memo keys each forecast by a SHA-256 digest of
 exactly those:
 
-* the **member**: every dataclass field, array and tensor it holds, recursively (model weights
-  through ``state_dict``; private fields, i.e. derived caches, are skipped);
+* the **member**: every dataclass field, array and tensor it holds, recursively
+  (:mod:`pipeline.fingerprint`: model weights through ``state_dict``, a stored nf-real refit by
+  its model-store key and version, whose name carries its files' hash; private fields, i.e.
+  derived caches, are skipped);
 * the **history** it was given: dates, daily cases, S, I, R and the population — a revised
   count, a new nowcast completion or a longer series is a different key;
 * **horizons, levels and seed**;

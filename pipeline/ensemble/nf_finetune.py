@@ -184,11 +184,8 @@ class StoredRefit:
 
     @functools.cached_property
     def estimator(self) -> ConditionalEstimator:
-        loaded = load_checkpoint(self._path / CHECKPOINT_NAME, expected_config=self.expected)
-        if not isinstance(loaded.estimator, ConditionalEstimator):
-            raise CheckpointError(f"{self._path} does not hold a conditional estimator")
-        loaded.estimator.eval()
-        return loaded.estimator
+        return load_checkpoint(self._path / CHECKPOINT_NAME,
+                               expected_config=self.expected).estimator
 
 
 Refit = ConditionalEstimator | StoredRefit

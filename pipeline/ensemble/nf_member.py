@@ -37,7 +37,7 @@ import pipeline
 from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
 from pipeline.training.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDataset,
                                compute_standardization, dataset_sha256, split_by_trajectory)
-from pipeline.errors import CheckpointError, ConfigError
+from pipeline.errors import ConfigError
 from pipeline.training.digests import DataDigests
 from pipeline.training.model_store import ModelStore
 from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
@@ -273,11 +273,8 @@ def train_or_reuse_growth_model(config: GrowthModelConfig, store_root: Path, *,
 
     entry = ModelStore(store_root).get_or_build({"nf-growth": config.identity()},
                                                 synthetic.data_sha256, build, retrain=retrain)
-    path = entry.path / CHECKPOINT_NAME
-    loaded = load_checkpoint(path, expected_config=estimator_config(config))
-    if not isinstance(loaded.estimator, ConditionalEstimator):
-        raise CheckpointError(f"{path} does not hold a conditional estimator")
-    loaded.estimator.eval()
+    # load_checkpoint rebuilds a ConditionalEstimator in eval mode
+    loaded = load_checkpoint(entry.path / CHECKPOINT_NAME, expected_config=estimator_config(config))
     return StoredGrowthModel(loaded.estimator, entry.key, entry.reused,
                              float(loaded.meta.extra.get("best_val_nll_original", float("nan"))))
 

@@ -10,7 +10,7 @@ from pipeline.report.content import (SECTION_TITLES, FigureItem, Provenance, Rep
 from pipeline.report.render import (ReportFiles, render_html, render_pdf, render_reproduction,
                                     write_report, write_reproduction)
 
-# The weekly forecast's report is pipeline.report.weekly.build_forecast_report: it reads
+# The weekly forecast's report is pipeline.report.weekly.forecast_report_content: it reads
 # pipeline.forecast.results, so it is not imported here (the forecast package imports this one).
 
 __all__ = [

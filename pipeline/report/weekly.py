@@ -1,10 +1,10 @@
 """The weekly report of one run's :class:`pipeline.forecast.results.ForecastResults`.
 
 :func:`forecast_report_content` is what :func:`pipeline.forecast.publish.publish` renders (with
-:func:`pipeline.report.render.start_report`), :func:`build_forecast_report` the same written in
-one call. It is annotated against ``ForecastResults`` (imported for type checking only: the
-forecast package imports this module), turns arrays into figures and frames into tables, and
-``report.html`` + ``report.pdf`` are written by :mod:`pipeline.report.render`.
+:func:`pipeline.report.render.start_report`). It is annotated against ``ForecastResults``
+(imported for type checking only: the forecast package imports this module), turns arrays into
+figures and frames into tables; ``report.html`` + ``report.pdf`` are written by
+:mod:`pipeline.report.render`.
 
 A decision document: page 1 is the headline (:mod:`pipeline.report.headline`, the published
 forecast ``results.weekly.latest`` and its backtest), then the forecast and its track record, then
@@ -24,7 +24,6 @@ import logging
 import platform
 from collections.abc import Callable, Sequence
 from importlib import metadata
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -41,7 +40,6 @@ from pipeline.report.content import (FigureItem, Provenance, ReportContent, Repo
 from pipeline.report.headline import (PUBLISHED, Headline, as_numpy, compute_headline,
                                       facts_frame, fmt_count, fmt_range, fmt_share,
                                       forecast_frame, published_weekly, skill_frame)
-from pipeline.report.render import ReportFiles, write_report
 from pipeline.names import COMPARTMENTS, DIRECTIONS
 
 if TYPE_CHECKING:
@@ -617,10 +615,3 @@ def forecast_report_content(results: ForecastResults,
         sections=tuple(sections), provenance=_provenance(results), warnings=tuple(notes),
         summary=headline.sentence(),
         headline=headline_section(headline, results.county_skill))
-
-
-def build_forecast_report(results: ForecastResults, out_dir: str | Path,
-                          diagnostics: DiagnosticsUnderWay | None = None) -> list[str]:
-    """Write report.html and report.pdf for one weekly run; returns the file names written."""
-    files: ReportFiles = write_report(forecast_report_content(results, diagnostics), out_dir)
-    return [files.html_path.name, files.pdf_path.name]
