@@ -4,12 +4,12 @@ Every Saturday origin of the shared DataSF data with 4 weeks of truth (from 8 we
 data), with the weekly forecast's own settings (``pipeline.forecast.steps`` preset ``default``: the same
 members, flow model, ensemble and recalibration the weekly run publishes). At each origin every member sees the
 data up to that day only; the published forecast is their quantile average with weights and a
-recalibration fitted to past origins' scores only (:mod:`pipeline.ensemble.backtest`).
+recalibration fitted to past origins' scores only (:mod:`pipeline.backtest.backtest`).
 Targets I and weekly reported cases, 1–4 weeks, 23 hub quantiles; WIS relative to the COVID-19
 Forecast Hub baseline per target × horizon (never pooled across targets), 50 %/90 % coverage,
 PIT histograms, and the count of invalid values in the published sample paths. The NF-seeded SMC
 forecaster (``nf-smc``: the weekly run's joint flow seeding a filter on the multi-wave model,
-:mod:`pipeline.ensemble.smc_member`) is scored beside the members, as in the weekly run, and not
+:mod:`pipeline.members.smc`) is scored beside the members, as in the weekly run, and not
 averaged (``--no-smc`` leaves it out).
 
     python -m bench.backtest              # the published forecast (hub baseline, growth-qr,
@@ -46,54 +46,41 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def design_variants(history: Any, members: list[Any], config: Any) -> dict[str, Any]:
-    """The published forecast's design choices against their alternatives, same origins: per
-    target, relative WIS (h1–h4, all) and coverage of the published forecast under each."""
-    import dataclasses
+def design_variants() -> tuple[Any, ...]:
+    """The published forecast's design choices against their alternatives, scored on the same
+    origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
+    weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
+    from pipeline.backtest.backtest import Variant
+    from pipeline.combine.combiner import CombineConfig
 
-    from pipeline.ensemble.backtest import run_realtime_backtest, summarize
-    from pipeline.ensemble.calibration import CalibrationConfig
-    from pipeline.ensemble.combine import EnsembleConfig
-
-    def without(name: str) -> list[Any]:
-        return [m for m in members if m.name != name]
-
-    published = config.ensemble
-    choices = {
-        "linear average": (members, dataclasses.replace(published, scale="linear"),
-                           config.calibration),
-        "skill weights (inverse WIS, last 12 origins)": (
-            members, dataclasses.replace(published, weighting="skill"), config.calibration),
-        "widen-only recalibration (the SF-only design)": (
-            members, published, CalibrationConfig()),
-        "recalibration that may narrow (probit-normal with bias)": (
-            members, published, CalibrationConfig(widen_only=False)),
-        "the SF-only design: AutoETS + nf-growth, skill weights, linear, widen-only": (
-            [m for m in members if m.name == "nf-growth"] + [_autoets()],
-            EnsembleConfig(weighting="skill", scale="linear"), CalibrationConfig()),
-        **{f"without {m.name}": (without(m.name), published, config.calibration)
-           for m in members},
-    }
-    out: dict[str, Any] = {}
-    for name, (chosen, ensemble, calibration) in choices.items():
-        result = run_realtime_backtest(history, chosen, dataclasses.replace(
-            config, ensemble=ensemble, calibration=calibration))
-        out[name] = {target: {"relative_wis_vs_baseline": s["published"]["relative_wis_vs_baseline"],
-                              "coverage50": s["published"]["coverage50"],
-                              "coverage90": s["published"]["coverage90"]}
-                     for target, s in summarize(result)["by_target"].items()}
-        print(f"variant {name!r}: I all {out[name]['I']['relative_wis_vs_baseline']['all']:.3f}"
-              f", cases all {out[name]['cases']['relative_wis_vs_baseline']['all']:.3f}")
-    return out
+    members = ("hub-baseline", "growth-qr", "nf-growth", "nf-real")
+    return (
+        Variant("linear average", CombineConfig(scale="linear")),
+        Variant("skill weights (inverse WIS, last 12 origins)",
+                CombineConfig(weights="inverse-wis")),
+        Variant("widen-only recalibration (the SF-only design)",
+                CombineConfig(calibration="widen-only", calibration_window_origins=52)),
+        Variant("recalibration that may narrow (probit-normal with bias)",
+                CombineConfig(calibration="bias-scale", calibration_window_origins=52)),
+        Variant("the SF-only design: AutoETS + nf-growth, skill weights, linear, widen-only",
+                CombineConfig(weights="inverse-wis", scale="linear", calibration="widen-only",
+                              calibration_window_origins=52), members=("autoets", "nf-growth")),
+        *(Variant(f"without {m}", members=tuple(n for n in members if n != m))
+          for m in members),
+    )
 
 
-def _autoets() -> Any:
-    from pipeline.ensemble.autoets import AutoETSMember
+def variant_summaries(summary: dict[str, Any]) -> dict[str, Any]:
+    """Per variant and target: relative WIS (h1–h4, all) and coverage."""
+    names = [v.name for v in design_variants()]
+    return {name: {target: {"relative_wis_vs_baseline": s[name]["relative_wis_vs_baseline"],
+                            "coverage50": s[name]["coverage50"],
+                            "coverage90": s[name]["coverage90"]}
+                   for target, s in summary["by_target"].items() if name in s}
+            for name in names}
 
-    return AutoETSMember()
 
-
-def smc_reference(history: Any, config: Any, seed: int) -> tuple[list[Any], float]:
+def smc_reference(history: Any, origins: list[Any], seed: int) -> tuple[list[Any], float]:
     """The NF-seeded SMC forecaster at every origin the backtest runs (warm-up included), one
     batch of filters, with the default forecast's joint flow (trained if absent); seconds."""
     import dataclasses
@@ -101,18 +88,19 @@ def smc_reference(history: Any, config: Any, seed: int) -> tuple[list[Any], floa
     import numpy as np
 
     from pipeline import forecast as fc
-    from pipeline.ensemble.backtest import backtest_origins
-    from pipeline.ensemble.smc_member import batched_smc_forecasts
     from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
+    from pipeline.forecast.sources import SF_COUNTY
     from pipeline.forecast.steps import smc_member
+    from pipeline.members.smc import batched_smc_forecasts
+    from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
 
     t0 = time.perf_counter()
     forecast_config = fc.resolve_config("default", seed=seed)
     models = train_or_reuse_models(forecast_config, simulate_training_data(forecast_config))
-    origins = backtest_origins(history, dataclasses.replace(config, first_origin=None))
-    scored = batched_smc_forecasts(smc_member(models, forecast_config), history, origins,
-                                   config.horizons, np.asarray(config.levels),
-                                   forecast_config.step_seed("smc") + 1)
+    member = dataclasses.replace(smc_member(models, forecast_config),
+                                 seed=forecast_config.step_seed("smc") + 1)
+    scored = batched_smc_forecasts(member, history, SF_COUNTY, origins, HORIZONS_WEEKS,
+                                   np.asarray(HUB_QUANTILE_LEVELS))
     return [scored], time.perf_counter() - t0
 
 
@@ -121,15 +109,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import dataclasses
 
     from pipeline import forecast as fc
-    from pipeline.forecast.sources import (SF_COUNTY, import_exports,
-                                           load_reference_histories, load_sf_history)
+    from pipeline.backtest.track_record import track_record
     from pipeline.data.cdph import find_vintage_files
     from pipeline.data.cdph_source import import_cdph_exports
-    from pipeline.training.model_store import default_store_root
-    from pipeline.ensemble.backtest import (backtest_origins,
-                                               run_realtime_backtest, summarize)
-    from pipeline.ensemble.weekly import build_weekly_members
+    from pipeline.forecast.sources import (SF_COUNTY, import_exports,
+                                           load_reference_histories, load_sf_history)
     from pipeline.io import atomic_write_json
+    from pipeline.panels.california import place_panel
+    from pipeline.training.model_store import default_store_root
 
     import_exports([args.data], if_empty=True)
     if Path(args.cdph).is_dir():
@@ -137,29 +124,31 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     source = fc.DataSourceConfig(kind="cache")
     history = load_sf_history(source)
     reference = load_reference_histories()
-    weekly = dataclasses.replace(fc.resolve_config("default", seed=args.seed).weekly_config(),
-                                 include_nf=not args.no_nf)
-    config = weekly.backtest_config(scored_only=True)
-    if args.quick:
-        origins = backtest_origins(history, config)
-        config = dataclasses.replace(config, first_origin=origins[-6].date())
-    t0 = time.perf_counter()
-    chosen = build_weekly_members(weekly, default_store_root(), reference, history, SF_COUNTY)
-    members, model_key, reused = chosen.members, chosen.model_key, chosen.reused
-    t_members = time.perf_counter() - t0
+    record = fc.resolve_config("default", seed=args.seed).track_record_config()
+    record = dataclasses.replace(
+        record, members=dataclasses.replace(record.members, include_nf=not args.no_nf))
+    if not args.quick:
+        record = dataclasses.replace(record, variants=design_variants())
+    reported = record.origins(history, scored_only=True)
+    first = reported[-6].date() if args.quick else None
     references, t_smc = [], 0.0
     if not args.no_smc:
-        references, t_smc = smc_reference(history, config, args.seed)
-    result = run_realtime_backtest(history, members, config, references=references)
-    summary = summarize(result)
-    variants = {} if args.quick else design_variants(history, members, config)
+        references, t_smc = smc_reference(history, reported, args.seed)
+    t0 = time.perf_counter()
+    made = track_record(place_panel(SF_COUNTY, history, reference), SF_COUNTY, record,
+                        default_store_root(), references=references, scored_only=True,
+                        first=first)
+    result = made.result
+    t_all = time.perf_counter() - t0
+    summary = made.summary()
+    t_members = t_all - sum(result.seconds.values())
     out = {
         **summary,
-        "variants": variants,
+        "variants": variant_summaries(summary),
         "seconds": {"members": round(t_members, 2), "nf_smc": round(t_smc, 2),
-                    "backtest": round(result.seconds, 2),
-                    "total": round(t_members + t_smc + result.seconds, 2)},
-        "flow_model": {"key": model_key, "reused": reused},
+                    "backtest": round(sum(result.seconds.values()), 2),
+                    "total": round(t_all + t_smc, 2), "parts": summary["seconds"]},
+        "flow_model": {"key": made.model_key, "reused": made.model_reused},
         "data": {"first_day": str(history.dates[0].date()), "last_day": str(history.origin.date()),
                  "population": history.population,
                  "reference_places": len(reference),
@@ -181,7 +170,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"{target:5s} {name:22s} {rel}  cov {s['coverage50']:.2f}/{s['coverage90']:.2f}")
     print(f"{summary['n_origins']} origins ({summary['origins']['first']} … "
           f"{summary['origins']['last']}), invalid values {summary['invalid_values']}, "
-          f"backtest {result.seconds:.1f} s → {path}")
+          f"backtest {sum(result.seconds.values()):.1f} s → {path}")
     return out
 
 

@@ -4,7 +4,7 @@ Every California county with at least 100,000 people in the latest shared CDPH v
 (``../shared/data/cdph``), at every Saturday origin with four weeks of truth (from eight weeks
 into the data; the vintage's last 14 days, still filling in, are cut). Each county × origin sees
 its own county's data up to the origin, and the pooled members (growth-qr, nf-real) every
-county's data up to the origin, nothing later (:mod:`pipeline.ensemble.county_backtest`).
+county's data up to the origin, nothing later (:mod:`pipeline.backtest.backtest`).
 
 Per target (weekly cases, I) × forecaster: the geometric mean over counties of each county's
 relative WIS against the COVID-19 Forecast Hub baseline, per horizon and overall; the share of
@@ -45,8 +45,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
-    from pipeline.ensemble.county_backtest import Variant
-    from pipeline.ensemble.pooled import PooledConfig
+    from pipeline.backtest.backtest import Variant
+    from pipeline.combine.combiner import CombineConfig as PooledConfig
 
     long = 1_000                       # every past scored origin
     return (
@@ -68,22 +68,16 @@ def design_variants() -> tuple[Any, ...]:
 
 def by_year(result: Any, forecasters: list[str]) -> dict[str, Any]:
     """Geometric-mean relative WIS (all horizons, cases) of ``forecasters`` by year of origin."""
+    import dataclasses
+
     import numpy as np
 
-    from pipeline.ensemble.county_backtest import PanelBacktestResult, summarize_panel
-
-    assert isinstance(result, PanelBacktestResult)
     years = sorted({o.year for o in result.origins})
     out: dict[str, Any] = {}
     for year in years:
         keep = np.array([o.year == year for o in result.origins])
-        part = PanelBacktestResult(
-            result.places, tuple(o for o, k in zip(result.origins, keep) if k), result.horizons,
-            result.levels, result.populations, result.members,
-            {t: {n: v[:, keep] for n, v in f.items()} for t, f in result.forecasts.items()},
-            {t: v[:, keep] for t, v in result.truth.items()}, result.weights[keep],
-            result.seconds, result.config)
-        summary = summarize_panel(part)["by_target"]["cases"]
+        part = dataclasses.replace(result, reported=keep).reported_only()
+        summary = part.summary()["by_target"]["cases"]
         out[str(year)] = {"n_origins": int(keep.sum())} | {
             n: summary[n]["gmean_relative_wis"] for n in forecasters}
     return out
@@ -92,40 +86,28 @@ def by_year(result: Any, forecasters: list[str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
     from pipeline.data.cdph import find_vintage_files, read_cdph_csv, read_vintages
-    from pipeline.ensemble.autoets import AutoETSMember
-    from pipeline.ensemble.county_backtest import (CountyBacktestConfig, county_panel,
-                                                   run_panel_backtest, select_counties,
-                                                   summarize_panel)
-    from pipeline.ensemble.panel import weekly_origins
-    from pipeline.ensemble.weekly import build_panel_members
     from pipeline.forecast import resolve_config
+    from pipeline.forecast.county_skill import county_backtest
     from pipeline.io import atomic_write_json
+    from pipeline.members.autoets import AutoETSMember
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
     vintage = (read_cdph_csv(args.vintage) if args.vintage
                else read_vintages(find_vintage_files(SHARED_CDPH))[-1])
-    config = CountyBacktestConfig(seed=args.seed, variants=design_variants())
-    counties = select_counties(vintage, config)
-    panel = county_panel(vintage, counties, config.trailing_days)
-    origins = weekly_origins(panel.dates, min_history_weeks=config.min_history_weeks,
-                             horizon_weeks=max(config.horizons))
     # the weekly run's own members and models (its seeds included), so the county backtest
     # scores exactly what the weekly forecast publishes and shares its stored models
-    weekly = resolve_config("default", seed=args.seed).weekly_config()
-
+    config = resolve_config("default", seed=args.seed)
     started = time.perf_counter()
-    with rich_progress("members' models", 1) as progress:
-        chosen = build_panel_members(list(panel.histories.values()), origins, weekly,
-                                     default_store_root(), progress)
-    t_members = time.perf_counter() - started
-
-    started = time.perf_counter()
-    n_cells = len(counties) * len(origins)
-    with rich_progress("cross-county backtest", n_cells * (len(chosen.members) + 1)) as progress:
-        result = run_panel_backtest(panel, chosen.members, config, (AutoETSMember(),), progress)
-    t_backtest = time.perf_counter() - started
-    summary = summarize_panel(result)
+    with rich_progress("cross-county backtest", 1) as progress:
+        result, chosen = county_backtest(vintage, config, default_store_root(),
+                                         variants=design_variants(),
+                                         references=(AutoETSMember(),), progress=progress)
+    t_all = time.perf_counter() - started
+    t_members = t_all - sum(result.seconds.values())
+    counties, origins = result.places, result.origins
+    t_backtest = t_all - t_members
+    summary = result.summary()
     reference_forecasters = ["published", *result.members, "autoets"]
     out = {
         **summary,

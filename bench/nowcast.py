@@ -21,8 +21,8 @@ against today's method (drop the last 14 days) and the truncated data as is.
    forecasters, each on every method:
 
    * ``published`` — the weekly run's published forecast
-     (:class:`pipeline.ensemble.published.PublishedEnsemble`, members chosen by
-     :func:`pipeline.ensemble.weekly.build_vintage_ensemble`): hub-baseline, growth-qr pooled
+     (:class:`pipeline.combine.combiner.Ensemble`, members chosen by
+     :func:`pipeline.members.published.build_members`): hub-baseline, growth-qr pooled
      over the vintage's counties less their last 14 days (the run's reference places; each
      county's own left out), nf-growth, and nf-real fine-tuned on the vintage's county windows
      at the latest refit date ≤ each origin (model store); each member mixed over the
@@ -57,17 +57,21 @@ import pandas as pd
 from pipeline.data.cdph import CDPHVintage, find_vintage_files, read_vintages
 from pipeline.data.delays import DelayModel, DelayModelConfig, fit_delay_model
 from pipeline.data.vintage_pairs import RevisionPairs, revision_pairs
-from pipeline.ensemble.autoets import AutoETSMember
-from pipeline.ensemble.nowcast import (CompletedHistories, NowcastConfig, complete_histories,
+from pipeline.members.autoets import AutoETSMember
+from pipeline.nowcast.completions import (CompletedHistories, NowcastConfig, complete_histories,
                                        nowcast_history)
-from pipeline.ensemble.nowcast_forecast import (HUB_HORIZONS, CompletionForecaster,
-                                                MemberForecaster, hub_weeks, last_saturday,
-                                                nowcast_then_forecast_places,
-                                                truncated_forecasts, week_sums)
-from pipeline.ensemble.published import PublishedEnsemble, reachable
-from pipeline.ensemble.targets import (HUB_QUANTILE_LEVELS, DAYS_PER_WEEK, EpiHistory,
-                                       history_from_county)
-from pipeline.ensemble.weekly import WeeklyConfig, build_vintage_ensemble
+from pipeline.backtest.track_record import TrackRecordConfig
+from pipeline.combine.combiner import CombineConfig, Ensemble
+from pipeline.members.base import reach
+from pipeline.members.flow_finetune import latest_refit_date
+from pipeline.members.published import build_members
+from pipeline.nowcast.hub_weeks import HUB_HORIZONS, hub_weeks, last_saturday
+from pipeline.nowcast.then_forecast import (Forecaster, nowcast_then_forecast_places,
+                                            truncated_forecasts)
+from pipeline.nowcast.completions import week_sums
+from pipeline.panels.history import EpiHistory, history_from_county
+from pipeline.panels.panel import Panel
+from pipeline.panels.targets import DAYS_PER_WEEK, HUB_QUANTILE_LEVELS
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
 from pipeline.forecast import resolve_config
 from pipeline.forecast.sources import SETTLED_DAYS
@@ -201,27 +205,28 @@ def week_truth(final: EpiHistory, ends: list[pd.Timestamp]) -> np.ndarray:
                     dtype=np.float64)
 
 
-def vintage_forecasts(forecaster: CompletionForecaster, histories: dict[str, EpiHistory],
-                      completed: dict[str, CompletedHistories], data_date: pd.Timestamp, levels: np.ndarray,
-                      seed: int, seconds: dict[str, float], *,
-                      drop14_reachable: CompletionForecaster | None = None,
+def vintage_forecasts(forecaster: Forecaster, histories: dict[str, EpiHistory],
+                      completed: dict[str, CompletedHistories], data_date: pd.Timestamp,
+                      levels: np.ndarray, seed: int, seconds: dict[str, float], pool: Panel, *,
+                      drop14_reachable: Forecaster | None = None,
                       partial_week: bool = False) -> dict[str, dict[str, np.ndarray]]:
     """{method: {county: (H, Q)}} of one forecaster at one vintage, every county in one batch
     per method; ``seconds[method]`` accumulates the time each took."""
     calls: dict[str, Any] = {
         "nowcast": lambda: {c: f.quantiles for c, f in nowcast_then_forecast_places(
-            completed, data_date, forecaster, levels, seed).items()},
+            completed, data_date, forecaster, levels, seed, panel=pool).items()},
         "drop14": lambda: truncated_forecasts(histories, data_date, forecaster, levels, seed,
-                                              drop_days=14),
+                                              drop_days=14, panel=pool),
         "as_is": lambda: truncated_forecasts(histories, data_date, forecaster, levels, seed,
-                                             drop_days=0)}
+                                             drop_days=0, panel=pool)}
     if partial_week:
         calls["nowcast_with_partial_week"] = lambda: {
             c: f.quantiles for c, f in nowcast_then_forecast_places(
-                completed, data_date, forecaster, levels, seed, partial_week=True).items()}
+                completed, data_date, forecaster, levels, seed, partial_week=True,
+                panel=pool).items()}
     if drop14_reachable is not None:
         calls["drop14_reachable_members"] = lambda: truncated_forecasts(
-            histories, data_date, drop14_reachable, levels, seed, drop_days=14)
+            histories, data_date, drop14_reachable, levels, seed, drop_days=14, panel=pool)
     out = {}
     for method, call in calls.items():
         t = time.perf_counter()
@@ -232,11 +237,12 @@ def vintage_forecasts(forecaster: CompletionForecaster, histories: dict[str, Epi
 
 def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
                        counties: tuple[str, ...], config: DelayModelConfig,
-                       nowcast_config: NowcastConfig, weekly: WeeklyConfig, store_root: Path,
+                       nowcast_config: NowcastConfig, record: TrackRecordConfig,
+                       store_root: Path,
                        seed: int) -> dict[str, Any]:
     latest = vintages[-1]
     levels = np.asarray(HUB_QUANTILE_LEVELS)
-    autoets = MemberForecaster(AutoETSMember())
+    autoets = AutoETSMember()
     rows: list[dict[str, Any]] = []
     reported: list[dict[str, Any]] = []
     models: dict[str, str] = {}
@@ -256,20 +262,23 @@ def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
         t = time.perf_counter()
         drop_origin = last_saturday(vintage.as_of - pd.Timedelta(days=14))
         # the pooled members' places as the run has them: the vintage less its last 14 days
-        pool = {c: h.up_to(vintage.as_of - pd.Timedelta(days=SETTLED_DAYS))
-                for c, h in histories.items()}
+        pool = Panel({c: h.up_to(vintage.as_of - pd.Timedelta(days=SETTLED_DAYS))
+                      for c, h in histories.items()}, name="california-counties")
+        refits = sorted({latest_refit_date(o, record.members.finetune.refit_every_weeks)
+                         for o in (weeks.origin, drop_origin)})
         with rich_progress(f"members at {vintage.as_of.date()}", 2) as progress:
-            published = build_vintage_ensemble(weekly, store_root, pool,
-                                               [weeks.origin, drop_origin], progress)
+            chosen = build_members(record.members, store_root, pool, refits, progress)
+        published = Ensemble(tuple(chosen.members))
         seconds["members"][str(vintage.as_of.date())] = round(time.perf_counter() - t, 1)
         reach[str(vintage.as_of.date())] = drop14_reach(published, weeks, drop_origin)
         forecasts = {
             "published": vintage_forecasts(
                 published, histories, completed, vintage.as_of, levels, seed,
-                seconds["published"],
-                drop14_reachable=dataclasses.replace(published, beyond_reach="reachable-members")),
+                seconds["published"], pool,
+                drop14_reachable=Ensemble(published.members,
+                                          CombineConfig(beyond_reach="reachable-members"))),
             "autoets": vintage_forecasts(autoets, histories, completed, vintage.as_of, levels,
-                                         seed, seconds["autoets"], partial_week=True)}
+                                         seed, seconds["autoets"], pool, partial_week=True)}
         for county in counties:
             truth = week_truth(history_from_county(latest.county(county)),
                                [w.end for w in weeks.weeks])
@@ -304,7 +313,7 @@ def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
             "seconds": {k: {m: round(x, 1) for m, x in v.items()} for k, v in seconds.items()}}
 
 
-def drop14_reach(published: PublishedEnsemble, weeks: Any, drop_origin: pd.Timestamp
+def drop14_reach(published: Ensemble, weeks: Any, drop_origin: pd.Timestamp
                  ) -> dict[str, Any]:
     """Each hub week's step from the drop-14 origin and the members that reach it."""
     out: dict[str, Any] = {"drop14_origin": str(drop_origin.date()),
@@ -313,9 +322,7 @@ def drop14_reach(published: PublishedEnsemble, weeks: Any, drop_origin: pd.Times
         step = int((w.end - drop_origin).days // DAYS_PER_WEEK)
         out[f"horizon_{w.horizon}"] = {
             "step_from_drop14_origin": step,
-            "members": [n for n, m in zip(published.member_names,
-                                          (None, *published.members))
-                        if m is None or reachable(m, (step,))]}
+            "members": [m.name for m in published.members if reach(m, (step,))]}
     return out
 
 
@@ -456,12 +463,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result["held_out_pairs"] = held_out_pairs(vintages, chain, counties, config, 200, args.seed)
     print("nowcast then forecast")
     nowcast_config = NowcastConfig(n_completions=args.completions)
-    weekly = resolve_config("default", seed=args.seed).weekly_config()
+    record = resolve_config("default", seed=args.seed).track_record_config()
     result["forecasts"] = evaluate_forecasts(vintages, chain, counties, config, nowcast_config,
-                                             weekly, default_store_root(), args.seed)
+                                             record, default_store_root(), args.seed)
     result["forecasts"]["forecasters"] = {
-        "published": "the weekly run's published forecast (pipeline.ensemble.published via "
-                     "pipeline.ensemble.weekly.build_vintage_ensemble): equal-weight log "
+        "published": "the weekly run's published forecast (pipeline.combine.combiner.Ensemble of "
+                     "pipeline.members.published.build_members): equal-weight log "
                      "average of hub-baseline, growth-qr (pooled over the vintage's counties "
                      "less their last 14 days, each county's own left out), nf-growth and "
                      "nf-real (fine-tuned on the vintage's county windows at the latest refit "
@@ -469,7 +476,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                      "averaged; no recalibration. drop14 beyond the flows' 4 weeks: missing; "
                      "drop14_reachable_members: there the log average of hub-baseline and "
                      "growth-qr (a different forecaster)",
-        "autoets": "autoets (pipeline.ensemble.autoets) on every method"}
+        "autoets": "autoets (pipeline.members.autoets) on every method"}
     result["datasf"] = datasf_vintages()
     result["settings"] = {"completions": args.completions, "seed": args.seed,
                           "nowcast": dataclasses.asdict(nowcast_config)}

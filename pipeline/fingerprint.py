@@ -6,7 +6,7 @@ settings, arrays and tensors by dtype, shape and bytes, mappings and sequences i
 scalars and strings by their ``repr``. An object of any other type is refused
 (:class:`FingerprintError`) rather than keyed unsafely. :func:`code_fingerprint` hashes every
 source file of the ``pipeline`` package, so a result keyed with it is recomputed after any change
-to the code. The forecast memo (:mod:`pipeline.ensemble.memo`) and the training-data digests
+to the code. The forecast memo (:mod:`pipeline.backtest.memo`) and the training-data digests
 (:mod:`pipeline.training.digests`) key their entries with these.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Synthetic histories and members for the tests of pipeline.ensemble (no I/O)."""
+"""Synthetic histories and members for the tests of the forecasting engine (no I/O)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -7,11 +7,15 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.backtest.result import QuantileForecast
 from pipeline.data.sir_transform import proportions, sir_counts
-from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
-from pipeline.ensemble.targets import EpiHistory, QuantileForecast
+from pipeline.members.base import Member, MemberForecast
+from pipeline.panels.history import EpiHistory, History
+from pipeline.panels.panel import Cells, Panel
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 
 POPULATION = 100_000
+LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
 
 
 def history_from_cases(cases: NDArray[np.int64], start: str = "2021-01-06",
@@ -34,6 +38,17 @@ def random_walk_history(n_weeks: int, seed: int, sigma: float = 0.25,
     return history_from_cases(daily)
 
 
+def forecast_one(member: Member, history: History, horizons: tuple[int, ...] = (1, 2, 3, 4),
+                 seed: int = 0, levels: NDArray[np.float64] = LEVELS,
+                 panel: Panel | None = None, place: str = "place") -> QuantileForecast:
+    """``member``'s forecast of one history (its own one-place panel unless given)."""
+    own = panel if panel is not None else Panel({place: history})
+    made = member.forecast(Cells.of([history], [seed], [place], [own]), horizons, levels)
+    values = {t: v[0] for t, v in made.values((history,)).items()}
+    return QuantileForecast(member.name, history.origin, tuple(horizons), levels, values,
+                            None if made.paths is None else made.paths[0])
+
+
 @dataclass(frozen=True)
 class LogNormalMember:
     """Forecasts weekly cases log-normal around last week's count with spread ``sigma``·√h."""
@@ -41,13 +56,12 @@ class LogNormalMember:
     name: str
     sigma: float
 
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
         from scipy.stats import norm
 
-        last = history.weekly_cases()[-1]
+        last = np.array([max(h.weekly_cases()[-1], 0.5) for h in cells.histories])
+        h = np.sqrt(np.asarray(horizons, dtype=np.float64))
         z = norm.ppf(levels)
-        h = np.asarray(horizons, dtype=np.float64)[:, None]
-        q = np.exp(np.log(max(last, 0.5)) + self.sigma * np.sqrt(h) * z)
-        return quantile_forecast_from_weekly_cases(self.name, history.origin, horizons, levels, q,
-                                                   history.population)
+        return MemberForecast(np.exp(np.log(last)[:, None, None]
+                                     + self.sigma * h[None, :, None] * z[None, None, :]))

@@ -17,19 +17,19 @@ import pytest
 from typer.testing import CliRunner
 
 from pipeline.data.cdph import CDPHVintage, read_cdph_csv
-from pipeline.ensemble.combine import vincentize
-from pipeline.ensemble.county_backtest import (CountyBacktestConfig, for_places,
-                                               run_panel_backtest, select_counties,
-                                               summarize_panel, write_panel_backtest)
-from pipeline.ensemble.growth_regression import (GrowthRegressionConfig, PooledGrowthMember,
-                                                 growth_regression_quantiles, weekly_sums_ending)
-from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.ensemble.nf_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
-from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
-                                         train_growth_model)
-from pipeline.ensemble.panel import Panel, weekly_grid, weekly_origins
-from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, history_from_county
+from pipeline.backtest.backtest import OneVintage, run_backtest
+from pipeline.backtest.writers import write_backtest
+from pipeline.combine.average import vincentize
 from pipeline.errors import FlowcastError
+from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
+                                   train_growth_model)
+from pipeline.members.flow_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.members.growth_regression import PooledGrowthMember, growth_regression_quantiles
+from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+from pipeline.panels.california import select_counties
+from pipeline.panels.history import history_from_county
+from pipeline.panels.panel import Panel, panel_cells, weeks_ending, weekly_origins
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 from pipeline.systems.waves import WavePrior
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,9 +91,8 @@ def test_a_forecast_is_unchanged_when_any_county_changes_after_its_origin(vintag
     origins = weekly_origins(panel.dates)
     cut = origins[len(origins) // 2]
     altered = _panel(vintage, "Fresno", cut)
-    config = CountyBacktestConfig()
-    before = run_panel_backtest(panel, _members(panel, origins, tiny_flow), config)
-    after = run_panel_backtest(altered, _members(altered, origins, tiny_flow), config)
+    before = run_backtest(OneVintage(panel), _members(panel, origins, tiny_flow), origins)
+    after = run_backtest(OneVintage(altered), _members(altered, origins, tiny_flow), origins)
     upto = np.array([o <= cut for o in before.origins])
     assert before.origins == after.origins and upto.sum() >= 30
     for name in (*before.members, "published"):
@@ -150,50 +149,63 @@ def test_growth_regression_sees_no_count_after_its_origin():
 
 
 def test_pooled_member_for_one_place_equals_the_panel_row(vintage):
-    """San Francisco forecast on its own with the other counties as reference equals its row of
-    the panel forecast (same weeks, same pool)."""
+    """San Francisco forecast on its own with the other counties as references equals its row
+    of the panel forecast (same weeks, same pool), and so does a cell whose own history is a
+    version of its own (the batched regression of a nowcast's completions) pools that version."""
     panel = _panel(vintage)
     origins = weekly_origins(panel.dates)
-    weekly, index = weekly_grid(panel, origins)
     member = PooledGrowthMember()
-    rows = member.forecast_panel(weekly, index, (1, 2, 3, 4), LEVELS)
+    rows = member.forecast(panel_cells(panel, origins[40:41], 0), (1, 2, 3, 4), LEVELS).count
     sf = COUNTIES.index("San Francisco")
-    others = [h for c, h in panel.histories.items() if c != "San Francisco"]
-    single = PooledGrowthMember(tuple(others))
-    origin = origins[40]
-    history = panel.histories["San Francisco"].up_to(origin)
-    got = single.forecast(history, (1, 2, 3, 4), LEVELS, 0).values["cases"]
-    # the panel's calendar starts at the data's first whole week, the single series at its own
-    # first whole week ending on the origin's weekday: the same weeks
-    np.testing.assert_allclose(got, rows[sf, 40], rtol=1e-9)
+    alone = panel.only(["San Francisco"])
+    got = member.forecast(panel_cells(alone, origins[40:41], 0), (1, 2, 3, 4), LEVELS).count
+    np.testing.assert_allclose(got[0], rows[sf], rtol=1e-9)
+    cells = panel_cells(alone, origins[40:41], 0)
+    doubled = dataclasses.replace(cells, histories=(dataclasses.replace(
+        cells.histories[0], cases=cells.histories[0].cases * 2),))
+    batched = member.forecast(doubled, (1, 2, 3, 4), LEVELS).count
+    # a cell with its own version of the place's data (a nowcast completion) pools that
+    # version in place of its panel row: doubled counts forecast about double
+    np.testing.assert_allclose(np.median(batched[0, :, 11] / got[0, :, 11]), 2.0, rtol=0.1)
 
 
-def test_weekly_sums_ending_matches_direct_sums():
+def test_weeks_ending_matches_direct_sums():
     dates = pd.date_range("2021-01-01", periods=30)
-    cases = np.arange(30, dtype=np.float64)
-    sums = weekly_sums_ending(cases, dates, dates[20], 4)
+    cases = np.arange(30, dtype=np.int64)
+    history = history_from_county_like(dates, cases)
+    sums = weeks_ending(history, dates[20], 4)
     assert np.isnan(sums[0])                     # days −7 … −1 are before the series
     np.testing.assert_array_equal(sums[1:], [cases[0:7].sum(), cases[7:14].sum(),
                                              cases[14:21].sum()])
 
 
+def history_from_county_like(dates: pd.DatetimeIndex, cases: np.ndarray):
+    from pipeline.panels.history import EpiHistory
+
+    zeros = np.zeros(len(dates))
+    return EpiHistory(dates, cases, 1.0 - zeros, zeros, zeros, 1_000_000)
+
+
 def test_summary_restriction_and_files(vintage, tmp_path):
     panel = _panel(vintage)
     members = [HubBaseline(HubBaselineConfig(n_samples=1_000)), PooledGrowthMember()]
-    result = run_panel_backtest(panel, members, CountyBacktestConfig())
-    summary = summarize_panel(result)
+    origins = weekly_origins(panel.dates)
+    result = run_backtest(OneVintage(panel), members, origins)
+    summary = result.summary()
     cases = summary["by_target"]["cases"]
-    assert summary["n_counties"] == 5 and set(cases) >= {"published", "growth-qr",
-                                                         "hub-baseline"}
+    assert summary["n_places"] == 5 and set(cases) >= {"published", "growth-qr",
+                                                       "hub-baseline"}
     assert cases["hub-baseline"]["gmean_relative_wis"]["all"] == pytest.approx(1.0)
-    sf = for_places(result, ["San Francisco"])
-    one = summarize_panel(sf)["by_target"]["cases"]["published"]
+    assert set(cases["published"]["by_regime"]) == {"falling", "flat", "rising", "largest10"}
+    sf = result.for_places(["San Francisco"])
+    one = sf.summary()["by_target"]["cases"]["published"]
     assert one["gmean_relative_wis"]["all"] == pytest.approx(
-        cases["published"]["per_county"]["San Francisco"]["all"])
-    written = write_panel_backtest(sf, tmp_path / "out")
-    assert [p.name for p in written] == ["summary.json", "scores.csv", "weights.csv"]
-    scores = pd.read_csv(written[1])
+        cases["published"]["per_place"]["San Francisco"]["all"])
+    written = write_backtest(sf, tmp_path / "out")
+    assert [p.name for p in written[-3:]] == ["scores.csv", "weights.csv", "summary.json"]
+    assert len(written) == 3 + len(origins)         # a hub-format forecast per origin
+    scores = pd.read_csv(written[-3])
     assert set(scores["place"]) == {"San Francisco"}
-    assert json.loads(written[0].read_text())["n_counties"] == 1
+    assert json.loads(written[-1].read_text())["n_places"] == 1
     with pytest.raises(FlowcastError, match="San Fransisco"):
-        select_counties(vintage, CountyBacktestConfig(), ["San Fransisco"])
+        select_counties(vintage, counties=["San Fransisco"])

@@ -10,13 +10,14 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.ensemble import nf_finetune, nf_member
-from pipeline.ensemble.nf_finetune import FineTuneConfig, StoredRefit, fit_finetuned_member
-from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
-                                         train_or_reuse_growth_model)
+from pipeline.members import flow as nf_member
+from pipeline.members import flow_finetune as nf_finetune
+from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
+                                   train_or_reuse_growth_model)
+from pipeline.members.flow_finetune import FineTuneConfig, StoredRefit, fit_finetuned_member
 from pipeline.training.digests import DIGESTS_DIR, DataDigests
 from pipeline.training.model_store import ModelStore
-from tests.forecasting_helpers import random_walk_history
+from tests.forecasting_helpers import forecast_one, random_walk_history
 
 TINY_FLOW = GrowthModelConfig(n_trajectories=120, iterations=30, batch_size=256,
                               hidden_features=16, flow_layers=2, flow_hidden=16)
@@ -79,8 +80,8 @@ def test_a_rerun_on_stored_models_cuts_no_windows_and_loads_refits_when_used(tmp
 
     origin = history.up_to(dates[1] + pd.Timedelta(days=7))
     levels = np.array([0.05, 0.5, 0.95])
-    ours = reused.forecast(origin, (1, 2), levels, seed=3)
-    theirs = trained.forecast(origin, (1, 2), levels, seed=3)
+    ours = forecast_one(reused, origin, (1, 2), 3, levels)
+    theirs = forecast_one(trained, origin, (1, 2), 3, levels)
     np.testing.assert_array_equal(ours.values["cases"], theirs.values["cases"])
     assert "estimator" in vars(refits[1]) and "estimator" not in vars(refits[0])
     first, second = trained.models[dates[1]], refits[1]

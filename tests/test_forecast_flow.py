@@ -218,7 +218,7 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     from typing import get_args
 
     from flows.weekly_forecast import flow_config
-    from pipeline.ensemble.weekly import WeeklyForecast
+    from pipeline.backtest.track_record import TrackRecord
     from pipeline.forecast import ForecastResults, run_forecast
     from pipeline.forecast.publish import write_tables
     from pipeline.forecast.run import Step
@@ -246,7 +246,7 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     assert all(isinstance(r, RolloutResult) for r in results.rollouts.values())
     assert tuple(results.future.samples.shape) == (200, 28, 4)    # S, I, R, beta
     assert isinstance(results.smc.result, SMCResult) and len(results.smc.dates) == 28
-    assert isinstance(results.weekly, WeeklyForecast)
+    assert isinstance(results.weekly, TrackRecord)
     assert str(results.weekly.origin.date()) == ORIGIN
     # every step timed, in the flow's task names, and the flow ran the same steps (DataSF's
     # fetch: a county's, fetch-cdph, is the other)

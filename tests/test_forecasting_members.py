@@ -1,4 +1,4 @@
-"""Hub baseline against hand-computed quantiles; AutoETS quantiles; the member helper."""
+"""Hub baseline against hand-computed quantiles; AutoETS quantiles; I from the count."""
 from __future__ import annotations
 
 import time
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
-from pipeline.ensemble.autoets import AutoETSMember, interval_levels
-from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig, baseline_quantiles
-from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
-from pipeline.ensemble.targets import TargetError
-from tests.forecasting_helpers import POPULATION, history_from_cases, random_walk_history
+from pipeline.members.autoets import AutoETSMember, interval_levels
+from pipeline.members.base import MemberForecast, with_share
+from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig, baseline_quantiles
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS, TargetError
+from tests.forecasting_helpers import (POPULATION, forecast_one, history_from_cases,
+                                       random_walk_history)
 
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
 
@@ -28,7 +28,7 @@ def test_hub_baseline_h1_is_last_value_plus_type7_quantiles_of_symmetrized_diffe
     # weekly cases 10, 14, 12, 20: differences 4, -2, 8; symmetrized, sorted: -8 -4 -2 2 4 8.
     # type 7 on 6 points: position 5τ. τ=.01: -8+.05·4=-7.8; τ=.25: -4+.25·2=-3.5; τ=.5: 0;
     # τ=.75: 2+.75·2=3.5; τ=.99: 4+.95·4=7.8 → quantiles = 20 + those.
-    fc = HubBaseline().forecast(_weekly_history([10, 14, 12, 20]), (1,), LEVELS, seed=0)
+    fc = forecast_one(HubBaseline(), _weekly_history([10, 14, 12, 20]), (1,))
     q = dict(zip(HUB_QUANTILE_LEVELS, fc.values["cases"][0]))
     assert q[0.01] == pytest.approx(12.2) and q[0.25] == pytest.approx(16.5)
     assert q[0.5] == pytest.approx(20.0) and q[0.75] == pytest.approx(23.5)
@@ -40,7 +40,7 @@ def test_hub_baseline_h1_is_last_value_plus_type7_quantiles_of_symmetrized_diffe
 
 def test_hub_baseline_I_uses_one_week_differences_of_the_daily_series():
     history = random_walk_history(10, seed=3)
-    fc = HubBaseline().forecast(history, (1,), LEVELS, seed=0)
+    fc = forecast_one(HubBaseline(), history, (1,))
     d = history.I[7:] - history.I[:-7]
     expected = np.maximum(history.I[-1] + np.quantile(np.concatenate([d, -d]), LEVELS), 0.0)
     np.testing.assert_allclose(fc.values["I"][0], expected, rtol=0, atol=1e-15)
@@ -73,8 +73,8 @@ def test_hub_baseline_h2_matches_exact_enumeration_on_a_tiny_difference_set():
 
 
 def test_hub_baseline_refuses_a_one_week_history():
-    with pytest.raises(TargetError, match="more than one week"):
-        HubBaseline().forecast(history_from_cases(np.ones(7, dtype=np.int64)), (1,), LEVELS, 0)
+    with pytest.raises(TargetError, match="needs two reported weeks"):
+        forecast_one(HubBaseline(), history_from_cases(np.ones(7, dtype=np.int64)), (1,))
     with pytest.raises(TargetError, match="n_samples"):
         HubBaselineConfig(n_samples=1)
 
@@ -84,9 +84,9 @@ def test_autoets_quantiles_monotone_positive_and_the_model_s_own_intervals():
 
     history = random_walk_history(60, seed=1)
     member = AutoETSMember()
-    member.forecast(history, (1, 2, 3, 4), LEVELS, seed=0)          # imports / JIT warm-up
+    forecast_one(member, history)                                   # imports / JIT warm-up
     t0 = time.perf_counter()
-    fc = member.forecast(history, (1, 2, 3, 4), LEVELS, seed=0)
+    fc = forecast_one(member, history)
     seconds = time.perf_counter() - t0
     cases = fc.values["cases"]
     assert (cases > 0).all() and (np.diff(cases, axis=1) >= 0).all()
@@ -100,10 +100,11 @@ def test_autoets_quantiles_monotone_positive_and_the_model_s_own_intervals():
     assert seconds < 0.1                  # measured ~0.006 s per origin on 2 cores
 
 
-def test_weekly_case_helper_derives_I_and_checks_shapes():
-    fc = quantile_forecast_from_weekly_cases("m", history_from_cases(np.ones(14, int)).origin,
-                                             (1, 2), LEVELS, np.tile(np.arange(23.0), (2, 1)),
-                                             1000)
-    assert fc.values["I"][1, 22] == pytest.approx(0.022)
-    with pytest.raises(TargetError, match="expected"):
-        quantile_forecast_from_weekly_cases("m", fc.origin, (1,), LEVELS, np.zeros((2, 23)), 10)
+def test_a_count_forecast_gives_I_as_the_count_over_N_and_checks_its_shape():
+    history = history_from_cases(np.ones(14, int), population=1000)
+    count = np.tile(np.arange(23.0), (1, 2, 1))
+    values = with_share(count, (history,))
+    assert values["I"][0, 1, 22] == pytest.approx(0.022)
+    assert np.array_equal(values["cases"], count)
+    with pytest.raises(TargetError, match="cells, horizons, levels"):
+        MemberForecast(np.zeros((2, 23)))

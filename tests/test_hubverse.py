@@ -18,7 +18,7 @@ from pipeline.outputs.hubverse import (HUB_QUANTILE_LEVELS, HubFormatError, HubV
                                    SubmissionConfig, load_tasks_config, model_output_path,
                                    reference_date_for, hub_tasks_config,
                                    validate_model_output, write_model_output)
-from pipeline.ensemble.targets import QuantileForecast
+from pipeline.backtest.result import QuantileForecast
 from pipeline.systems.sir import simulate_sir
 
 REPO = Path(__file__).resolve().parents[1]

@@ -6,8 +6,9 @@ from __future__ import annotations
 import torch
 
 from pipeline import forecast as fc
-from pipeline.ensemble.nf_member import NFGrowthMember
-from pipeline.ensemble.weekly import WeeklyMembers, build_weekly_members
+from pipeline.members.flow import NFGrowthMember
+from pipeline.members.published import ChosenMembers, build_members
+from pipeline.panels.panel import Panel
 from pipeline.forecast.member_training import member_training, start_member_training
 from pipeline.training.model_store import ModelStore
 from tests.forecasting_helpers import random_walk_history
@@ -16,7 +17,7 @@ CONFIG = fc.FORECAST_PRESETS["tiny"]
 PLACE = "San Francisco"
 
 
-def _flow_weights(chosen: WeeklyMembers) -> dict[str, torch.Tensor]:
+def _flow_weights(chosen: ChosenMembers) -> dict[str, torch.Tensor]:
     flow = next(m for m in chosen.members if isinstance(m, NFGrowthMember))
     return flow.estimator.state_dict()
 
@@ -27,9 +28,11 @@ def test_the_background_process_stores_the_models_the_step_would_train(tmp_path)
     outcome = start_member_training(CONFIG, history, background).wait()
     assert outcome.ok, outcome.error
     assert outcome.seconds > 0
-    found = build_weekly_members(CONFIG.weekly_config(), background, {}, history, PLACE)
+    record = CONFIG.track_record_config()
+    panel, origins = Panel({PLACE: history}), record.origins(history)
+    found = build_members(record.members, background, panel, origins)
     assert found.reused                     # the step trains nothing
-    trained = build_weekly_members(CONFIG.weekly_config(), here, {}, history, PLACE)
+    trained = build_members(record.members, here, panel, origins)
     assert not trained.reused and trained.model_key == found.model_key
     ours, theirs = _flow_weights(trained), _flow_weights(found)
     assert ours.keys() == theirs.keys()

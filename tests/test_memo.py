@@ -1,4 +1,4 @@
-"""The forecast memo (pipeline.ensemble.memo): a forecast read back is the forecast made, bit for
+"""The forecast memo (pipeline.backtest.memo): a forecast read back is the forecast made, bit for
 bit, and anything it depends on changes its key."""
 from __future__ import annotations
 
@@ -9,15 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.ensemble.backtest import BacktestConfig, run_realtime_backtest
-from pipeline.ensemble.growth_regression import PooledGrowthMember
-from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.ensemble.memo import ForecastMemo
+from pipeline.backtest.backtest import BacktestConfig, OneVintage, run_backtest
+from pipeline.backtest.memo import ForecastMemo
 from pipeline.fingerprint import fingerprint
-from pipeline.ensemble.nf_member import GrowthModelConfig, NFGrowthMember, \
-    train_or_reuse_growth_model
-from pipeline.ensemble.targets import EpiHistory, HUB_QUANTILE_LEVELS
-from tests.forecasting_helpers import LogNormalMember, random_walk_history
+from pipeline.members.flow import GrowthModelConfig, NFGrowthMember, train_or_reuse_growth_model
+from pipeline.members.growth_regression import PooledGrowthMember
+from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.panel import Cells, Panel, weekly_origins
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+from tests.forecasting_helpers import LogNormalMember, forecast_one, random_walk_history
 
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
 TINY_FLOW = GrowthModelConfig(n_trajectories=120, iterations=30, batch_size=256,
@@ -40,9 +41,9 @@ class CountingMember:
     def name(self) -> str:
         return self.inner.name
 
-    def forecast(self, history, horizons, levels, seed):
-        self.calls.append(1)
-        return self.inner.forecast(history, horizons, levels, seed)
+    def forecast(self, cells, horizons, levels):
+        self.calls.extend([1] * len(cells))
+        return self.inner.forecast(cells, horizons, levels)
 
 
 def _revised(history: EpiHistory, day: int, delta: int) -> EpiHistory:
@@ -55,10 +56,10 @@ def test_a_hit_returns_the_stored_forecast_and_skips_the_member(tmp_path: Path) 
     history = random_walk_history(30, seed=1)
     member = CountingMember(LogNormalMember("lognormal", 0.3))
     first = ForecastMemo.load(tmp_path / "memo.npz")
-    made = first.wrap(member).forecast(history, (1, 2, 3, 4), LEVELS, 7)
+    made = forecast_one(first.wrap(member), history, seed=7)
     first.save()
     again = ForecastMemo.load(tmp_path / "memo.npz")
-    read = again.wrap(member).forecast(history, (1, 2, 3, 4), LEVELS, 7)
+    read = forecast_one(again.wrap(member), history, seed=7)
     assert len(member.calls) == 1 and (again.hits, again.misses) == (1, 0)
     assert read.forecaster == made.forecaster and read.origin == made.origin
     assert read.horizons == made.horizons and np.array_equal(read.levels, made.levels)
@@ -72,7 +73,7 @@ def test_whatever_the_forecast_depends_on_changes_the_key(tmp_path: Path, change
     history = random_walk_history(30, seed=2)
     member = CountingMember(LogNormalMember("lognormal", 0.3))
     memo = ForecastMemo.load(tmp_path / "memo.npz")
-    memo.wrap(member).forecast(history, (1, 2), LEVELS, 7)
+    forecast_one(memo.wrap(member), history, (1, 2), 7)
     other_member, other_history, seed, levels = member, history, 7, LEVELS
     if change == "revised count":
         other_history = _revised(history, len(history) - 20, 1)
@@ -85,12 +86,12 @@ def test_whatever_the_forecast_depends_on_changes_the_key(tmp_path: Path, change
         other_member = CountingMember(LogNormalMember("lognormal", 0.31), member.calls)
     else:
         levels = LEVELS[1:-1]
-    memo.wrap(other_member).forecast(other_history, (1, 2), levels, seed)
+    forecast_one(memo.wrap(other_member), other_history, (1, 2), seed, levels)
     assert (memo.hits, memo.misses) == (0, 2) and len(member.calls) == 2
 
 
 def test_the_code_is_part_of_the_key(tmp_path: Path, monkeypatch) -> None:
-    import pipeline.ensemble.memo as memo_module
+    import pipeline.backtest.memo as memo_module
 
     member = LogNormalMember("lognormal", 0.3)
     before = ForecastMemo.load(tmp_path / "m.npz").wrap(member).member_key
@@ -114,8 +115,7 @@ def test_an_unreadable_memo_is_reported_and_replaced(tmp_path: Path, caplog) -> 
     with caplog.at_level(logging.WARNING):
         memo = ForecastMemo.load(path)
     assert "unreadable" in caplog.text and len(memo) == 0
-    memo.wrap(LogNormalMember("lognormal", 0.3)).forecast(random_walk_history(20, 3), (1,),
-                                                          LEVELS, 0)
+    forecast_one(memo.wrap(LogNormalMember("lognormal", 0.3)), random_walk_history(20, 3), (1,))
     memo.save()
     assert len(ForecastMemo.load(path)._stored) == 1
 
@@ -126,13 +126,30 @@ def test_the_file_keeps_only_what_the_last_run_used(tmp_path: Path) -> None:
     history = random_walk_history(30, seed=4)
     memo = ForecastMemo.load(path)
     for n_days in (150, 200):
-        memo.wrap(member).forecast(history.up_to(history.dates[n_days]), (1,), LEVELS, 0)
+        forecast_one(memo.wrap(member), history.up_to(history.dates[n_days]), (1,))
     memo.save()
     later = ForecastMemo.load(path)
-    later.wrap(member).forecast(history.up_to(history.dates[200]), (1,), LEVELS, 0)
+    forecast_one(later.wrap(member), history.up_to(history.dates[200]), (1,))
     assert later.changed
     later.save()
     assert len(ForecastMemo.load(path)._stored) == 1
+
+
+def test_a_pooling_member_is_keyed_by_its_panel(tmp_path: Path) -> None:
+    """growth-qr learns from every place of the cell's panel: another reference place's data
+    is another key; the flow of the same cell is not keyed by the panel."""
+    history = random_walk_history(30, seed=2)
+    panel = Panel({"place": history}, {"other": random_walk_history(30, seed=3)})
+    revised = Panel({"place": history}, {"other": random_walk_history(30, seed=4)})
+    memo = ForecastMemo.load(tmp_path / "memo.npz")
+    growth = memo.wrap(PooledGrowthMember())
+    forecast_one(growth, history, panel=panel)
+    forecast_one(growth, history, panel=revised)
+    assert (memo.hits, memo.misses) == (0, 2)
+    lognormal = memo.wrap(LogNormalMember("lognormal", 0.3))
+    forecast_one(lognormal, history, panel=panel)
+    forecast_one(lognormal, history, panel=revised)
+    assert (memo.hits, memo.misses) == (1, 3)
 
 
 def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) -> None:
@@ -140,25 +157,23 @@ def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) ->
     with sample paths: the backtest with a cold memo, with a warm one and without one agree in
     every quantile and path; the warm run forecasts nothing."""
     history = random_walk_history(26, seed=5)
-    reference = tuple(random_walk_history(26, seed=s) for s in (6, 7, 8))
+    reference = {f"ref{s}": random_walk_history(26, seed=s) for s in (6, 7, 8)}
+    data = OneVintage(Panel({"place": history}, reference))
+    origins = weekly_origins(history.dates, scored_only=False)
     stored = train_or_reuse_growth_model(TINY_FLOW, tmp_path / "store")
-    members = [HubBaseline(HubBaselineConfig(n_samples=2000)),
-               PooledGrowthMember(reference),
+    members = [HubBaseline(HubBaselineConfig(n_samples=2000)), PooledGrowthMember(),
                NFGrowthMember(stored.estimator, TINY_FLOW, n_samples=100)]
-    config = BacktestConfig(min_history_weeks=8, scored_only=False, n_paths=50)
-    plain = run_realtime_backtest(history, members, config)
+    config = BacktestConfig(n_paths=50)
+    plain = run_backtest(data, members, origins, config)
     results = []
     for _ in range(2):
         memo = ForecastMemo.load(tmp_path / "memo.npz")
-        results.append(run_realtime_backtest(history, [memo.wrap(m) for m in members], config))
+        results.append(run_backtest(data, [memo.wrap(m) for m in members], origins, config))
         memo.save()
     assert memo.misses == 0 and memo.hits == len(plain.origins) * len(members)
     for result in results:
-        for origin, made in plain.forecasts.items():
-            for name, forecast in made.items():
-                other = result.forecasts[origin][name]
-                for target in ("I", "cases"):
-                    assert np.array_equal(other.values[target], forecast.values[target])
-                assert (forecast.paths is None) == (other.paths is None)
-                if forecast.paths is not None:
-                    assert np.array_equal(other.paths, forecast.paths)
+        for target, made in plain.forecasts.items():
+            for name, values in made.items():
+                assert np.array_equal(result.forecasts[target][name], values), name
+        assert plain.paths is not None and result.paths is not None
+        assert np.array_equal(result.paths, plain.paths)

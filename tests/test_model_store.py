@@ -101,7 +101,7 @@ def test_forecast_models_are_the_training_presets():
                             seed=ours.train.seed, dataset_seed=ours.dataset.seed)
         assert ours == theirs and ours.dataset.direction == direction
     assert default.resolved.window == 14
-    assert default.resolved.prior is default.weekly.growth.prior    # the member's prior
+    assert default.resolved.prior is default.track_record.members.growth.prior    # the member's prior
     assert default.resolved.gamma == 1 / 7
 
     tiny_config = resolve_config("tiny")
@@ -111,7 +111,7 @@ def test_forecast_models_are_the_training_presets():
     assert tiny.estimator == mlp.estimator and tiny.dataset == mlp.dataset
     assert (tiny.train.iterations, tiny.train.batch_size, tiny.train.eval_every) == (30, 256, 10)
     assert tiny.train.lr == mlp.train.lr and tiny.train.schedule == mlp.train.schedule
-    assert tiny_config.resolved.prior is tiny_config.weekly.growth.prior
+    assert tiny_config.resolved.prior is tiny_config.track_record.members.growth.prior
 
 
 def test_forecast_model_key_follows_encoder_recipe_and_seed():

@@ -6,10 +6,11 @@ import pandas as pd
 import pytest
 
 from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
-from pipeline.ensemble.nf_member import (GrowthModelConfig, NFGrowthMember,
+from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember,
                                             build_growth_dataset, decode_paths, growth_targets,
                                             trailing_week_sums, train_or_reuse_growth_model)
-from pipeline.ensemble.targets import EpiHistory
+from pipeline.panels.history import EpiHistory
+from tests.forecasting_helpers import forecast_one
 from pipeline.systems.waves import WavePrior, simulate_waves
 
 TINY = GrowthModelConfig(n_trajectories=120, iterations=30, batch_size=256,
@@ -79,7 +80,7 @@ def test_sampled_paths_are_valid_by_construction(member: NFGrowthMember) -> None
     rng = np.random.default_rng(1)
     cases = rng.poisson(np.linspace(50, 3000, 90)).astype(np.int64)   # a steep rise
     history = _history(cases)
-    paths = member.sample_paths(history, seed=0)
+    paths = member.sample_paths([history], [0])[0]
     s, i, r = paths[..., 0], paths[..., 1], paths[..., 2]
     assert paths.shape == (400, 4, 3)
     assert (s >= 0).all() and (i > 0).all() and (r >= 0).all()
@@ -98,11 +99,16 @@ def test_forecast_sees_only_its_past(member: NFGrowthMember) -> None:
     altered[100:] *= 10
     origin = full.dates[99]
     levels = np.asarray(HUB_QUANTILE_LEVELS)
-    a = member.forecast(full.up_to(origin), (1, 2, 3, 4), levels, seed=5)
-    b = member.forecast(_history(altered).up_to(origin), (1, 2, 3, 4), levels, seed=5)
+    a = forecast_one(member, full.up_to(origin), seed=5, levels=levels)
+    b = forecast_one(member, _history(altered).up_to(origin), seed=5, levels=levels)
     for target in ("I", "cases"):
         np.testing.assert_array_equal(a.values[target], b.values[target])
     np.testing.assert_allclose(a.values["cases"], a.values["I"] * full.population, rtol=1e-12)
+    # a cell's draws are its own: the same cell in a batch with others is the same forecast
+    other = full.up_to(full.dates[80])
+    both = member.sample_paths([other, full.up_to(origin)], [9, 5])
+    np.testing.assert_allclose(both[1], member.sample_paths([full.up_to(origin)], [5])[0],
+                               rtol=1e-5)
 
 
 def test_model_store_reuses_the_trained_member(tmp_path) -> None:  # type: ignore[no-untyped-def]

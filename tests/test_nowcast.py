@@ -15,12 +15,16 @@ from pipeline.data.cdph import CDPHVintage
 from pipeline.data.delays import (DelayModelConfig, fit_delay_model, load_delay_model,
                                   save_delay_model)
 from pipeline.data.vintage_pairs import VintagePairError, revision_pairs
-from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
-from pipeline.ensemble.nowcast import (CompletedHistories, NowcastConfig, complete_histories,
-                                       nowcast_history)
-from pipeline.ensemble.nowcast_forecast import (CompletionMixture, floor_current_week, hub_weeks,
-                                                median_history, mix_quantiles, week_sums)
-from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, EpiHistory, QuantileForecast
+from pipeline.backtest.result import QuantileForecast
+from pipeline.combine.average import mix_quantiles
+from pipeline.members.base import MemberForecast
+from pipeline.nowcast.completions import (CompletedHistories, NowcastConfig, complete_histories,
+                                          nowcast_history, week_sums)
+from pipeline.nowcast.hub_weeks import hub_weeks
+from pipeline.nowcast.mixture import CompletionMixture, floor_current_week, median_history
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+from tests.forecasting_helpers import forecast_one
 from pipeline.outputs.hubverse import NowcastWeek, load_tasks_config, write_model_output
 
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
@@ -238,19 +242,17 @@ def test_the_published_current_week_is_floored_through_the_completion_mixture():
     class Zero:
         name = "zero"
 
-        def forecast(self, history, horizons, levels, seed):
-            return quantile_forecast_from_weekly_cases(
-                self.name, history.origin, tuple(horizons), levels,
-                np.zeros((len(horizons), len(levels))), history.population)
+        def forecast(self, cells, horizons, levels):
+            return MemberForecast(np.zeros((len(cells), len(horizons), len(levels))))
 
     reported = np.array([10] * 20 + [50, 60, 70, 80])
     completed = _completed(np.stack([reported] * 3), reported)
     mixture = CompletionMixture(Zero(), completed, pd.Timestamp("2022-03-05"), n_mixed=3)
-    latest = mixture.forecast(completed.history(0).up_to(pd.Timestamp("2022-03-12")), (1, 2),
-                              LEVELS, 0)
+    latest = forecast_one(mixture, completed.history(0).up_to(pd.Timestamp("2022-03-12")),
+                          (1, 2))
     np.testing.assert_allclose(latest.values["cases"][0], 260.0)
     np.testing.assert_allclose(latest.values["I"][0], 260.0 / completed.population)
     np.testing.assert_allclose(latest.values["cases"][1], 0.0)
-    earlier = mixture.forecast(completed.history(0).up_to(pd.Timestamp("2022-03-05")), (1, 2),
-                               LEVELS, 0)
+    earlier = forecast_one(mixture, completed.history(0).up_to(pd.Timestamp("2022-03-05")),
+                           (1, 2))
     np.testing.assert_allclose(earlier.values["cases"], 0.0)

@@ -12,8 +12,11 @@ import pytest
 import torch
 from scipy import stats
 
-from pipeline.ensemble.smc_member import NFSeededSMCMember, batched_smc_forecasts
-from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, EpiHistory
+from pipeline.members.smc import NFSeededSMCMember, batched_smc_forecasts
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+from tests.forecasting_helpers import forecast_one
 from pipeline.inference.estimate import ObservationWindow, batch_window_context, sample_conditional
 from pipeline.inference.smc import SMCConfig, seeded_filter
 from pipeline.inference.smc_models import (WaveRenewalModel, negative_binomial_log_prob,
@@ -182,11 +185,11 @@ def test_smc_member_quantiles_are_valid_and_see_only_the_past():
     ds = windows_from_waves(ensemble, window=14, seed=0)
     train_ds, _ = train_validation_split(ds, preset.estimator.target_transform)
     estimator = build_estimator(preset.estimator, train_ds.stats, seed=1).eval()
-    member = NFSeededSMCMember(estimator, 14, n_particles=200, filter_days=28)
+    member = NFSeededSMCMember(estimator, 14, n_particles=200, filter_days=28, seed=3)
     history = _history()
     levels = np.asarray(HUB_QUANTILE_LEVELS)
     origin = history.dates[100]
-    forecast = member.forecast(history.up_to(origin), (1, 2, 3, 4), levels, seed=3)
+    forecast = forecast_one(member, history.up_to(origin), levels=levels)
     for target in ("cases", "I"):
         q = forecast.values[target]
         assert q.shape == (4, 23) and np.isfinite(q).all() and (np.diff(q, axis=1) >= 0).all()
@@ -194,10 +197,16 @@ def test_smc_member_quantiles_are_valid_and_see_only_the_past():
     # data after the origin cannot change the forecast
     altered = dataclasses.replace(history, cases=np.where(np.arange(len(history)) > 100,
                                                           history.cases * 5, history.cases))
-    again = member.forecast(altered.up_to(origin), (1, 2, 3, 4), levels, seed=3)
+    again = forecast_one(member, altered.up_to(origin), levels=levels)
     np.testing.assert_array_equal(again.values["cases"], forecast.values["cases"])
     # one batch over several origins = the same forecasts from each origin's past
     origins = [history.dates[i] for i in (90, 100)]
-    batched = batched_smc_forecasts(member, altered, origins, (1, 2, 3, 4), levels, seed=3)
-    assert set(batched.forecasts) == set(origins)
-    assert batched.forecast(history.up_to(origin), (1, 2, 3, 4), levels, 0).origin == origin
+    batched = batched_smc_forecasts(member, altered, "place", origins, (1, 2, 3, 4), levels)
+    assert set(batched.forecasts) == {("place", o) for o in origins}
+    served = batched.forecast(Cells.of([history.up_to(o) for o in origins], [0, 0],
+                                       ["place", "place"]), (1, 2, 3, 4), levels).count
+    assert served.shape == (2, 4, 23) and np.isfinite(served).all()
+    # an origin it made no forecast for has none (NaN), not an error
+    missing = batched.forecast(Cells.of([history.up_to(history.dates[60])], [0], ["place"]),
+                               (1, 2, 3, 4), levels).count
+    assert np.isnan(missing).all()

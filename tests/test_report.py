@@ -532,7 +532,7 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
     hub submission's) medians and quantiles, P(growing) from its paths, R_t per sample."""
     if reason := missing_tool_reason("pdftotext"):
         pytest.skip(reason)
-    from pipeline.ensemble.backtest import hub_frame
+    from pipeline.backtest.writers import hub_frame
     from pipeline.report.headline import (compute_headline, fmt_count, fmt_prob, fmt_range,
                                           fmt_rt, fmt_share, week_label)
 

@@ -5,13 +5,13 @@ every county with at least 100,000 people on the latest cached CDPH vintage is f
 pooled members learn from all of them); ``all`` reports every one of them, a name that county
 (the panel still pools the others). It writes ``summary.json`` (geometric-mean relative WIS per
 target × horizon, share of counties beating the baseline, coverage, per-county ratios),
-``scores.csv`` and ``weights.csv`` (:mod:`pipeline.ensemble.county_backtest`).
+``scores.csv`` and ``weights.csv`` (:mod:`pipeline.backtest.writers`).
 
 For every weekly origin in the range it writes the hub-format forecast a user would have published
 that day (``forecasts/<origin>-published.csv``), plus ``scores.csv`` (WIS and its parts, 50 %/90 %
 coverage and PIT per forecaster × target × horizon × origin) and ``summary.json`` (relative WIS
 vs the hub baseline and coverage per target × horizon). See
-:mod:`pipeline.ensemble.backtest`.
+:mod:`pipeline.backtest.backtest`.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import dataclasses
 import datetime as dt
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -29,6 +29,7 @@ from pipeline.cli.choices import DataSource, value
 from pipeline.errors import ConfigError, FlowcastError
 
 if TYPE_CHECKING:
+    from pipeline.backtest.track_record import TrackRecordConfig
     from pipeline.forecast.config import DataSourceKind
 
 
@@ -74,88 +75,81 @@ def backtest_command(
         _county_backtest(county, out, nf, seed)
         return
     from pipeline import forecast as fc
-    from pipeline.forecast.sources import (SF_COUNTY, import_exports,
-                                           load_reference_histories, load_sf_history)
-    from pipeline.training.model_store import default_store_root
-    from pipeline.ensemble.backtest import (backtest_origins,
-                                               run_realtime_backtest, summarize, write_backtest)
-    from pipeline.ensemble.weekly import build_weekly_members
+    from pipeline.backtest.track_record import track_record
+    from pipeline.backtest.writers import write_backtest
+    from pipeline.forecast.sources import SF_COUNTY, load_reference_histories, load_sf_history
+    from pipeline.panels.california import place_panel
     from pipeline.progress import rich_progress
+    from pipeline.training.model_store import default_store_root
 
     try:
         output_dir(out)
         history = load_sf_history(fc.DataSourceConfig(
             kind=_source_kind(source), import_paths=tuple(str(p) for p in import_from or [])))
-        weekly = dataclasses.replace(fc.resolve_config("default", seed=seed).weekly_config(),
-                                     include_nf=nf)
-        config = weekly.backtest_config(scored_only=not all_origins,
-                                        first_origin=_date(first, "--from"),
-                                        last_origin=_date(last, "--to"))
-        n_origins = len(backtest_origins(history, config))
-        members = build_weekly_members(weekly, default_store_root(),
-                                       load_reference_histories(),
-                                       history, SF_COUNTY).members
-        with rich_progress("backtest", n_origins) as progress:
-            result = run_realtime_backtest(history, members, config, progress)
-        written = write_backtest(result, out)
+        record = _without_flows(fc.resolve_config("default", seed=seed).track_record_config(),
+                                nf)
+        panel = place_panel(SF_COUNTY, history, load_reference_histories())
+        with rich_progress("backtest", 1) as progress:
+            made = track_record(panel, SF_COUNTY, record, default_store_root(), progress,
+                                scored_only=not all_origins, first=_date(first, "--from"),
+                                last=_date(last, "--to"))
+        written = write_backtest(made.result, out)
     except FlowcastError as exc:
         typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from None
-    summary = summarize(result)
-    for target, by_forecaster in summary["by_target"].items():
-        for name, s in by_forecaster.items():
-            typer.echo(f"{target:5s} {name:22s} relative WIS "
-                       f"{_horizon_cells(s['relative_wis_vs_baseline'])}  coverage "
-                       f"{s['coverage50']:.2f}/{s['coverage90']:.2f}")
-    typer.echo(f"{len(result.origins)} origins, invalid values {summary['invalid_values']}, "
-               f"{result.seconds:.1f} s; {len(written)} files under {out}")
+    summary = made.summary()
+    _print_summary(summary, "relative_wis_vs_baseline")
+    typer.echo(f"{summary['n_origins']} origins, invalid values {summary['invalid_values']}; "
+               f"{len(written)} files under {out}")
+
+
+def _without_flows(record: TrackRecordConfig, nf: bool) -> TrackRecordConfig:
+    """The published members, without the flow members with ``--no-nf``."""
+    return dataclasses.replace(record, members=dataclasses.replace(record.members,
+                                                                   include_nf=nf))
 
 
 def _county_backtest(county: str, out: Path, nf: bool, seed: int) -> None:
     """``--county``: the cross-county backtest on the latest cached CDPH vintage."""
+    from pipeline.backtest.writers import write_backtest
     from pipeline.data.cdph_source import load_cdph_vintage
-    from pipeline.ensemble.county_backtest import (CountyBacktestConfig, county_panel,
-                                                   for_places, run_panel_backtest,
-                                                   select_counties, summarize_panel,
-                                                   write_panel_backtest)
-    from pipeline.ensemble.panel import weekly_origins
-    from pipeline.ensemble.weekly import build_panel_members
     from pipeline.forecast import resolve_config
+    from pipeline.forecast.county_skill import county_backtest
+    from pipeline.panels.california import select_counties
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
     try:
         output_dir(out)
         vintage = load_cdph_vintage(offline=True)
-        config = CountyBacktestConfig(seed=seed)
-        pool = select_counties(vintage, config)
-        chosen = pool if county.lower() == "all" else select_counties(vintage, config, [county])
-        panel = county_panel(vintage, sorted({*pool, *chosen}), config.trailing_days)
-        origins = weekly_origins(panel.dates, min_history_weeks=config.min_history_weeks,
-                                 horizon_weeks=max(config.horizons))
-        weekly = dataclasses.replace(resolve_config("default", seed=seed).weekly_config(),
-                                     include_nf=nf)
-        with rich_progress("members' models", 1) as progress:
-            members = build_panel_members(list(panel.histories.values()), origins, weekly,
-                                          default_store_root(), progress).members
-        cells = len(panel.places) * len(origins) * (len(members) + 1)
-        with rich_progress("cross-county backtest", cells) as progress:
-            result = for_places(run_panel_backtest(panel, members, config, progress=progress),
-                                chosen)
-        written = write_panel_backtest(result, out, {"vintage": str(vintage.as_of.date()),
-                                                     "pooled_places": len(panel.places)})
+        pool = select_counties(vintage)
+        chosen = pool if county.lower() == "all" else select_counties(vintage, counties=[county])
+        config = resolve_config("default", seed=seed)
+        config = dataclasses.replace(config, track_record=_without_flows(config.track_record, nf))
+        with rich_progress("cross-county backtest", 1) as progress:
+            result, _ = county_backtest(vintage, config, default_store_root(),
+                                        counties=sorted({*pool, *chosen}), progress=progress)
+        result = result.for_places(chosen)
+        written = write_backtest(result, out, {"vintage": str(vintage.as_of.date()),
+                                               "pooled_places": len({*pool, *chosen})})
     except FlowcastError as exc:
         typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from None
-    summary = summarize_panel(result)
+    summary = result.summary()
+    _print_summary(summary, "gmean_relative_wis")
+    typer.echo(f"{len(chosen)} of {len({*pool, *chosen})} counties, {summary['n_origins']} "
+               f"origins, vintage {vintage.as_of.date()}; {len(written)} files under {out}")
+
+
+def _print_summary(summary: dict[str, Any], key: str) -> None:
+    """One line per target × forecaster: relative WIS by horizon, share beating the baseline
+    (panels), coverage."""
     for target, by_forecaster in summary["by_target"].items():
         for name, s in by_forecaster.items():
-            typer.echo(f"{target:5s} {name:22s} relative WIS "
-                       f"{_horizon_cells(s['gmean_relative_wis'])}  beat "
-                       f"{s['share_beating_baseline']['all']:.2f}  coverage "
-                       f"{s['coverage50']:.2f}/{s['coverage90']:.2f}")
-    typer.echo(f"{len(chosen)} of {len(panel.places)} counties, {len(origins)} origins, "
-               f"vintage {vintage.as_of.date()}; {len(written)} files under {out}")
+            beat = (f"  beat {s['share_beating_baseline']['all']:.2f}"
+                    if summary["n_places"] > 1 else "")
+            typer.echo(f"{target:5s} {name:22s} relative WIS {_horizon_cells(s[key])}{beat}  "
+                       f"coverage {s['coverage50']:.2f}/{s['coverage90']:.2f}")
 
 
 def _horizon_cells(by_horizon: dict[str, float | None]) -> str:

@@ -14,7 +14,7 @@ counties, plus ``Unknown`` and ``Out of state``) or ``State``; one more row per 
 Vintages differ in their date format (``M/D/YYYY`` in early 2021, ISO later) and columns (the
 cumulative columns came later); both are read. The vintage's date is its last dated row.
 
-A county's series becomes an :class:`~pipeline.ensemble.targets.EpiHistory` with the product's
+A county's series becomes an :class:`~pipeline.panels.history.EpiHistory` with the product's
 S/I/R conversion (:func:`pipeline.data.sir_transform.sir_counts`: a case is infectious for 7 days,
 then removed; deaths are removals), on the county's own population.
 

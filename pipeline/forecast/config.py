@@ -13,9 +13,10 @@ from typing import Literal
 
 from pipeline.data.california import SAN_FRANCISCO, california_county
 from pipeline.data.delays import DelayModelConfig
-from pipeline.ensemble.nf_finetune import FineTuneConfig
-from pipeline.ensemble.nf_member import GrowthModelConfig
-from pipeline.ensemble.weekly import WeeklyConfig
+from pipeline.backtest.track_record import TrackRecordConfig
+from pipeline.members.flow import GrowthModelConfig
+from pipeline.members.flow_finetune import FineTuneConfig
+from pipeline.members.published import MembersConfig
 from pipeline.errors import ConfigError
 from pipeline.names import DIRECTIONS, Direction
 from pipeline.systems.waves import WavePrior, recovery_rate
@@ -235,9 +236,9 @@ class ForecastConfig:
     estimates: EstimateSettings = field(default_factory=EstimateSettings)
     rollouts: RolloutSettings = field(default_factory=RolloutSettings)
     smc: SMCSettings = field(default_factory=SMCSettings)
-    # The published forecast: an ensemble of the flow member (its own model) and AutoETS, with
-    # its real-time backtest over every Saturday origin (pipeline.ensemble.weekly).
-    weekly: WeeklyConfig = field(default_factory=WeeklyConfig)
+    # The published forecast: the members' equal-weight log average, with its real-time track
+    # record over every Saturday origin (pipeline.backtest.track_record).
+    track_record: TrackRecordConfig = field(default_factory=TrackRecordConfig)
     nowcast: NowcastSettings = field(default_factory=NowcastSettings)
     outputs: OutputSettings = field(default_factory=OutputSettings)
 
@@ -254,7 +255,7 @@ class ForecastConfig:
             raise ConfigError(f"training preset {self.training.preset!r} does not train on the "
                               "multi-wave prior (sf-waves); the SF forecast's joint models "
                               "share that prior with its flow member")
-        return ResolvedTraining(presets=presets, prior=self.weekly.growth.prior)
+        return ResolvedTraining(presets=presets, prior=self.track_record.members.growth.prior)
 
     def _training_preset(self, direction: Direction) -> TrainingPreset:
         settings = self.training
@@ -270,10 +271,13 @@ class ForecastConfig:
                 preset.train, eval_every=settings.eval_every))
         return preset
 
-    def weekly_config(self) -> WeeklyConfig:
-        """``weekly`` with the run's seeds (the flow member's training seed included)."""
-        growth = dataclasses.replace(self.weekly.growth, seed=self.step_seed("train_growth"))
-        return dataclasses.replace(self.weekly, growth=growth, seed=self.step_seed("weekly"))
+    def track_record_config(self) -> TrackRecordConfig:
+        """``track_record`` with the run's seeds (the flow member's training seed included)."""
+        members = self.track_record.members
+        growth = dataclasses.replace(members.growth, seed=self.step_seed("train_growth"))
+        return dataclasses.replace(self.track_record,
+                                   members=dataclasses.replace(members, growth=growth),
+                                   seed=self.step_seed("weekly"))
 
     def training_identity(self) -> dict[str, object]:
         """What determines the trained joint models (the model-store key is built from this)."""
@@ -298,10 +302,12 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
         estimates=EstimateSettings(n_samples=128, parameter_stride_days=7, nll_locations=20),
         rollouts=RolloutSettings(paths=16, future_paths=200),
         smc=SMCSettings(particles=200, days=28, member_particles=100),
-        weekly=WeeklyConfig(growth=GrowthModelConfig(n_trajectories=120, iterations=30,
-                                                     batch_size=256, prior=WavePrior(days=140)),
-                            finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),
-                            n_paths=100),
+        track_record=TrackRecordConfig(
+            members=MembersConfig(growth=GrowthModelConfig(n_trajectories=120, iterations=30,
+                                                           batch_size=256,
+                                                           prior=WavePrior(days=140)),
+                                  finetune=FineTuneConfig(iterations=10, refit_every_weeks=26)),
+            n_paths=100),
         nowcast=NowcastSettings(completions=8, nowcast_samples=100),
         data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,
                               task_retry_delay_s=0.0)),

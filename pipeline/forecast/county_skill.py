@@ -1,8 +1,9 @@
 """Step ``county-skill``: the published method's skill across California's counties.
 
-The weekly report shows San Francisco's own track record (its real-time backtest) beside the
-same method's on every California county with at least 100,000 people, from the cached CDPH
-vintage (:mod:`pipeline.ensemble.county_backtest`, the design set of the published forecast).
+The weekly report shows the place's own track record (its real-time backtest) beside the same
+method's on every California county with at least 100,000 people, from the cached CDPH vintage
+(:func:`county_backtest`, the design set of the published forecast: the one backtest,
+:mod:`pipeline.backtest.backtest`, on the counties' panel).
 The summary is kept under ``<data dir>/county_skill/`` keyed by the vintage's contents and the
 weekly forecast's member settings: a weekly run recomputes it only when either changed (a new
 CDPH download, another model), and its models are the weekly run's own (shared through the
@@ -15,6 +16,7 @@ import hashlib
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +25,13 @@ import pandas as pd
 from pipeline.data.cache import data_dir
 from pipeline.data.cdph import CDPHVintage
 from pipeline.data.cdph_source import load_cdph_vintage
-from pipeline.ensemble.county_backtest import (CountyBacktestConfig, county_panel,
-                                               run_panel_backtest, select_counties,
-                                               summarize_panel)
-from pipeline.ensemble.panel import Panel, weekly_origins
-from pipeline.ensemble.weekly import build_panel_members
+from pipeline.backtest.backtest import BacktestConfig, OneVintage, Variant, run_backtest
+from pipeline.backtest.result import BacktestResult
+from pipeline.members.base import Member
+from pipeline.members.published import ChosenMembers, build_members
+from pipeline.panels.california import county_panel, select_counties
+from pipeline.panels.panel import Panel, weekly_origins
+from pipeline.panels.targets import HORIZONS_WEEKS
 from pipeline.errors import OfflineError
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import CountySkill
@@ -40,12 +44,21 @@ FOLDER = "county_skill"
 SCORED = ("published", "hub-baseline", "growth-qr", "nf-growth", "nf-real")
 
 
-def skill_key(vintage: CDPHVintage, backtest: CountyBacktestConfig, config: ForecastConfig
-              ) -> str:
+MIN_HISTORY_WEEKS = 8
+
+
+def county_backtest_config(config: ForecastConfig, variants: Sequence[Variant] = ()
+                           ) -> BacktestConfig:
+    """The county backtest's settings: the weekly run's combiner, the run's seed."""
+    return BacktestConfig(seed=config.seed, combine=config.track_record.combine,
+                          variants=tuple(variants))
+
+
+def skill_key(vintage: CDPHVintage, backtest: BacktestConfig, config: ForecastConfig) -> str:
     """What determines the county skill: the vintage's rows and the members' settings."""
     rows = pd.util.hash_pandas_object(vintage.frame, index=False).to_numpy().tobytes()
     settings = json.dumps({"backtest": dataclasses.asdict(backtest),
-                           "weekly": dataclasses.asdict(config.weekly_config())},
+                           "members": dataclasses.asdict(config.track_record_config())},
                           sort_keys=True, default=str)
     return hashlib.sha256(rows + settings.encode()).hexdigest()
 
@@ -54,7 +67,7 @@ def _from_summary(summary: dict[str, Any], vintage: str) -> CountySkill:
     by_target = summary["by_target"]
     published = {t: by_target[t]["published"] for t in by_target}
     return CountySkill(
-        vintage=vintage, n_counties=int(summary["n_counties"]),
+        vintage=vintage, n_counties=int(summary["n_places"]),
         n_origins=int(summary["n_origins"]), first_origin=summary["origins"]["first"],
         last_origin=summary["origins"]["last"],
         relative_wis={t: {n: dict(by_target[t][n]["gmean_relative_wis"]) for n in SCORED
@@ -63,6 +76,22 @@ def _from_summary(summary: dict[str, Any], vintage: str) -> CountySkill:
                                 for t, p in published.items()},
         coverage={t: (float(p["coverage50"]), float(p["coverage90"]))
                   for t, p in published.items()})
+
+
+def county_backtest(vintage: CDPHVintage, config: ForecastConfig, store_root: Path, *,
+                    counties: Sequence[str] | None = None, variants: Sequence[Variant] = (),
+                    references: Sequence[Member] = (), progress: ProgressReporter | None = None
+                    ) -> tuple[BacktestResult, ChosenMembers]:
+    """The published method at every county of ``vintage`` (or ``counties``) and Saturday
+    origin with four weeks of truth, its members' models the weekly run's own (shared through
+    the model store), with the ``variants`` and ``references`` scored beside it."""
+    panel, origins = panel_and_origins(vintage, counties)
+    chosen = build_members(config.track_record_config().members, store_root, panel, origins,
+                           progress)
+    result = run_backtest(OneVintage(panel), chosen.members, origins,
+                          county_backtest_config(config, variants), references=references,
+                          progress=progress)
+    return result, chosen
 
 
 def county_skill(config: ForecastConfig, progress: ProgressReporter | None = None
@@ -74,8 +103,7 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
     except OfflineError as exc:
         log.warning("no county skill: %s", exc)
         return None
-    backtest = CountyBacktestConfig()
-    path = skill_path(vintage, backtest, config)
+    path = skill_path(vintage, config)
     as_of = str(vintage.as_of.date())
     if path.is_file():
         try:
@@ -84,27 +112,24 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("recomputing the county skill: %s is unreadable (%s)", path, exc)
     started = time.perf_counter()
-    panel, origins = panel_and_origins(vintage, backtest)
-    members = build_panel_members(list(panel.histories.values()), origins,
-                                  config.weekly_config(), default_store_root(), progress).members
-    summary = summarize_panel(run_panel_backtest(panel, members, backtest, progress=progress))
+    result, _ = county_backtest(vintage, config, default_store_root(), progress=progress)
+    summary = result.summary()
     atomic_write_json(path, summary | {"vintage": as_of,
                                        "seconds": time.perf_counter() - started})
     return _from_summary(summary, as_of)
 
 
-def skill_path(vintage: CDPHVintage, backtest: CountyBacktestConfig, config: ForecastConfig
-               ) -> Path:
+def skill_path(vintage: CDPHVintage, config: ForecastConfig) -> Path:
     """Where the county skill of this vintage and these settings is kept."""
-    return data_dir() / FOLDER / f"{skill_key(vintage, backtest, config)[:24]}.json"
+    return data_dir() / FOLDER / f"{skill_key(vintage, county_backtest_config(config), config)[:24]}.json"
 
 
-def panel_and_origins(vintage: CDPHVintage, backtest: CountyBacktestConfig
+def panel_and_origins(vintage: CDPHVintage, counties: Sequence[str] | None = None
                       ) -> tuple[Panel, list[pd.Timestamp]]:
     """The counties' panel and the weekly origins the county skill forecasts from."""
-    panel = county_panel(vintage, select_counties(vintage, backtest), backtest.trailing_days)
-    origins = weekly_origins(panel.dates, min_history_weeks=backtest.min_history_weeks,
-                             horizon_weeks=max(backtest.horizons))
+    panel = county_panel(vintage, select_counties(vintage, counties=counties))
+    origins = weekly_origins(panel.dates, min_history_weeks=MIN_HISTORY_WEEKS,
+                             horizon_weeks=max(HORIZONS_WEEKS))
     return panel, origins
 
 
@@ -117,9 +142,8 @@ def train_county_members(config: ForecastConfig, store_root: Path,
         vintage = load_cdph_vintage(offline=True)
     except OfflineError:
         return
-    backtest = CountyBacktestConfig()
-    if skill_path(vintage, backtest, config).is_file():
+    if skill_path(vintage, config).is_file():
         return
-    panel, origins = panel_and_origins(vintage, backtest)
-    build_panel_members(list(panel.histories.values()), origins, config.weekly_config(),
-                        store_root, progress, newest_refits_first=True)
+    panel, origins = panel_and_origins(vintage)
+    build_members(config.track_record_config().members, store_root, panel, origins, progress,
+                  newest_refits_first=True)

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.ensemble.targets import EpiHistory
+from pipeline.panels.history import EpiHistory
 from pipeline.forecast.config import ForecastConfig
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ def start_member_training(config: ForecastConfig, history: EpiHistory, store_roo
     """Start training the weekly forecast's members in a background process (module
     docstring); with nothing of them to train, or where it cannot start, none is started (the
     steps train in this process, as they would anyway)."""
-    if not config.weekly_config().include_nf:
+    if not config.track_record_config().members.include_nf:
         return MemberTraining()
     import torch
 
@@ -185,16 +185,18 @@ def member_training(config: ForecastConfig, history: EpiHistory, store_root: Pat
 def train_members(request: MemberTrainingRequest) -> None:
     """Train what the ``weekly-forecast`` and ``county-skill`` steps will look up: the same
     builder calls (refits newest first), so the same store keys and the same models."""
-    from pipeline.ensemble.weekly import build_weekly_members
     from pipeline.forecast.county_skill import train_county_members
     from pipeline.forecast.sources import load_reference_histories
+    from pipeline.members.published import build_members
+    from pipeline.panels.california import place_panel
     from pipeline.progress import LogProgress
 
     progress = LogProgress(log, "training", 500)
     config = request.config
-    build_weekly_members(config.weekly_config(), request.store_root, load_reference_histories(),
-                         request.history, config.data.place, progress,
-                         newest_refits_first=True)
+    record = config.track_record_config()
+    panel = place_panel(config.data.place, request.history, load_reference_histories())
+    build_members(record.members, request.store_root, panel, record.origins(request.history),
+                  progress, newest_refits_first=True)
     train_county_members(config, request.store_root, progress)
 
 

@@ -33,10 +33,11 @@ from pipeline.data.delays import (DelayModel, DelayModelError, fit_delay_model,
 from pipeline.data.series import DataVintage, SFSeries
 from pipeline.data.sir_transform import SIRSeries
 from pipeline.data.vintage_pairs import revision_pairs
-from pipeline.ensemble.nowcast import NowcastConfig, complete_histories, nowcast_history
-from pipeline.ensemble.nowcast_forecast import RunNowcast, hub_weeks, last_saturday, \
-    median_history
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory
+from pipeline.nowcast.completions import NowcastConfig, complete_histories, nowcast_history
+from pipeline.nowcast.hub_weeks import hub_weeks, last_saturday
+from pipeline.nowcast.mixture import RunNowcast, median_history
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.targets import DAYS_PER_WEEK
 from pipeline.forecast.config import NowcastSettings
 from pipeline.forecast.sources import SF_COUNTY, sf_history
 from pipeline.io import sha256_bytes

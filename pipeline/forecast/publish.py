@@ -14,8 +14,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.california import county_fips, county_slug
-from pipeline.ensemble.backtest import PUBLISHED, hub_frame
-from pipeline.ensemble.weekly import WeeklyForecast
+from pipeline.backtest.track_record import TrackRecord
+from pipeline.backtest.writers import hub_frame
+from pipeline.combine.combiner import PUBLISHED
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import ForecastResults
 from pipeline.forecast.steps import published_skill
@@ -99,13 +100,13 @@ def write_tables(results: ForecastResults, out_dir: Path) -> list[str]:
                    submission.path.relative_to(out_dir).as_posix()])
 
 
-def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
+def weekly_tables(weekly: TrackRecord) -> dict[str, pd.DataFrame]:
     """The published forecast in hub format (quantiles and sample paths of I and weekly cases),
     every forecaster's quantiles beside it, and the real-time backtest's scores."""
     population = weekly.history.population
     frames = [hub_frame(f, population).assign(forecaster=name)
               for name, f in weekly.member_forecasts().items() if name != PUBLISHED]
-    scores = weekly.backtest.scores.assign(
+    scores = weekly.scores.assign(
         origin_date=lambda f: pd.to_datetime(f["origin_date"]).dt.strftime("%Y-%m-%d"),
         target_end_date=lambda f: pd.to_datetime(f["target_end_date"]).dt.strftime("%Y-%m-%d"))
     return {"hub_forecast.csv": hub_frame(weekly.latest, population),
@@ -113,7 +114,7 @@ def weekly_tables(weekly: WeeklyForecast) -> dict[str, pd.DataFrame]:
             "backtest_scores.csv": scores}
 
 
-def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date, *,
+def write_submission(weekly: TrackRecord, hub_dir: Path, run_date: dt.date, *,
                      max_samples: int = 200, location: str = SF_COUNTY_FIPS) -> Submission:
     """The hubverse model-output CSV of the published forecast under ``hub_dir/model-output/``
     (with the nowcast of the weeks in the data) for ``location`` (the place's FIPS code),
@@ -127,7 +128,7 @@ def write_submission(weekly: WeeklyForecast, hub_dir: Path, run_date: dt.date, *
                               nowcasts=nowcast_weeks(weekly, n))
 
 
-def nowcast_weeks(weekly: WeeklyForecast, n_samples: int) -> list[NowcastWeek]:
+def nowcast_weeks(weekly: TrackRecord, n_samples: int) -> list[NowcastWeek]:
     """The nowcast weeks of the round: quantiles of their final cases and ``n_samples``
     samples ordered like the published paths' first week (a larger nowcast goes with a larger
     forecast: the comonotone pairing, as the ensemble's copula pairs weeks)."""

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 from torch import Tensor
 
-from pipeline.ensemble.weekly import WeeklyForecast
+from pipeline.backtest.track_record import TrackRecord
 from pipeline.forecast.config import ForecastConfig
 from pipeline.inference.estimate import Estimator
 from pipeline.inference.rollout import RolloutResult
@@ -146,7 +146,7 @@ class ForecastResults:
     parameters: pd.DataFrame
     nll: pd.DataFrame
     smc: SMCRun
-    weekly: WeeklyForecast                  # the published forecast and its real-time backtest
+    weekly: TrackRecord                  # the published forecast and its real-time backtest
     data_as_of: str | None = None           # DataSF's own "data as of" stamp, when it gave one
     # seconds per step, in the order run (the e2e benchmark reads them)
     timings: dict[str, float] = field(default_factory=dict, compare=False)

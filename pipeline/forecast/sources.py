@@ -25,7 +25,7 @@ from pipeline.data.series import (DatasetProvenance, DataVintage, SeriesProvenan
 from pipeline.data.sir_transform import SIRConversionConfig, SIRSeries, to_sir
 from pipeline.data.cdph_source import (CDPHConfig, CDPHProvenance, import_cdph_exports,
                                        load_cdph, load_cdph_vintage)
-from pipeline.ensemble.targets import EpiHistory, history_from_county, history_from_frames
+from pipeline.panels.history import EpiHistory, history_from_county, history_from_frames
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
 from pipeline.forecast.config import DataSourceConfig, DataSourceKind
 from pipeline.forecast.results import SIRArrays

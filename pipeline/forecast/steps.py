@@ -11,7 +11,7 @@
 8. :func:`seeded_smc` — the paper's hybrid on the multi-wave model
    (:func:`pipeline.inference.hybrid.nf_seeded_wave_smc`).
 9. :func:`weekly_forecast` — the published forecast of weekly cases and I (an ensemble of a flow
-   member and AutoETS, :mod:`pipeline.ensemble`) at the latest Saturday, with the same method's
+   member and AutoETS, :mod:`pipeline.backtest.track_record`) at the latest Saturday, with the same method's
    real-time backtest over every earlier Saturday.
 
 One model of the epidemic: the joint flows are trained on the flow member's multi-wave prior seen
@@ -37,13 +37,13 @@ from torch import Tensor
 
 from pipeline.data.cache import data_dir
 from pipeline.data.california import county_slug
-from pipeline.ensemble.backtest import backtest_origins
-from pipeline.ensemble.memo import ForecastMemo
-from pipeline.ensemble.nf_member import single_thread
-from pipeline.ensemble.smc_member import (BatchedForecasts, NFSeededSMCMember,
-                                          batched_smc_forecasts)
-from pipeline.ensemble.targets import EpiHistory
-from pipeline.ensemble.weekly import WeeklyForecast, forecast_weekly
+from pipeline.backtest.memo import ForecastMemo
+from pipeline.backtest.track_record import TrackRecord, track_record
+from pipeline.members.flow import single_thread
+from pipeline.members.smc import NFSeededSMCMember, PrecomputedMember, batched_smc_forecasts
+from pipeline.panels.california import place_panel
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.forked import ChildBuild, start_in_child
 from pipeline.errors import ModelMissingError
@@ -275,36 +275,38 @@ def smc_member(models: TrainedModels, config: ForecastConfig) -> NFSeededSMCMemb
 
 
 def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastConfig,
-                    progress: ProgressReporter | None = None) -> WeeklyForecast:
+                    progress: ProgressReporter | None = None) -> TrackRecord:
     """The published forecast at the latest Saturday and the same method's real-time forecasts
-    at every earlier Saturday (:mod:`pipeline.ensemble.weekly`), with California's counties
-    from the CDPH cache as the pooled members' reference places (the forecast's own place left
-    out); the flows come from the model store. The days still being reported are nowcast and the forecast mixed over the nowcast's
-    completions (:mod:`pipeline.forecast.nowcasting`). The NF-seeded SMC member is scored beside
-    the members at every origin (one batch of filters) but not averaged into the published
-    forecast (docs/forecasting.md)."""
+    at every earlier Saturday (:mod:`pipeline.backtest.track_record`), with California's
+    counties from the CDPH cache as the pooled members' reference places (the forecast's own
+    place left out); the flows come from the model store. The days still being reported are
+    nowcast and the forecast mixed over the nowcast's completions
+    (:mod:`pipeline.forecast.nowcasting`). The NF-seeded SMC member is scored beside the members
+    at every origin (one batch of filters) but not averaged into the published forecast
+    (docs/forecasting.md)."""
     history, nowcast = recent.history, recent.nowcast
-    weekly = config.weekly_config()
-    backtest = weekly.backtest_config()
-    origins = backtest_origins(history, dataclasses.replace(backtest, first_origin=None))
-    def smc_batch() -> BatchedForecasts:
+    record = config.track_record_config()
+    place = config.data.place
+    origins = record.origins(history)
+    levels = np.asarray(HUB_QUANTILE_LEVELS)
+
+    def smc_batch() -> PrecomputedMember:
+        member = dataclasses.replace(smc_member(models, config), seed=config.step_seed("smc") + 1)
         with single_thread():
-            return batched_smc_forecasts(smc_member(models, config), history, origins,
-                                         backtest.horizons, np.asarray(backtest.levels),
-                                         config.step_seed("smc") + 1)
+            return batched_smc_forecasts(member, history, place, origins, HORIZONS_WEEKS, levels)
 
     smc = start_in_child(smc_batch)     # filtered in a forked child while the members load
 
-    def references() -> tuple[BatchedForecasts, ...]:
+    def references() -> tuple[PrecomputedMember, ...]:
         scored = smc.result()
         return (scored,) if scored.forecasts else ()
 
     start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
-    memo = ForecastMemo.load(forecast_memo_path(config.data.place))
-    result = forecast_weekly(
-        history, weekly, default_store_root(), load_reference_histories(), config.data.place,
-        progress, references=references, nowcast=nowcast, mixture_from=start,
-        mixed_completions=config.nowcast.completions, memo=memo)
+    memo = ForecastMemo.load(forecast_memo_path(place))
+    panel = place_panel(place, history, load_reference_histories())
+    result = track_record(panel, place, record, default_store_root(), progress,
+                          references=references, nowcast=nowcast, mixture_from=start,
+                          mixed_completions=config.nowcast.completions, memo=memo)
     try:
         memo.save()
     except OSError as error:    # a cache: the forecast stands, the next run re-forecasts
@@ -313,7 +315,7 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
 
 
 # The weekly forecast under way in a forked child, with its seconds there.
-WeeklyInChild = ChildBuild[tuple[WeeklyForecast, float]]
+WeeklyInChild = ChildBuild[tuple[TrackRecord, float]]
 
 
 def start_weekly_forecast(recent: RecentDays, models: TrainedModels,
@@ -323,7 +325,7 @@ def start_weekly_forecast(recent: RecentDays, models: TrainedModels,
     the child trains nothing (:func:`~pipeline.training.model_store.stored_models_only`; a
     missing model makes :func:`weekly_forecast_step` forecast here, training it). The members
     sample on one torch thread wherever they run, so the forecast is the same as here."""
-    def build() -> tuple[WeeklyForecast, float]:
+    def build() -> tuple[TrackRecord, float]:
         started = time.perf_counter()
         with stored_models_only():
             weekly = weekly_forecast(recent, models, config)
@@ -334,7 +336,7 @@ def start_weekly_forecast(recent: RecentDays, models: TrainedModels,
 
 def weekly_forecast_step(recent: RecentDays, models: TrainedModels, config: ForecastConfig,
                          progress: ProgressReporter | None = None,
-                         ahead: WeeklyInChild | None = None) -> WeeklyForecast:
+                         ahead: WeeklyInChild | None = None) -> TrackRecord:
     """Step ``weekly-forecast``: the forecast ``ahead`` made in a child, else made here."""
     if ahead is not None:
         try:
@@ -352,7 +354,7 @@ def forecast_memo_path(place: str) -> Path:
     return data_dir() / "forecast-memo" / f"{county_slug(place)}.npz"
 
 
-def published_skill(weekly: WeeklyForecast) -> dict[str, dict[str, float | None]]:
+def published_skill(weekly: TrackRecord) -> dict[str, dict[str, float | None]]:
     """Relative WIS vs the hub baseline (h1–h4, all) of the published forecast, per target."""
     summary = weekly.summary()["by_target"]
     return {target: dict(summary[target]["published"]["relative_wis_vs_baseline"])

@@ -12,7 +12,7 @@ value``, validated by :func:`validate_model_output` against ``hub-config/tasks.j
   -1..3 (-1 is the week just past, a nowcast).
 * ``wk inc case``: reported cases in the epiweek ending on ``target_end_date``; ``I prop``: the
   infectious share of the population on that day. The published forecast
-  (:mod:`pipeline.ensemble.weekly`) forecasts weeks ending on Saturdays 1–4 weeks after its
+  (:mod:`pipeline.backtest.track_record`) forecasts weeks ending on Saturdays 1–4 weeks after its
   origin (the last Saturday of data); a hub horizon is filled when its target week is one of them.
 * quantiles: the published forecast's own 23 quantiles, unchanged (the report's headline shows
   the same numbers); samples: its weekly sample paths, ``output_type_id`` ``"1"``..``"n"``, one id
@@ -23,7 +23,7 @@ value``, validated by :func:`validate_model_output` against ``hub-config/tasks.j
   refused, never clipped.
 * a hub week that lies wholly in the data (horizon −1, and 0 when the data end on a Saturday)
   is filled from the nowcast of its final count (:class:`NowcastWeek`: the days still being
-  reported, ``pipeline.ensemble.nowcast``), its samples aligned with the forecast's paths;
+  reported, ``pipeline.nowcast.completions``), its samples aligned with the forecast's paths;
 * hub horizons whose target week is observed with no nowcast given, or is not one of the
   forecast's weeks, are left out with a logged reason (:attr:`Submission.omitted`).
 
@@ -48,7 +48,8 @@ import pandas as pd
 
 from pipeline.data.california import COUNTY_FIPS, SAN_FRANCISCO
 from pipeline.errors import FlowcastError
-from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, QuantileForecast, format_level
+from pipeline.backtest.result import QuantileForecast
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS, format_level
 from pipeline.io import atomic_write_text, sha256_bytes
 
 SF_COUNTY_FIPS = COUNTY_FIPS[SAN_FRANCISCO]

@@ -21,11 +21,12 @@ import pandas as pd
 from numpy.typing import NDArray
 from torch import Tensor
 
+from pipeline.panels.history import EpiHistory
 from pipeline.report.content import ReportError
 
 if TYPE_CHECKING:  # the report must not import torch-heavy modules at run time
     from pipeline.forecast.results import CountySkill, ForecastResults
-    from pipeline.ensemble.weekly import WeeklyForecast
+    from pipeline.backtest.track_record import TrackRecord
 
 PUBLISHED = "published"
 TARGET_LABELS = {"cases": "weekly reported cases", "I": "infectious share I"}
@@ -253,12 +254,12 @@ def as_numpy(x: Tensor | NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(x, dtype=np.float64)
 
 
-def origin_week_cases(weekly: WeeklyForecast) -> float:
+def origin_week_cases(weekly: TrackRecord) -> float:
     """Cases reported in the 7 days ending at the origin (the week the forecast saw last)."""
     return float(weekly.history.up_to(weekly.origin).weekly_cases()[-1])
 
 
-def _horizons(weekly: WeeklyForecast) -> tuple[HorizonForecast, ...]:
+def _horizons(weekly: TrackRecord) -> tuple[HorizonForecast, ...]:
     latest = weekly.latest
     if latest.paths is None:
         raise ReportError("the published forecast has no sample paths (P(growing) needs them)")
@@ -280,7 +281,7 @@ def _horizons(weekly: WeeklyForecast) -> tuple[HorizonForecast, ...]:
     return tuple(out)
 
 
-def _reported_weeks(weekly: WeeklyForecast, n_weeks: int = 4
+def _reported_weeks(weekly: TrackRecord, n_weeks: int = 4
                     ) -> tuple[tuple[dt.date, Interval], ...]:
     """How much of each of the last ``n_weeks`` weeks ending at the origin had been reported by
     the data date (reported / the nowcast's final cases), newest first."""
@@ -291,7 +292,7 @@ def _reported_weeks(weekly: WeeklyForecast, n_weeks: int = 4
     return tuple((end.date(), Interval.from_samples(nowcast.reported_share(end))) for end in ends)
 
 
-def _nowcast_weeks(weekly: WeeklyForecast) -> tuple[NowcastedWeek, ...]:
+def _nowcast_weeks(weekly: TrackRecord) -> tuple[NowcastedWeek, ...]:
     """The round's weeks wholly in the data (hub horizon −1, and 0 on a Saturday), newest
     first: their nowcast and the share reported."""
     nowcast = weekly.nowcast
@@ -309,9 +310,9 @@ def _nowcast_weeks(weekly: WeeklyForecast) -> tuple[NowcastedWeek, ...]:
     return tuple(out)
 
 
-def _skill(weekly: WeeklyForecast) -> tuple[Skill, ...]:
+def _skill(weekly: TrackRecord) -> tuple[Skill, ...]:
     summary = weekly.summary()["by_target"]
-    scores = weekly.backtest.scores
+    scores = weekly.scores
     out = []
     for target in ("cases", "I"):
         s = summary[target][PUBLISHED]
@@ -345,7 +346,7 @@ def _rt(results: ForecastResults) -> RtEstimate:
                       n_dropped=dropped)
 
 
-def published_weekly(results: ForecastResults) -> WeeklyForecast:
+def published_weekly(results: ForecastResults) -> TrackRecord:
     if results.weekly is None:
         raise ReportError("the run has no published forecast (results.weekly is None)")
     return results.weekly
@@ -354,15 +355,24 @@ def published_weekly(results: ForecastResults) -> WeeklyForecast:
 SMC_FORECASTER = "nf-smc"
 
 
-def _smc_relative_wis(weekly: WeeklyForecast) -> float | None:
+def _smc_relative_wis(weekly: TrackRecord) -> float | None:
     cases = weekly.summary()["by_target"]["cases"]
     return cases[SMC_FORECASTER]["relative_wis_vs_baseline"]["all"] if SMC_FORECASTER in cases \
         else None
 
 
+def daily_history(weekly: TrackRecord) -> EpiHistory:
+    """The place's daily series (the weekly report reads I and daily cases)."""
+    history = weekly.history
+    if not isinstance(history, EpiHistory):
+        raise ReportError(f"the weekly report reads a daily series; {weekly.place} has weekly "
+                          "counts only")
+    return history
+
+
 def compute_headline(results: ForecastResults) -> Headline:
     weekly = published_weekly(results)
-    history = weekly.history
+    history = daily_history(weekly)
     latest = weekly.latest
     return Headline(smc_relative_wis=_smc_relative_wis(weekly),
         origin=weekly.origin.date(), last_data_day=history.dates[-1].date(),

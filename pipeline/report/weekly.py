@@ -37,14 +37,14 @@ from pipeline.report import checks, figures
 from pipeline.forked import ChildBuild, start_in_child
 from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
                                      SectionKey, TableItem, nll_table)
-from pipeline.report.headline import (PUBLISHED, Headline, as_numpy, compute_headline,
+from pipeline.report.headline import (PUBLISHED, daily_history, Headline, as_numpy, compute_headline,
                                       facts_frame, fmt_count, fmt_range, fmt_share,
                                       forecast_frame, published_weekly, skill_frame)
 from pipeline.names import COMPARTMENTS, DIRECTIONS
 
 if TYPE_CHECKING:
     from pipeline.forecast.results import CountySkill, ForecastResults, ModelOutputs
-    from pipeline.ensemble.weekly import WeeklyForecast
+    from pipeline.backtest.track_record import TrackRecord
     from pipeline.inference.smc import SMCResult
 
 log = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ def _county_caption(county: CountySkill | None) -> str:
 
 # ----------------------------------------------------------------------------- forecast
 
-def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
+def _member_frame(weekly: TrackRecord) -> pd.DataFrame:
     """Every forecaster at the latest origin: median (90 % interval) per target and week."""
     forecasts = weekly.member_forecasts()
     rows, index = [], []
@@ -145,8 +145,8 @@ def _member_frame(weekly: WeeklyForecast) -> pd.DataFrame:
                         index=pd.MultiIndex.from_tuples(index, names=["target", "forecaster"]))
 
 
-def _weights_text(weekly: WeeklyForecast) -> str:
-    w = weekly.backtest.weights
+def _weights_text(weekly: TrackRecord) -> str:
+    w = weekly.result.weights_frame()
     now = w[pd.to_datetime(w["origin_date"]) == weekly.origin]
     if now.empty:
         return ""
@@ -159,7 +159,7 @@ def _weights_text(weekly: WeeklyForecast) -> str:
 
 def forecast_section(results: ForecastResults, h: Headline) -> Section:
     weekly = published_weekly(results)
-    seen = weekly.history.up_to(weekly.origin)
+    seen = daily_history(weekly).up_to(weekly.origin)
     cases, share = seen.weekly_cases()[-HISTORY_WEEKS:], seen.weekly_I()[-HISTORY_WEEKS:]
     ends = pd.DatetimeIndex([weekly.origin - pd.Timedelta(days=7 * k)
                              for k in range(len(cases))][::-1])
@@ -187,11 +187,11 @@ def forecast_section(results: ForecastResults, h: Headline) -> Section:
 
 # ----------------------------------------------------------------------------- backtest
 
-def _summary_tables(weekly: WeeklyForecast) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _summary_tables(weekly: TrackRecord) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(relative WIS per target × horizon, coverage per target) — rows per forecaster."""
     by_target = weekly.summary()["by_target"]
     names = [n for n in _shown(weekly) if n in by_target["cases"]]
-    horizons = weekly.backtest.config.horizons
+    horizons = weekly.result.horizons
     rel, cov = {}, {}
     for target, label in TARGETS.items():
         for h in (*horizons, "all"):
@@ -210,25 +210,25 @@ def _summary_tables(weekly: WeeklyForecast) -> tuple[pd.DataFrame, pd.DataFrame]
     return frame(rel), frame(cov)
 
 
-def _shown(weekly: WeeklyForecast) -> list[str]:
+def _shown(weekly: TrackRecord) -> list[str]:
     """The forecasters the report lists, known ones first; the ensemble before recalibration
     only when there is a recalibration (otherwise it is the published forecast)."""
-    names = list(weekly.backtest.forecasts[weekly.origin])
-    recalibrated = weekly.backtest.config.calibration.method != "none"
+    names = list(weekly.member_forecasts())
+    recalibrated = weekly.result.config.combine.calibration != "none"
     return [n for n in [*FORECASTERS, *(n for n in names if n not in FORECASTERS)]
             if n in names and (recalibrated or n != "ensemble-uncalibrated")]
 
 
-def _past_forecasts(weekly: WeeklyForecast, target: str, horizons: Sequence[int]
+def _past_forecasts(weekly: TrackRecord, target: str, horizons: Sequence[int]
                     ) -> pd.DataFrame:
     """Published quantiles at :data:`LEVELS` and the observed value per (origin, horizon)."""
-    scores = weekly.backtest.scores
+    scores = weekly.scores
     mine = scores[(scores["forecaster"] == PUBLISHED) & (scores["target"] == target)]
     observed = {(pd.Timestamp(o), int(h)): y for o, h, y in
                 zip(mine["origin_date"], mine["horizon"], mine["observed"])}
     rows = []
-    for origin in weekly.backtest.origins:
-        f = weekly.backtest.forecasts[origin][PUBLISHED]
+    for origin in weekly.origins:
+        f = weekly.forecast_at(origin)
         idx = [int(np.argmin(np.abs(f.levels - lv))) for lv in LEVELS]
         for k, h in enumerate(f.horizons):
             if h not in horizons:
@@ -243,7 +243,7 @@ def _past_forecasts(weekly: WeeklyForecast, target: str, horizons: Sequence[int]
 def backtest_section(results: ForecastResults) -> Section:
     weekly = published_weekly(results)
     rel, cov = _summary_tables(weekly)
-    scores = weekly.backtest.scores
+    scores = weekly.scores
     origins = pd.to_datetime(scores["origin_date"])
     span = f"{origins.nunique()} weekly origins ({origins.min().date()} … {origins.max().date()})"
     summary = weekly.summary()["by_target"]

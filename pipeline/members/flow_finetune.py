@@ -1,6 +1,6 @@
 """The flow member fine-tuned on real series known by the origin (``nf-real``).
 
-The flow member (:mod:`pipeline.ensemble.nf_member`) learns growth only from the synthetic
+The flow member (:mod:`pipeline.members.flow`) learns growth only from the synthetic
 multi-wave prior. Real epidemics have habits the prior does not: how long a wave keeps growing,
 how plateaus hold, how fast a decline flattens. This member starts from the same trained flow
 and, at every refit date r (every ``refit_every_weeks`` weeks), is fine-tuned on the real
@@ -11,7 +11,7 @@ situations the real data have not shown yet). A forecast at origin o uses the mo
 latest refit date ≤ o: nothing after the origin enters it.
 
 Windows: the same scale-free contexts and valid-by-construction targets as the synthetic ones
-(:func:`pipeline.ensemble.nf_member.context_features`, :func:`~.growth_targets`), one per day of
+(:func:`pipeline.members.flow.context_features`, :func:`~.growth_targets`), one per day of
 each place, in the synthetic model's standardization (the fine-tuned flow is the same model).
 Validation: a seeded fifth of the places, for the best-state choice of the trainer.
 """
@@ -30,11 +30,13 @@ import pandas as pd
 import torch
 from numpy.typing import NDArray
 
-from pipeline.ensemble.memo import history_fingerprint
-from pipeline.ensemble.nf_member import (CHECKPOINT_NAME, N_WEEKS, GrowthModelConfig,
-                                         NFGrowthMember, SyntheticWindows, context_features,
-                                         estimator_config, growth_targets, trailing_week_sums)
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast
+from pipeline.members.base import MemberForecast
+from pipeline.members.flow import (CHECKPOINT_NAME, N_WEEKS, GrowthModelConfig, NFGrowthMember,
+                                   SyntheticWindows, context_features, estimator_config,
+                                   growth_targets, trailing_week_sums)
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import DAYS_PER_WEEK
 from pipeline.errors import CheckpointError, ConfigError
 from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
 from pipeline.progress import ProgressReporter, SilentProgress
@@ -169,7 +171,7 @@ def finetune(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: Wind
 @dataclass(frozen=True, eq=False)
 class StoredRefit:
     """A refit's model in the model store, loaded at its first forecast: a run whose forecasts
-    the memo holds (:mod:`pipeline.ensemble.memo`) loads only the refits it forecasts with. The
+    the memo holds (:mod:`pipeline.backtest.memo`) loads only the refits it forecasts with. The
     memo knows it by its store key and version (the version's name carries the hash of its
     files, so a model rebuilt with other weights is another version)."""
 
@@ -217,23 +219,23 @@ class FineTunedGrowthMember:
         estimator = model.estimator if isinstance(model, StoredRefit) else model
         return dataclasses.replace(self.base, estimator=estimator)
 
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        forecast = self.model_for(history.origin).forecast(history, horizons, levels, seed)
-        return dataclasses.replace(forecast, forecaster=self.name)
-
-    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
-        """Weekly case quantiles ``(B, H, Q)``: the cells of each refit in one batch through
-        that refit's model."""
-        out = np.empty((len(histories), len(horizons), len(levels)))
-        refits = [self.refit_for(h.origin) for h in histories]
-        for refit in set(refits):
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """Every cell through the model of its origin's refit, the cells of each refit in one
+        batch (the sample paths kept, as the base member's)."""
+        refits = [self.refit_for(o) for o in cells.origins]
+        count = np.empty((len(cells), len(horizons), len(levels)))
+        paths: NDArray[np.float64] | None = None
+        for refit in dict.fromkeys(refits):
             index = [i for i, r in enumerate(refits) if r == refit]
             member = self.base if refit is None else self.model_for(refit)
-            out[index] = member.forecast_batch([histories[i] for i in index], horizons, levels,
-                                               seed)
-        return out
+            made = member.forecast(cells.subset(index), horizons, levels)
+            count[index] = made.count
+            if made.paths is not None:
+                if paths is None:
+                    paths = np.empty((len(cells), *made.paths.shape[1:]))
+                paths[index] = made.paths
+        return MemberForecast(count, paths=paths)
 
 
 def fit_finetuned_member(base: NFGrowthMember, synthetic: SyntheticWindows,
@@ -292,7 +294,7 @@ def _stored_finetune(base: NFGrowthMember, known: Sequence[EpiHistory], date: pd
                      ) -> StoredRefit | None:
     """The refit at ``date`` from the store (fine-tuned first if absent); None when skipped."""
     inputs = ("nf-real windows", config.identity(), base.config.identity(),
-              synthetic.data_sha256, date, [history_fingerprint(h) for h in known])
+              synthetic.data_sha256, date, [h.fingerprint() for h in known])
     digests = DataDigests(store_root).get_or_compute(inputs, lambda: _refit_digests(windows()))
     if "skipped" in digests:
         return None

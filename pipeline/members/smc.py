@@ -27,8 +27,10 @@ import pandas as pd
 import torch
 from numpy.typing import NDArray
 
-from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
-from pipeline.ensemble.targets import EpiHistory, QuantileForecast, TargetError
+from pipeline.members.base import MemberForecast, quantiles_of_samples
+from pipeline.panels.history import EpiHistory, History
+from pipeline.panels.panel import Cells, Panel, panel_cells
+from pipeline.panels.targets import TargetError
 from pipeline.inference.estimate import Estimator, ObservationWindow, batch_window_context
 from pipeline.inference.hybrid import WaveSMCConfig, forecast_weekly_reports, nf_seeded_wave_smc
 from pipeline.systems.waves import WavePrior
@@ -39,7 +41,7 @@ MIN_FILTER_DAYS = 14
 
 @dataclass(frozen=True, eq=False)
 class NFSeededSMCMember:
-    """Forecast member (:class:`pipeline.ensemble.members.Member`): NF-seeded SMC on the
+    """Forecast member (:class:`pipeline.members.base.Member`): NF-seeded SMC on the
     multi-wave model. ``estimator`` is the forward joint (S, I, R, β) flow with a ``window``-day
     context; ``prior`` the multi-wave prior it was trained on."""
 
@@ -47,6 +49,7 @@ class NFSeededSMCMember:
     window: int
     prior: WavePrior = field(default_factory=WavePrior)
     name: str = SMC_MEMBER
+    seed: int = 0
     n_particles: int = 1000
     filter_days: int = 56
     chunk: int = 64                # histories per batch of filters (memory: chunk × particles)
@@ -103,46 +106,52 @@ class NFSeededSMCMember:
                                      filter_days, self.prior, settings)
             return forecast_weekly_reports(run, weeks, seed + 7).numpy()
 
-    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                       levels: NDArray[np.float64], seed: int) -> list[QuantileForecast]:
-        """One :class:`QuantileForecast` per history, from one batch of filters."""
-        weekly = self.weekly_cases(histories, max(horizons), seed)        # (B, n, W)
-        index = [h - 1 for h in horizons]
-        quantiles = np.moveaxis(np.quantile(weekly[:, :, index], levels, axis=1), 0, -1)
-        return [quantile_forecast_from_weekly_cases(self.name, h.origin, tuple(horizons),
-                                                    np.asarray(levels), q, h.population)
-                for h, q in zip(histories, quantiles, strict=True)]
-
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        return self.forecast_batch([history], horizons, levels, seed)[0]
-
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """Weekly count quantiles ``(B, H, Q)`` from one batch of filters (drawn from
+        ``seed`` and each chunk's position, not the cells' seeds: the filters of a chunk share
+        one generator)."""
+        daily = [h for h in cells.histories if isinstance(h, EpiHistory)]
+        if len(daily) != len(cells):
+            raise TargetError(f"{self.name}: filters daily case counts; got a weekly series")
+        weekly = self.weekly_cases(daily, max(horizons), self.seed)            # (B, n, W)
+        return MemberForecast(quantiles_of_samples(weekly[:, :, [h - 1 for h in horizons]],
+                                                   np.asarray(levels)))
 
 
 @dataclass(frozen=True, eq=False)
-class BatchedForecasts:
-    """A member's forecasts at many origins made as one batch beforehand (each from its own
-    ``history.up_to(origin)``), served to the backtest one origin at a time."""
+class PrecomputedMember:
+    """A member's forecasts made beforehand (the run filters the SMC member in a forked child
+    while the other members load), served to the backtest by (place, origin)."""
 
     name: str
-    forecasts: dict[pd.Timestamp, QuantileForecast]
+    forecasts: dict[tuple[str, pd.Timestamp], NDArray[np.float64]]
+    horizons: tuple[int, ...]
 
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        made = self.forecasts.get(history.origin)
-        if made is None or made.horizons != tuple(horizons) or not np.array_equal(
-                made.levels, np.asarray(levels)):
-            raise TargetError(f"{self.name}: no batched forecast from {history.origin.date()} "
-                              f"at horizons {horizons}")
-        return made
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """The forecasts made beforehand; NaN (no forecast) at a cell it did not make (an
+        origin with too short a history for the filter)."""
+        if tuple(horizons) != self.horizons:
+            raise TargetError(f"{self.name}: forecasts were made at horizons {self.horizons}, "
+                              f"not {tuple(horizons)}")
+        missing = np.full((len(horizons), len(levels)), np.nan)
+        return MemberForecast(np.stack([self.forecasts.get(key, missing) for key in
+                                        zip(cells.places, cells.origins)]))
+
+    def covers(self, place: str, origin: pd.Timestamp) -> bool:
+        return (place, origin) in self.forecasts
 
 
-def batched_smc_forecasts(member: NFSeededSMCMember, history: EpiHistory,
+def batched_smc_forecasts(member: NFSeededSMCMember, history: History, place: str,
                           origins: Sequence[pd.Timestamp], horizons: tuple[int, ...],
-                          levels: NDArray[np.float64], seed: int) -> BatchedForecasts:
+                          levels: NDArray[np.float64]) -> PrecomputedMember:
     """The member at every origin with enough history, in one batch of filters, each from
     ``history.up_to(origin)`` only."""
-    seen = [history.up_to(o) for o in origins]
-    usable = [h for h in seen if len(h) >= member.days_needed]
-    made = member.forecast_batch(usable, horizons, levels, seed) if usable else []
-    return BatchedForecasts(member.name, {f.origin: f for f in made})
+    usable = [o for o in origins if len(history.up_to(o)) >= member.days_needed]
+    made = {}
+    if usable:
+        cells = panel_cells(Panel({place: history}), usable, 0)
+        quantiles = member.forecast(cells, horizons, levels).count
+        made = {(place, o): q for o, q in zip(usable, quantiles)}
+    return PrecomputedMember(member.name, made, tuple(horizons))

@@ -40,7 +40,10 @@ from pipeline.training.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDat
 from pipeline.errors import ConfigError
 from pipeline.training.digests import DataDigests
 from pipeline.training.model_store import ModelStore
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
+from pipeline.members.base import MemberForecast, quantiles_of_samples
+from pipeline.panels.history import EpiHistory, History
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig
 from pipeline.models.estimator import (ConditionalEstimator, EstimatorConfig, build_estimator,
                                        make_estimator_config)
@@ -292,9 +295,19 @@ def single_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
+def cell_noise(seeds: Sequence[int], n_samples: int, features: int) -> torch.Tensor:
+    """``(B, n, D)`` standard-normal noise, cell b's from its own generator: a cell's draws
+    never depend on which cells share its batch (one generator per cell: torch has no
+    batched generator; drawing is a small part of sampling)."""
+    return torch.stack([torch.randn((n_samples, features),
+                                    generator=torch.Generator().manual_seed(int(seed)))
+                        for seed in seeds])
+
+
 @dataclass(frozen=True, eq=False)
 class NFGrowthMember:
-    """Forecast member: samples the trained flow at the origin and decodes weekly paths."""
+    """Forecast member: samples the trained flow at each cell's origin and decodes weekly
+    paths (module docstring)."""
 
     estimator: ConditionalEstimator
     config: GrowthModelConfig
@@ -306,56 +319,43 @@ class NFGrowthMember:
         """The flow forecasts exactly the next ``N_WEEKS`` weeks."""
         return N_WEEKS
 
-    def sample_paths(self, history: EpiHistory, seed: int) -> NDArray[np.float64]:
-        """Weekly S, I, R paths ``(n_samples, 4, 3)`` at origin + 7h, h = 1..4."""
-        return self.sample_paths_batch([history], seed)[0]
-
-    def sample_paths_batch(self, histories: Sequence[EpiHistory], seed: int,
-                           chunk: int = 16) -> NDArray[np.float64]:
-        """Paths ``(B, n_samples, 4, 3)`` of B histories (e.g. every county × origin of a
-        backtest) through the flow in calls of ``chunk`` histories. Each history's draws depend
-        only on its own data and its position in the batch, never on another history's data.
-        (16 histories × 1,000 draws per call: measured 2.3× faster on the CPU than 256, whose
-        activations no longer fit the cache.)"""
+    def sample_paths(self, histories: Sequence[History], seeds: Sequence[int],
+                     chunk: int = 16) -> NDArray[np.float64]:
+        """Weekly S, I, R paths ``(B, n_samples, 4, 3)`` at origin + 7h, h = 1..4, of B daily
+        histories (e.g. every county × origin of a backtest) through the flow in calls of
+        ``chunk`` histories, history b drawn from ``seeds[b]``. (16 histories × 1,000 draws per
+        call: measured 2.3× faster on the CPU than 256, whose activations no longer fit the
+        cache.)"""
+        daily = [h for h in histories if isinstance(h, EpiHistory)]
+        if len(daily) != len(histories):
+            raise TargetError(f"{self.name}: the flow reads daily case counts; a weekly series "
+                              "needs the weekly flow")
         needed = self.config.context_days + DAYS_PER_WEEK
-        short = [h for h in histories if len(h) < needed]
+        short = [h for h in daily if len(h) < needed]
         if short:
             raise TargetError(f"{self.name}: needs {needed} days of history, got "
                               f"{len(short[0])} (origin {short[0].origin.date()})")
-        cases = np.stack([h.cases[-needed:] for h in histories])
+        cases = np.stack([h.cases[-needed:] for h in daily])
         week_sums = trailing_week_sums(cases)
-        origins = np.full(len(histories), needed - 1)
+        origins = np.full(len(daily), needed - 1)
         context = torch.from_numpy(context_features(week_sums, origins, self.config.context_days))
         mask = torch.ones(context.shape[:2], dtype=torch.bool)
-        generator = torch.Generator().manual_seed(seed)
+        eps = cell_noise(seeds, self.n_samples, self.estimator.features)
         with torch.no_grad(), single_thread():
-            z = torch.cat([self.estimator.sample(self.n_samples, context[i:i + chunk],
-                                                 mask[i:i + chunk], generator)
-                           for i in range(0, len(histories), chunk)]).double().numpy()
-        s_before = np.array([h.S[-1 - DAYS_PER_WEEK] for h in histories])[:, None]
-        s_origin = np.array([h.S[-1] for h in histories])[:, None]
-        population = np.array([h.population for h in histories], dtype=np.int64)[:, None]
+            z = torch.cat([self.estimator.noise_to_data(eps[i:i + chunk], context[i:i + chunk],
+                                                        mask[i:i + chunk])
+                           for i in range(0, len(daily), chunk)]).double().numpy()
+        s_before = np.array([h.S[-1 - DAYS_PER_WEEK] for h in daily])[:, None]
+        s_origin = np.array([h.S[-1] for h in daily])[:, None]
+        population = np.array([h.population for h in daily], dtype=np.int64)[:, None]
         return decode_paths(z, week_sums[:, -1:], s_before, s_origin, population)
 
-    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
-        """Weekly case quantiles ``(B, H, Q)`` of B histories in one pass through the flow."""
-        paths = self.sample_paths_batch(histories, seed)
-        index = [h - 1 for h in horizons]
-        population = np.array([h.population for h in histories], dtype=np.float64)
-        cases = paths[:, :, index, 1] * population[:, None, None]              # (B, n, H)
-        return np.moveaxis(np.quantile(cases, levels, axis=1), 0, -1)
-
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        paths = self.sample_paths(history, seed)
-        index = [h - 1 for h in horizons]
-        infectious = paths[:, index, 1]
-        values = {"I": np.quantile(infectious, levels, axis=0).T,
-                  "cases": np.quantile(infectious * history.population, levels, axis=0).T}
-        return QuantileForecast(self.name, history.origin, tuple(horizons), np.asarray(levels),
-                                values, paths=paths[:, index])
-
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """Weekly count quantiles ``(B, H, Q)`` of every cell from its sampled paths (kept)."""
+        paths = self.sample_paths(cells.histories, cells.seeds)[:, :, [h - 1 for h in horizons]]
+        cases = paths[..., 1] * cells.populations[:, None, None]                # (B, n, H)
+        return MemberForecast(quantiles_of_samples(cases, levels), paths=paths)
 
 
 def default_nf_member(store_root: Path | None = None,

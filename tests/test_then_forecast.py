@@ -1,11 +1,12 @@
-"""The published ensemble for many histories of one vintage (``pipeline.ensemble.published``):
-the batched pooled growth regression against one series at a time, the log average of the
-members within and beyond the flows' reach against its closed form, completions mixed per member
-before the members are averaged (the weekly run's order), and the drop-N baseline batched over
-places against one place at a time. Real data: the shared CDPH vintage of 2021-11-04."""
+"""Forecasting many histories of one vintage at once (``pipeline.nowcast.then_forecast``,
+``pipeline.combine.combiner.Ensemble``): the batched pooled growth regression against one series
+at a time, the log average of the members within and beyond the flows' reach against its closed
+form, completions mixed per member before the members are averaged (the weekly run's order), and
+the drop-N baseline batched over places against one place at a time. Real data: the shared CDPH
+vintage of 2021-11-04."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,19 +17,20 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from pipeline.data.cdph import read_cdph_csv
-from pipeline.ensemble.backtest import origin_seed
-from pipeline.ensemble.growth_regression import (PooledGrowthMember,
-                                                 pooled_growth_forecast_batch)
-from pipeline.ensemble.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.ensemble.nf_finetune import REFIT_EPOCH, latest_refit_date, refit_dates
-from pipeline.ensemble.nowcast import Nowcast, complete_histories
-from pipeline.ensemble.nowcast_forecast import (MemberForecaster, floor_current_week, hub_weeks,
-                                                mix_quantiles,
-                                                nowcast_then_forecast_places,
-                                                truncated_forecast, truncated_forecasts,
-                                                week_sums)
-from pipeline.ensemble.published import PublishedEnsemble
-from pipeline.ensemble.targets import HUB_QUANTILE_LEVELS, EpiHistory, history_from_county
+from pipeline.combine.average import mix_quantiles
+from pipeline.combine.combiner import CombineConfig, Ensemble
+from pipeline.members.base import MemberForecast
+from pipeline.members.flow_finetune import REFIT_EPOCH, latest_refit_date, refit_dates
+from pipeline.members.growth_regression import PooledGrowthMember
+from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+from pipeline.nowcast.completions import Nowcast, complete_histories, week_sums
+from pipeline.nowcast.hub_weeks import hub_weeks
+from pipeline.nowcast.mixture import floor_current_week
+from pipeline.nowcast.then_forecast import (forecast_cells, nowcast_then_forecast_places,
+                                            truncated_forecast, truncated_forecasts)
+from pipeline.panels.history import EpiHistory, history_from_county
+from pipeline.panels.panel import Cells, Panel, origin_seed
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 
 REPO = Path(__file__).resolve().parents[1]
 LATEST = (REPO.parent / "shared" / "data" / "cdph" / "ofaye98__CSC508_Mentor_Class"
@@ -59,44 +61,55 @@ class LogNormalFlow:
     def max_horizon(self) -> int:
         return 4
 
-    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
         if max(horizons) > self.max_horizon:
             raise AssertionError(f"asked for {horizons} beyond the reach of {self.name}")
-        last = np.array([h.weekly_cases()[-1] for h in histories])
+        last = np.array([h.weekly_cases()[-1] for h in cells.histories])
         median = last[:, None] * 1.1 ** np.asarray(horizons)[None, :]
-        return median[..., None] * np.exp(0.2 * stats.norm.ppf(levels))[None, None, :]
+        return MemberForecast(median[..., None]
+                              * np.exp(0.2 * stats.norm.ppf(levels))[None, None, :])
+
+
+def _alone(member: PooledGrowthMember, pool: dict[str, EpiHistory], place: str,
+           history: EpiHistory, horizons: tuple[int, ...]) -> NDArray[np.float64]:
+    """``place`` forecast on its own, the other counties its references."""
+    panel = Panel({place: history}, {c: h for c, h in pool.items() if c != place})
+    return member.forecast(Cells.of([history], [0], [place], [panel]), horizons, LEVELS).count[0]
 
 
 def test_batched_growth_regression_equals_one_series_at_a_time(pool):
     """Every county at three origins (the first too early for a fit: the zero-growth fallback),
-    each pooled with the others but not itself, in one batch: the member's own forecasts."""
+    in one call with the five counties as the pool: the same forecasts as each county alone
+    with the others as references — through the shared regression of a panel's own rows, and
+    through the batched one of cells holding their own version of a place's data (a nowcast's
+    completions)."""
     names = list(pool)
+    panel = Panel(pool)
+    member = PooledGrowthMember()
     origins = [pd.Timestamp("2020-03-14"), pd.Timestamp("2020-06-06"), pd.Timestamp("2021-06-26")]
-    cells = [(pool[c].up_to(o), i) for o in origins for i, c in enumerate(names)]
     horizons = (1, 2, 3, 4, 5, 6)
-    got = pooled_growth_forecast_batch([h for h, _ in cells], list(pool.values()), horizons,
-                                       LEVELS, excluded=[i for _, i in cells])
-    for (history, i), batched in zip(cells, got, strict=True):
-        others = tuple(pool[c] for c in names if c != names[i])
-        alone = PooledGrowthMember(others).forecast(history, horizons, LEVELS, 0)
-        np.testing.assert_allclose(batched, alone.values["cases"], rtol=1e-9)
-    # nothing left out: the member pooled with all five (its own series twice)
-    member = PooledGrowthMember(tuple(pool.values()))
-    history = pool["Fresno"].up_to(origins[-1])
-    np.testing.assert_allclose(member.forecast_batch([history], horizons, LEVELS, 0)[0],
-                               member.forecast(history, horizons, LEVELS, 0).values["cases"],
-                               rtol=1e-9)
+    histories = [pool[c].up_to(o) for o in origins for c in names]
+    places = [c for _ in origins for c in names]
+    shared = member.forecast(Cells.of(histories, [0] * len(histories), places,
+                                      [panel] * len(histories)), horizons, LEVELS).count
+    own = [dataclasses.replace(h, cases=h.cases + 3) for h in histories]      # other versions
+    batched = member.forecast(Cells.of(own, [0] * len(own), places, [panel] * len(own)),
+                              horizons, LEVELS).count
+    for b, (place, history) in enumerate(zip(places, histories, strict=True)):
+        np.testing.assert_allclose(shared[b], _alone(member, pool, place, history, horizons),
+                                   rtol=1e-9)
+        np.testing.assert_allclose(batched[b], _alone(member, pool, place, own[b], horizons),
+                                   rtol=1e-9)
 
 
 def _members_by_hand(pool: dict[str, EpiHistory], histories: list[EpiHistory],
                      places: list[str], horizons: tuple[int, ...], baseline: HubBaseline
                      ) -> dict[str, NDArray[np.float64]]:
-    growth = np.stack([PooledGrowthMember(tuple(h for c, h in pool.items() if c != p))
-                       .forecast(history, horizons, LEVELS, 0).values["cases"]
+    growth = np.stack([_alone(PooledGrowthMember(), pool, p, history, horizons)
                        for history, p in zip(histories, places, strict=True)])
-    hub = np.stack([baseline.forecast(h, horizons, LEVELS, origin_seed(SEED, h.origin))
-                    .values["cases"] for h in histories])
+    hub = baseline.forecast(Cells.of(histories, [origin_seed(SEED, h.origin) for h in histories]),
+                            horizons, LEVELS).count
     return {"growth": growth, "hub": hub}
 
 
@@ -108,22 +121,20 @@ def test_published_is_the_log_average_of_its_members_within_their_reach(pool):
     histories = [pool[p].up_to(origin) for p in places]
     horizons = (1, 2, 3, 4, 5, 6)
     baseline = HubBaseline(HubBaselineConfig(n_samples=2_000))
-    ensemble = PublishedEnsemble((baseline, LogNormalFlow()), pool)
+    ensemble = Ensemble((PooledGrowthMember(), baseline, LogNormalFlow()))
     assert ensemble.member_names == ("growth-qr", "hub-baseline", "flow")
-    assert ensemble.full_reach == 4
-    got = ensemble(histories, horizons, LEVELS, SEED, places)
+    members = forecast_cells(ensemble, histories, places, horizons, LEVELS, SEED, Panel(pool))
+    got = ensemble.combine(members)
     by_hand = _members_by_hand(pool, histories, places, horizons, baseline)
-    flow = LogNormalFlow().forecast_batch(histories, (1, 2, 3, 4), LEVELS, 0)
+    flow = LogNormalFlow().forecast(Cells.of(histories, [0] * 3), (1, 2, 3, 4), LEVELS).count
     three = np.expm1((np.log1p(by_hand["growth"][:, :4]) + np.log1p(by_hand["hub"][:, :4])
                       + np.log1p(flow)) / 3)
     np.testing.assert_allclose(got[:, :4], three, rtol=1e-9)
     assert np.isnan(got[:, 4:]).all()
-    wider = PublishedEnsemble((baseline, LogNormalFlow()), pool,
-                              beyond_reach="reachable-members")(histories, horizons, LEVELS,
-                                                                SEED, places)
+    wider = Ensemble(ensemble.members, CombineConfig(beyond_reach="reachable-members"))
     two = np.expm1((np.log1p(by_hand["growth"][:, 4:]) + np.log1p(by_hand["hub"][:, 4:])) / 2)
-    np.testing.assert_allclose(wider[:, 4:], two, rtol=1e-9)
-    np.testing.assert_allclose(wider[:, :4], got[:, :4], rtol=1e-12)
+    np.testing.assert_allclose(wider.combine(members)[:, 4:], two, rtol=1e-9)
+    np.testing.assert_allclose(wider.combine(members)[:, :4], got[:, :4], rtol=1e-12)
 
 
 def _completed(history: EpiHistory, k: int, seed: int):
@@ -143,13 +154,14 @@ def test_completions_are_mixed_per_member_then_averaged(pool):
     data_date = pd.Timestamp("2021-08-04")                   # a Wednesday: origin 07-31
     completed = {p: _completed(pool[p].up_to(data_date), 12, i)
                  for i, p in enumerate(("Fresno", "Sacramento"))}
-    ensemble = PublishedEnsemble((HubBaseline(HubBaselineConfig(n_samples=2_000)),
-                                  LogNormalFlow()), pool)
-    got = nowcast_then_forecast_places(completed, data_date, ensemble, LEVELS, SEED)
+    ensemble = Ensemble((PooledGrowthMember(), HubBaseline(HubBaselineConfig(n_samples=2_000)),
+                         LogNormalFlow()))
+    panel = Panel(pool)
+    got = nowcast_then_forecast_places(completed, data_date, ensemble, LEVELS, SEED, panel=panel)
     weeks = hub_weeks(data_date)
     for place, histories in completed.items():
-        members = ensemble.member_quantiles(histories.histories(up_to=weeks.origin), (1, 2, 3, 4),
-                                            LEVELS, SEED, [place] * len(histories))
+        members = forecast_cells(ensemble, histories.histories(up_to=weeks.origin),
+                                 [place] * len(histories), (1, 2, 3, 4), LEVELS, SEED, panel)
         # the current week (Sunday..Wednesday in the data) floored at its 4 reported days
         floored = np.stack([floor_current_week(m, histories, weeks.origin, (1, 2, 3, 4))
                             for m in members])
@@ -167,14 +179,14 @@ def test_completions_are_mixed_per_member_then_averaged(pool):
     # one place alone gives the same numbers as with the other in the batch (the flow and the
     # baseline see each history alone; growth-qr's pool is the same)
     alone = nowcast_then_forecast_places({"Fresno": completed["Fresno"]}, data_date, ensemble,
-                                         LEVELS, SEED)["Fresno"]
+                                         LEVELS, SEED, panel=panel)["Fresno"]
     np.testing.assert_allclose(alone.quantiles, got["Fresno"].quantiles, rtol=1e-12)
 
 
 def test_drop_n_baseline_batched_over_places_equals_one_at_a_time(pool):
     data_date = pd.Timestamp("2021-09-22")
     histories = {p: pool[p].up_to(data_date) for p in ("Alameda", "Fresno", "Sacramento")}
-    forecaster = MemberForecaster(HubBaseline(HubBaselineConfig(n_samples=2_000)))
+    forecaster = HubBaseline(HubBaselineConfig(n_samples=2_000))
     together = truncated_forecasts(histories, data_date, forecaster, LEVELS, SEED, drop_days=14)
     for place, history in histories.items():
         alone = truncated_forecast(history, data_date, forecaster, LEVELS, SEED, drop_days=14)

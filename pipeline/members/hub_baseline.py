@@ -26,8 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.ensemble.targets import (DAYS_PER_WEEK, EpiHistory, QuantileForecast,
-                                          TargetError)
+from pipeline.members.base import MemberForecast
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, TargetError
 
 HUB_BASELINE = "hub-baseline"
 
@@ -111,36 +113,38 @@ def i_differences(history: EpiHistory) -> NDArray[np.float64]:
     return history.I[DAYS_PER_WEEK:] - history.I[:-DAYS_PER_WEEK]
 
 
+def _last_finite(weekly: NDArray[np.float64]) -> float:
+    """The latest reported week (a weekly source may miss its newest weeks)."""
+    finite = weekly[np.isfinite(weekly)]
+    return float(finite[-1]) if finite.size else float("nan")
+
+
 @dataclass(frozen=True)
 class HubBaseline:
-    """The hub baseline as a member: each target on its own series (module docstring)."""
+    """The hub baseline as a member: each target on its own series (module docstring); a
+    daily history's I from its daily I series."""
 
     config: HubBaselineConfig = HubBaselineConfig()
     name: str = HUB_BASELINE
 
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        values = self.forecast_targets_batch([history], horizons, levels, [seed])
-        return QuantileForecast(self.name, history.origin, tuple(horizons),
-                                np.asarray(levels, dtype=np.float64),
-                                {t: v[0] for t, v in values.items()})
-
-    def forecast_targets_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                               levels: NDArray[np.float64], seeds: Sequence[int]
-                               ) -> dict[str, NDArray[np.float64]]:
-        """Both targets' quantiles ``(B, H, Q)`` of B histories, history b with ``seeds[b]``
-        (the same numbers as :meth:`forecast` of each)."""
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """Quantiles ``(B, H, Q)`` of every cell, cell b drawn from ``cells.seeds[b]`` (two
+        streams: I, then the count), so a cell's numbers never depend on the others."""
+        histories = cells.histories
         weekly = [h.weekly_cases() for h in histories]
-        short = [h for h, w in zip(histories, weekly) if len(h) <= DAYS_PER_WEEK or w.size < 2]
+        short = [h for h, w in zip(histories, weekly) if np.isfinite(w).sum() < 2]
         if short:
-            raise TargetError(f"hub baseline at {short[0].origin.date()}: needs more than one "
-                              f"week of history, got {len(short[0])} days")
-        streams = np.array([np.random.SeedSequence(s).generate_state(2) for s in seeds])
-        return {
-            "I": baseline_quantiles_batch(np.array([h.I[-1] for h in histories]),
-                                          [i_differences(h) for h in histories], horizons,
-                                          levels, streams[:, 0].tolist(), self.config),
-            "cases": baseline_quantiles_batch(np.array([w[-1] for w in weekly]),
-                                              [np.diff(w) for w in weekly], horizons, levels,
-                                              streams[:, 1].tolist(), self.config),
-        }
+            raise TargetError(f"hub baseline at {short[0].origin.date()}: needs two reported "
+                              f"weeks, got {np.isfinite(short[0].weekly_cases()).sum()}")
+        streams = np.array([np.random.SeedSequence(s).generate_state(2) for s in cells.seeds])
+        count = baseline_quantiles_batch(np.array([_last_finite(w) for w in weekly]),
+                                         [np.diff(w) for w in weekly], horizons, levels,
+                                         streams[:, 1].tolist(), self.config)
+        extra = {}
+        if all(isinstance(h, EpiHistory) for h in histories):
+            daily = [h for h in histories if isinstance(h, EpiHistory)]
+            extra[SHARE] = baseline_quantiles_batch(
+                np.array([h.I[-1] for h in daily]), [i_differences(h) for h in daily], horizons,
+                levels, streams[:, 0].tolist(), self.config)
+        return MemberForecast(count, extra)

@@ -26,19 +26,20 @@ growth seen so far (zero growth).
 """
 from __future__ import annotations
 
-import functools
-
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.ensemble.combine import EnsembleError
-from pipeline.ensemble.hub_baseline import row_quantiles
-from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
-from pipeline.ensemble.targets import DAYS_PER_WEEK, EpiHistory, QuantileForecast, TargetError
+from pipeline.errors import ConfigError
+from pipeline.members.base import MemberForecast
+from pipeline.members.hub_baseline import row_quantiles
+from pipeline.panels.history import EpiHistory
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import TargetError
 
 GROWTH_QR = "growth-qr"
 LEVEL_SCALE = 10.0            # log counts / 10: features of comparable size for the ridge
@@ -58,7 +59,7 @@ class GrowthRegressionConfig:
         if (self.lags < 1 or self.min_rows < 2 or self.level_groups < 1 or self.ridge < 0
                 or self.count_weight_power < 0 or self.min_group_rows < 2
                 or (self.long_lag_weeks is not None and self.long_lag_weeks < 2)):
-            raise EnsembleError(f"invalid GrowthRegressionConfig {self}")
+            raise ConfigError(f"invalid GrowthRegressionConfig {self}")
 
 
 def _lagged_difference(values: NDArray[np.float64], lag: int) -> NDArray[np.float64]:
@@ -254,131 +255,48 @@ def _fitted_log_quantiles(x: NDArray[np.float64], y: NDArray[np.float64],
         spread[np.arange(x.shape[0]), group_now]
 
 
-def pooled_growth_forecast_batch(histories: Sequence[EpiHistory], reference: Sequence[EpiHistory],
-                                 horizons: tuple[int, ...], levels: NDArray[np.float64],
-                                 config: GrowthRegressionConfig = GrowthRegressionConfig(),
-                                 excluded: Sequence[int | None] | None = None,
-                                 cumulative: ReferenceCumulative | None = None
-                                 ) -> NDArray[np.float64]:
-    """Weekly case quantiles ``(B, H, Q)``: history b forecast as
-    :meth:`PooledGrowthMember.forecast` with ``reference`` less ``reference[excluded[b]]`` (its
-    own place), in one batch per origin and length. ``cumulative``: ``reference``'s
-    :func:`reference_cumulative` if already computed (each reference place read once)."""
-    out = np.empty((len(histories), len(horizons), len(levels)))
-    skip = list(excluded) if excluded is not None else [None] * len(histories)
-    weekly = [h.weekly_cases() for h in histories]
-    short = [h for h, w in zip(histories, weekly) if w.size < 2]
-    if short:
-        raise TargetError(f"{GROWTH_QR} at {short[0].origin.date()}: needs two complete weeks, "
-                          f"got {len(short[0])} days")
-    if cumulative is None:
-        cumulative = reference_cumulative(reference)
-    keys = [(h.origin, w.size) for h, w in zip(histories, weekly)]
-    for origin, n_weeks in dict.fromkeys(keys):
-        rows = [b for b, key in enumerate(keys) if key == (origin, n_weeks)]
-        seen, pool = reference_weeks_ending(cumulative, origin, n_weeks)
-        position = {int(i): p for p, i in enumerate(seen)}
-        drop = np.array([-1 if (i := skip[b]) is None else position.get(i, -1) for b in rows],
-                        dtype=np.intp)
-        out[rows] = pooled_growth_quantiles(np.stack([weekly[b] for b in rows]), pool, drop,
-                                            horizons, np.asarray(levels, dtype=np.float64),
-                                            config)
-    return out
-
-
-# ----------------------------------------------------------------------- as a weekly member
-
-
-def weekly_sums_ending(cases: NDArray[np.integer] | NDArray[np.floating], dates: pd.DatetimeIndex, end: pd.Timestamp,
-                       n_weeks: int) -> NDArray[np.float64]:
-    """Counts of the ``n_weeks`` 7-day weeks ending at ``end``, ``end`` − 7, … (oldest first) of a
-    daily series; NaN for weeks not wholly inside the series (or after its last day)."""
-    cumulative = np.concatenate([[0.0], np.cumsum(np.asarray(cases, dtype=np.float64))])
-    return cumulative_weeks_ending(cumulative, dates[0], end, n_weeks)
-
-
-def cumulative_weeks_ending(cumulative: NDArray[np.float64], first: pd.Timestamp,
-                            end: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
-    """:func:`weekly_sums_ending` from a series' cumulative counts (a leading 0, then one per
-    day from ``first``)."""
-    n_days = len(cumulative) - 1
-    week_ends = (end - first).days - DAYS_PER_WEEK * np.arange(n_weeks)[::-1]      # day index
-    inside = (week_ends - DAYS_PER_WEEK + 1 >= 0) & (week_ends < n_days)
-    safe = np.clip(week_ends, DAYS_PER_WEEK - 1, n_days - 1)
-    sums = cumulative[safe + 1] - cumulative[safe + 1 - DAYS_PER_WEEK]
-    return np.where(inside, sums, np.nan)
-
-
-# Each reference place's first day and cumulative daily cases (a leading 0).
-ReferenceCumulative = tuple[tuple[pd.Timestamp, NDArray[np.float64]], ...]
-
-
-def reference_cumulative(reference: Sequence[EpiHistory]) -> ReferenceCumulative:
-    """Each reference place's first day and cumulative daily cases, read once (a week's sum
-    reads only its own days, so an origin still sees nothing after it)."""
-    return tuple((r.dates[0], np.concatenate([[0.0], np.cumsum(r.cases, dtype=np.float64)]))
-                 for r in reference)
-
-
-def reference_weeks_ending(cumulative: ReferenceCumulative, end: pd.Timestamp, n_weeks: int
-                           ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-    """The reference places that began by ``end`` (indices) and their ``(P, n_weeks)`` weekly
-    counts for the weeks ending ``end``, ``end`` − 7, … (NaN where a week is not wholly
-    observed)."""
-    seen = np.array([i for i, (first, _) in enumerate(cumulative) if first <= end],
-                    dtype=np.intp)
-    rows = [cumulative_weeks_ending(cumulative[i][1], cumulative[i][0], end, n_weeks)
-            for i in seen]
-    return seen, (np.vstack(rows) if rows else np.empty((0, n_weeks)))
+def _pools(cells: Cells, n_weeks: list[int]) -> dict[tuple[int, pd.Timestamp, int, str | None],
+                                                   list[int]]:
+    """Cells that share a pool: the same panel, origin and length (and, with references, the
+    same place, whose own reference series its pool leaves out)."""
+    groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
+    for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
+                                                    cells.histories)):
+        key = (id(panel), history.origin, n_weeks[b], place if panel.references else None)
+        groups.setdefault(key, []).append(b)
+    return groups
 
 
 @dataclass(frozen=True, eq=False)
 class PooledGrowthMember:
-    """``growth-qr`` for one place at a time, pooled with ``reference`` places (e.g. California's
-    counties for San Francisco). At an origin it sees the history it is given and the reference
-    places' counts up to the same origin, nothing later."""
+    """``growth-qr`` (module docstring). A cell's pool is its panel as known at its origin
+    (:meth:`~pipeline.panels.panel.Panel.pool`: the references other than its place, then every
+    place of the panel), with the cell's own history as its place's row. Cells whose own rows
+    are their panel's share one regression per origin; cells with their own version of a
+    place's data (a nowcast's completions) are fitted one regression each, in one batch."""
 
-    reference: Sequence[EpiHistory] = ()
     config: GrowthRegressionConfig = GrowthRegressionConfig()
     name: str = GROWTH_QR
+    pools: ClassVar[bool] = True          # learns from the cell's panel (the memo keys on it)
 
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        own = history.weekly_cases()
-        if own.size < 2:
-            raise TargetError(f"{self.name} at {history.origin.date()}: needs two complete "
-                              f"weeks, got {len(history)} days")
-        others = self._reference_weeks_ending(history.origin, own.size)
-        weekly = np.vstack([others, own[None]])
-        quantiles = growth_regression_quantiles(weekly, np.array([own.size - 1]), horizons,
-                                                np.asarray(levels, dtype=np.float64),
-                                                self.config)[-1, 0]
-        return quantile_forecast_from_weekly_cases(self.name, history.origin, horizons,
-                                                   np.asarray(levels, dtype=np.float64),
-                                                   quantiles, history.population)
-
-    @functools.cached_property
-    def _reference_cumulative(self) -> ReferenceCumulative:
-        """Each reference place's first day and cumulative daily cases (computed once: a week's
-        sum reads only its own days, so an origin still sees nothing after it)."""
-        return reference_cumulative(self.reference)
-
-    def _reference_weeks_ending(self, end: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
-        """``(P, n_weeks)`` weekly counts of the reference places that began by ``end``, for the
-        weeks ending ``end``, ``end`` − 7, … (NaN where a week is not wholly observed)."""
-        return reference_weeks_ending(self._reference_cumulative, end, n_weeks)[1]
-
-    def forecast_batch(self, histories: Sequence[EpiHistory], horizons: tuple[int, ...],
-                       levels: NDArray[np.float64], seed: int) -> NDArray[np.float64]:
-        """Weekly case quantiles ``(B, H, Q)``, each history as :meth:`forecast` forecasts it,
-        in one batch (:func:`pooled_growth_forecast_batch`)."""
-        return pooled_growth_forecast_batch(histories, self.reference, horizons, levels,
-                                            self.config, cumulative=self._reference_cumulative)
-
-    def forecast_panel(self, weekly_cases: NDArray[np.float64], origin_index: NDArray[np.intp],
-                       horizons: tuple[int, ...], levels: NDArray[np.float64]
-                       ) -> NDArray[np.float64]:
-        """Every place of a panel at every origin at once, ``(C, O, H, Q)`` (the panel is the
-        pool; ``reference`` is not used)."""
-        return growth_regression_quantiles(weekly_cases, origin_index, horizons, levels,
-                                           self.config)
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        levels = np.asarray(levels, dtype=np.float64)
+        own = [h.weekly_cases() for h in cells.histories]
+        short = [h for h, w in zip(cells.histories, own) if w.size < 2]
+        if short:
+            raise TargetError(f"{self.name} at {short[0].origin.date()}: needs two complete "
+                              f"weeks, got {len(short[0])} {'days' if isinstance(short[0], EpiHistory) else 'weeks'}")
+        out = np.empty((len(cells), len(horizons), len(levels)))
+        for (_, origin, n, _), index in _pools(cells, [w.size for w in own]).items():
+            panel, place = cells.panels[index[0]], cells.places[index[0]]
+            pool = panel.pool(place, origin, n)
+            rows = np.array([panel.own_row(cells.places[b]) for b in index])
+            mine = np.stack([own[b] for b in index])
+            if np.array_equal(pool[rows], mine, equal_nan=True):
+                out[index] = growth_regression_quantiles(pool, np.array([n - 1]), horizons,
+                                                         levels, self.config)[rows, 0]
+            else:
+                out[index] = pooled_growth_quantiles(mine, pool, rows, horizons, levels,
+                                                     self.config)
+        return MemberForecast(out)

@@ -23,10 +23,11 @@ the trend, and Y_d ≥ c_d always: a nowcast is never below what has already bee
 
 :func:`complete_histories` turns the samples into K histories with the S/I/R conversion's
 response to the added cases (S falls by the added cumulative cases, I rises by the added
-7-day sum), which the forecast then continues (:mod:`pipeline.ensemble.nowcast_forecast`).
+7-day sum), which the forecast then continues (:mod:`pipeline.nowcast.then_forecast`).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,8 +35,8 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.data.delays import DelayModel, lag_days
-from pipeline.ensemble.targets import (DAYS_PER_WEEK, EpiHistory, TargetError,
-                                       history_length_up_to)
+from pipeline.panels.history import EpiHistory, history_length_up_to
+from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 
 N_TREND_COEFFICIENTS = 2 + 6        # level, slope per week, weekday effects (Monday = 0)
 _NEWTON_STEPS = 30
@@ -257,3 +258,24 @@ def complete_histories(history: EpiHistory, nowcast: Nowcast) -> CompletedHistor
                               S=s, I=i, R=1.0 - s - i, population=history.population,
                               first_nowcast_day=nowcast.dates[0],
                               reported=np.asarray(history.cases, dtype=np.int64))
+
+
+def week_sums(histories: CompletedHistories, ends: Sequence[pd.Timestamp]
+              ) -> NDArray[np.float64]:
+    """``(K, W)`` cases of the 7-day weeks ending on ``ends`` in every completion."""
+    positions = histories.dates.get_indexer(pd.DatetimeIndex(list(ends)))
+    if (positions < DAYS_PER_WEEK - 1).any():
+        raise TargetError(f"weeks ending {list(ends)} are not all in the history")
+    cumulative = np.concatenate([np.zeros((len(histories), 1)),
+                                 np.cumsum(histories.cases, axis=1)], axis=1)
+    return np.asarray(cumulative[:, positions + 1] - cumulative[:, positions + 1 - DAYS_PER_WEEK],
+                      dtype=np.float64)
+
+
+def day_index(dates: pd.DatetimeIndex, date: pd.Timestamp) -> int:
+    """The position of ``date`` in ``dates`` (an error naming it when absent)."""
+    pos = int(dates.get_indexer(pd.DatetimeIndex([pd.Timestamp(date)]))[0])
+    if pos < 0:
+        raise TargetError(f"{pd.Timestamp(date).date()} is not a day of the history "
+                          f"({dates[0].date()} … {dates[-1].date()})")
+    return pos

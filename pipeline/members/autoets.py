@@ -15,8 +15,9 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.ensemble.members import quantile_forecast_from_weekly_cases
-from pipeline.ensemble.targets import EpiHistory, QuantileForecast, TargetError
+from pipeline.members.base import MemberForecast
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import TargetError
 
 AUTOETS = "autoets"
 
@@ -70,13 +71,17 @@ class AutoETSMember:
     config: AutoETSConfig = AutoETSConfig()
     name: str = AUTOETS
 
-    def forecast(self, history: EpiHistory, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64], seed: int) -> QuantileForecast:
-        weekly = history.weekly_cases()
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """One AutoETS fit per cell (statsforecast fits a series at a time)."""
+        return MemberForecast(np.stack([self._quantiles(h.weekly_cases(), h.origin, horizons,
+                                                        levels) for h in cells.histories]))
+
+    def _quantiles(self, weekly: NDArray[np.float64], origin: object, horizons: tuple[int, ...],
+                   levels: NDArray[np.float64]) -> NDArray[np.float64]:
+        weekly = weekly[np.isfinite(weekly)]
         if weekly.size < self.config.min_weeks:
-            raise TargetError(f"autoets at {history.origin.date()}: {weekly.size} complete weeks, "
-                              f"needs {self.config.min_weeks}")
-        logq = log_quantiles(np.log(np.maximum(weekly, self.config.floor_cases)), horizons,
-                             levels, self.config)
-        return quantile_forecast_from_weekly_cases(self.name, history.origin, horizons, levels,
-                                                   np.exp(logq), history.population)
+            raise TargetError(f"autoets at {getattr(origin, 'date', lambda: origin)()}: "
+                              f"{weekly.size} complete weeks, needs {self.config.min_weeks}")
+        return np.exp(log_quantiles(np.log(np.maximum(weekly, self.config.floor_cases)),
+                                    horizons, levels, self.config))

@@ -1,0 +1,1 @@
+"""The one real-time backtest, its results and writers, a place's track record and its memo."""

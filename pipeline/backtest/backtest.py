@@ -1,0 +1,221 @@
+"""The one real-time backtest: every member at every (place, origin) cell of a panel, combined,
+scored against the latest data.
+
+For each origin t the cells of every forecast place see only the data as known at t
+(:class:`DataAtOrigins`: one vintage cut at each origin, or a vintage per origin, as the hub's
+rounds were released); each member forecasts all cells in one batch (its own batching); the
+published forecast combines them with weights and recalibration learnt only from forecasts
+whose target week had ended by t (:mod:`pipeline.combine.combiner`), beside the variants; every
+forecaster is then scored per target × horizon against the latest data (the truth).
+
+The result holds arrays ``(C, O, H, Q)`` per target and forecaster; summaries, score tables and
+hub-format files come from it (:mod:`pipeline.backtest.result`, :mod:`pipeline.backtest.writers`).
+San Francisco's weekly track record, the cross-county design backtest and the hub rounds of NHSN
+are all this function on different panels.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.backtest.result import BacktestResult
+from pipeline.combine.average import EnsembleError
+from pipeline.combine.combiner import (PUBLISHED, RESERVED_NAMES, UNCALIBRATED, CombineConfig,
+                                       KnownTruth, combine)
+from pipeline.combine.paths import sample_paths
+from pipeline.evaluation.regimes import growth_regimes
+from pipeline.members.base import Member, forecast_within_reach
+from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline
+from pipeline.panels.history import History
+from pipeline.panels.panel import Cells, Panel, origin_seed, truth_arrays
+from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS, SHARE
+from pipeline.progress import ProgressReporter, SilentProgress
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A design alternative scored beside the published forecast: another combiner over the
+    same members, or the published combiner over a subset of them (``members``)."""
+
+    name: str
+    combine: CombineConfig = field(default_factory=CombineConfig)
+    members: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class BacktestConfig:
+    """Horizons (weeks after each origin), levels, the members' seed, the published combiner,
+    the variants scored beside it, and the published forecast's sample paths per cell (0: none;
+    their ranks follow the first member that simulates paths)."""
+
+    horizons: tuple[int, ...] = HORIZONS_WEEKS
+    levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
+    seed: int = 0
+    combine: CombineConfig = field(default_factory=CombineConfig)
+    variants: tuple[Variant, ...] = ()
+    n_paths: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.horizons or min(self.horizons) < 1:
+            raise EnsembleError(f"horizons {self.horizons} must be weeks >= 1")
+        if self.n_paths < 0:
+            raise EnsembleError(f"n_paths={self.n_paths} must be >= 0")
+
+
+class DataAtOrigins(Protocol):
+    """The data a backtest may use: the panel as known at each origin, and the latest."""
+
+    @property
+    def latest(self) -> Panel: ...
+
+    def known_at(self, origin: pd.Timestamp) -> Panel: ...
+
+
+@dataclass(frozen=True, eq=False)
+class OneVintage:
+    """One vintage of the data, each origin seeing it up to that origin (the counties' CDPH
+    download, San Francisco's DataSF series): revisions after an origin are not modelled."""
+
+    latest: Panel
+
+    def known_at(self, origin: pd.Timestamp) -> Panel:
+        return self.latest
+
+
+@dataclass(frozen=True, eq=False)
+class Vintages:
+    """A vintage per origin (the NHSN release each hub round was made from) and the latest."""
+
+    latest: Panel
+    at_origin: Mapping[pd.Timestamp, Panel]
+
+    def known_at(self, origin: pd.Timestamp) -> Panel:
+        if origin not in self.at_origin:
+            raise EnsembleError(f"no vintage of the data for the origin {origin.date()}")
+        return self.at_origin[origin]
+
+
+def backtest_cells(data: DataAtOrigins, origins: Sequence[pd.Timestamp], seed: int) -> Cells:
+    """Every forecast place at every origin, place-major (index c·O + o), each from the data as
+    known at its origin (a place missing then is forecast from nothing: it must be there)."""
+    places = data.latest.places
+    histories: list[History] = []
+    panels: list[Panel] = []
+    for place in places:
+        for origin in origins:
+            panel = data.known_at(origin)
+            if place not in panel.histories:
+                raise EnsembleError(f"{place} has no data as known at {origin.date()}")
+            histories.append(panel.histories[place].up_to(origin))
+            panels.append(panel)
+    return Cells(tuple(histories), tuple(p for p in places for _ in origins), tuple(panels),
+                 tuple(origin_seed(seed, o) for _ in places for o in origins))
+
+
+def run_backtest(data: DataAtOrigins, members: Sequence[Member],
+                 origins: Sequence[pd.Timestamp], config: BacktestConfig = BacktestConfig(), *,
+                 references: Sequence[Member] = (), reported: Sequence[pd.Timestamp] | None = None,
+                 truth_at: KnownTruth | None = None,
+                 progress: ProgressReporter | None = None) -> BacktestResult:
+    """Every member and reference at every cell, the published combination of the members and
+    the variants (module docstring). The hub baseline is scored always: as a member when it is
+    one, else as a reference. ``reported``: the origins the result keeps (default: all); the
+    earlier ones still teach the combiner (a warm-up, so the forecast at a date does not depend
+    on where the report starts)."""
+    progress = progress or SilentProgress()
+    names = tuple(m.name for m in members)
+    if not names or len(set(names)) != len(names) or set(RESERVED_NAMES) & set(names):
+        raise EnsembleError(f"members need distinct names other than {RESERVED_NAMES}, got "
+                            f"{names}")
+    if HUB_BASELINE not in names and not any(r.name == HUB_BASELINE for r in references):
+        references = (*references, HubBaseline())
+    references = tuple(r for r in references if r.name not in names)
+    latest, levels = data.latest, np.asarray(config.levels, dtype=np.float64)
+    horizons, origins = tuple(config.horizons), list(origins)
+    cells = backtest_cells(data, origins, config.seed)
+    shape = (len(latest.places), len(origins))
+    seconds: dict[str, float] = {}
+    forecasts: dict[str, dict[str, NDArray[np.float64]]] = {t: {} for t in latest.targets}
+    template: NDArray[np.float64] | None = None
+    for member in (*members, *references):
+        started = time.perf_counter()
+        made = forecast_within_reach(member, cells, horizons, levels)
+        seconds[member.name] = time.perf_counter() - started
+        progress.advance(len(cells), member=member.name)
+        for target, values in made.values(cells.histories).items():
+            forecasts[target][member.name] = values.reshape(*shape, *values.shape[1:])
+        if (config.n_paths and template is None and member.name in names
+                and made.paths is not None):
+            kept = made.paths[:, :config.n_paths]
+            template = kept.reshape(*shape, *kept.shape[1:])
+    started = time.perf_counter()
+    truth = truth_arrays(latest, origins, horizons)
+    regimes = cell_regimes(cells).reshape(shape)
+    count = latest.count_target
+    baseline = forecasts[count][HUB_BASELINE]
+
+    def published_by(chosen: Sequence[str], combiner: CombineConfig) -> NDArray[np.float64]:
+        return combine({n: forecasts[count][n] for n in chosen}, baseline, truth[count], regimes,
+                       levels, horizons, origins, combiner, truth_at=truth_at).published
+
+    combined = combine({n: forecasts[count][n] for n in names}, baseline, truth[count], regimes,
+                       levels, horizons, origins, config.combine, truth_at=truth_at)
+    _add(forecasts, PUBLISHED, combined.published, latest)
+    _add(forecasts, UNCALIBRATED, combined.uncalibrated, latest)
+    seconds["combine"] = time.perf_counter() - started
+    started = time.perf_counter()
+    for variant in config.variants:
+        unknown = [n for n in variant.members or () if n not in forecasts[count]]
+        if unknown:
+            raise EnsembleError(f"variant {variant.name!r} combines {unknown}, which the "
+                                f"backtest did not forecast ({sorted(forecasts[count])})")
+        _add(forecasts, variant.name, published_by(variant.members or names, variant.combine),
+             latest)
+    seconds["variants"] = time.perf_counter() - started
+    paths = (published_paths(cells, combined.published, levels, config.n_paths, template)
+             if config.n_paths else None)
+    keep = (np.ones(len(origins), dtype=bool) if reported is None
+            else np.isin(pd.DatetimeIndex(origins), pd.DatetimeIndex(list(reported))))
+    return BacktestResult(latest, tuple(origins), horizons, levels, names,
+                          tuple(r.name for r in references), forecasts, truth, regimes,
+                          combined.weights, paths, keep, seconds, config).reported_only()
+
+
+def _add(forecasts: dict[str, dict[str, NDArray[np.float64]]], name: str,
+         count: NDArray[np.float64], panel: Panel) -> None:
+    """A combined forecast of the count under ``name``, and its I = count / N where the panel
+    has I."""
+    forecasts[panel.count_target][name] = count
+    if SHARE in forecasts:
+        forecasts[SHARE][name] = count / panel.populations[:, None, None, None]
+
+
+def cell_regimes(cells: Cells) -> NDArray[np.intp]:
+    """Each cell's growth regime ``(B,)`` from the last two weekly counts it saw."""
+    last_two = np.array([_last_two(h.weekly_cases()) for h in cells.histories])
+    return growth_regimes(last_two)
+
+
+def _last_two(weekly: NDArray[np.float64]) -> tuple[float, float]:
+    return (float(weekly[-2]), float(weekly[-1])) if weekly.size >= 2 else (np.nan, np.nan)
+
+
+def published_paths(cells: Cells, published: NDArray[np.float64], levels: NDArray[np.float64],
+                    n_paths: int, template: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """``(C, O, n, H, 3)`` weekly S/I/R sample paths of the published forecast at every cell
+    (:mod:`pipeline.combine.paths`), their ranks from ``template`` (C, O, n, H, 3) when given."""
+    n_c, n_o, n_h = published.shape[:3]
+    out = np.full((n_c, n_o, n_paths, n_h, 3), np.nan)
+    for b, history in enumerate(cells.histories):
+        c, o = divmod(b, n_o)
+        if not np.isfinite(published[c, o]).all():
+            continue
+        ranks = None if template is None else template[c, o]
+        out[c, o] = sample_paths(history, levels, published[c, o], n_paths, ranks)
+    return out

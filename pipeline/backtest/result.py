@@ -1,0 +1,261 @@
+"""A backtest's result: every forecaster's quantiles at every cell, the truth, the weights and
+the published sample paths, with its summary and score table computed once.
+
+``forecasts[target][forecaster]`` are ``(C, O, H, Q)`` arrays (places × origins × horizons ×
+levels; NaN where a forecaster made no forecast), ``truth[target]`` ``(C, O, H)``. The summary
+(:meth:`BacktestResult.summary`) is :mod:`pipeline.evaluation.summary` per target × forecaster
+with the run's facts; :meth:`BacktestResult.scores` the long table of scored cells;
+:meth:`BacktestResult.forecast_at` one cell's forecast (the report's and the hub file's view).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.combine.average import EnsembleError
+from pipeline.combine.combiner import PUBLISHED
+from pipeline.combine.paths import InvalidCounts, add_counts, count_invalid
+from pipeline.evaluation.summary import regime_masks, score_cells, summarize_forecaster
+from pipeline.members.hub_baseline import HUB_BASELINE
+from pipeline.panels.history import EpiHistory, History
+from pipeline.panels.panel import Panel
+from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, TargetError
+
+if TYPE_CHECKING:
+    from pipeline.backtest.backtest import BacktestConfig
+
+SCORE_COLUMNS = ("place", "forecaster", "target", "horizon", "origin_date", "target_end_date",
+                 "observed", "median", "wis", "dispersion", "overprediction", "underprediction",
+                 "covered_50", "covered_90", "covered_95", "pit", "regime")
+
+
+@dataclass(frozen=True, eq=False)
+class QuantileForecast:
+    """One forecaster's forecast of one place from one origin: ``values[target]`` ``(H, Q)``
+    (horizons × ascending levels, non-decreasing along the levels); ``paths``: weekly S/I/R
+    sample paths ``(n, H, 3)`` at origin + 7h when the forecaster has them."""
+
+    forecaster: str
+    origin: pd.Timestamp
+    horizons: tuple[int, ...]
+    levels: NDArray[np.float64]
+    values: dict[str, NDArray[np.float64]]
+    paths: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        shape = (len(self.horizons), len(self.levels))
+        for target, arr in self.values.items():
+            if arr.shape != shape:
+                raise TargetError(f"{self.forecaster} at {self.origin.date()}: {target} quantiles "
+                                  f"have shape {arr.shape}, expected {shape}")
+            if not np.isfinite(arr).all():
+                raise TargetError(f"{self.forecaster} at {self.origin.date()}: {target} "
+                                  "quantiles are not finite")
+            if (np.diff(arr, axis=-1) < -1e-12 * np.abs(arr[..., 1:]).max(initial=1.0)).any():
+                raise TargetError(f"{self.forecaster} at {self.origin.date()}: {target} "
+                                  "quantiles decrease along the levels")
+
+
+@dataclass(frozen=True, eq=False)
+class BacktestResult:
+    """The arrays of a backtest (module docstring). ``regimes`` ``(C, O)``; ``weights``
+    ``(O, H, M)`` of the published combination; ``paths`` ``(C, O, n, H, 3)`` of the published
+    forecast (None: not drawn); ``reported`` ``(O,)``: the origins kept (the others were a
+    warm-up of the combiner)."""
+
+    panel: Panel
+    origins: tuple[pd.Timestamp, ...]
+    horizons: tuple[int, ...]
+    levels: NDArray[np.float64]
+    members: tuple[str, ...]
+    references: tuple[str, ...]
+    forecasts: dict[str, dict[str, NDArray[np.float64]]]
+    truth: dict[str, NDArray[np.float64]]
+    regimes: NDArray[np.intp]
+    weights: NDArray[np.float64]
+    paths: NDArray[np.float64] | None
+    reported: NDArray[np.bool_]
+    seconds: dict[str, float]
+    config: BacktestConfig
+
+    @property
+    def places(self) -> tuple[str, ...]:
+        return self.panel.places
+
+    @property
+    def populations(self) -> NDArray[np.float64]:
+        return self.panel.populations
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        return tuple(self.forecasts)
+
+    def reported_only(self) -> BacktestResult:
+        """The result at the reported origins only."""
+        keep = np.asarray(self.reported, dtype=bool)
+        if keep.all():
+            return self
+        if not keep.any():
+            raise EnsembleError("no reported origin in the backtest")
+        return dataclasses.replace(
+            self, origins=tuple(o for o, k in zip(self.origins, keep) if k),
+            forecasts={t: {n: v[:, keep] for n, v in f.items()}
+                       for t, f in self.forecasts.items()},
+            truth={t: v[:, keep] for t, v in self.truth.items()}, regimes=self.regimes[:, keep],
+            weights=self.weights[keep],
+            paths=None if self.paths is None else self.paths[:, keep],
+            reported=np.ones(int(keep.sum()), dtype=bool))
+
+    def for_places(self, places: Sequence[str]) -> BacktestResult:
+        """The same backtest restricted to ``places`` (their forecasts are unchanged: pooled
+        members learnt from every place of the panel)."""
+        unknown = [p for p in places if p not in self.places]
+        if unknown:
+            raise EnsembleError(f"places {unknown} are not in the backtest ({len(self.places)} "
+                                f"places: {', '.join(self.places[:5])}, …)")
+        keep = np.array([self.places.index(p) for p in places])
+        return dataclasses.replace(
+            self, panel=self.panel.only(places),
+            forecasts={t: {n: v[keep] for n, v in f.items()} for t, f in self.forecasts.items()},
+            truth={t: v[keep] for t, v in self.truth.items()}, regimes=self.regimes[keep],
+            paths=None if self.paths is None else self.paths[keep])
+
+    # ------------------------------------------------------------------------ one cell's view
+
+    def forecast_at(self, place: str, origin: pd.Timestamp, forecaster: str = PUBLISHED
+                    ) -> QuantileForecast:
+        """One forecaster's forecast of ``place`` from ``origin`` (the published one with its
+        sample paths)."""
+        c, o = self.places.index(place), self.origins.index(pd.Timestamp(origin))
+        values = {t: f[forecaster][c, o] for t, f in self.forecasts.items() if forecaster in f}
+        paths = (self.paths[c, o] if forecaster == PUBLISHED and self.paths is not None
+                 else None)
+        return QuantileForecast(forecaster, self.origins[o], self.horizons, self.levels, values,
+                                paths)
+
+    def forecasters_at(self, place: str, origin: pd.Timestamp) -> dict[str, QuantileForecast]:
+        """Every forecaster that forecast ``place`` from ``origin``."""
+        c, o = self.places.index(place), self.origins.index(pd.Timestamp(origin))
+        names = self.forecasts[self.panel.count_target]
+        return {n: self.forecast_at(place, origin, n) for n, v in names.items()
+                if np.isfinite(v[c, o]).all()}
+
+    # ---------------------------------------------------------------------------- summaries
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON summary (computed once; treat it as read-only)."""
+        return self._summary
+
+    @functools.cached_property
+    def _summary(self) -> dict[str, Any]:
+        by_target: dict[str, dict[str, Any]] = {}
+        for target in self.targets:
+            unit = self._unit(target)
+            truth = self.truth[target]
+            masks = regime_masks(self.regimes, self.truth[self.panel.count_target],
+                                 len(self.horizons))
+            base = score_cells(self.forecasts[target][HUB_BASELINE], truth, self.levels,
+                               unit).wis
+            by_target[target] = {
+                name: summarize_forecaster(score_cells(values, truth, self.levels, unit), base,
+                                           self.horizons, self.places, masks)
+                for name, values in self.forecasts[target].items()}
+        out: dict[str, Any] = {
+            "by_target": by_target,
+            "n_places": len(self.places), "places": list(self.places),
+            "n_origins": len(self.origins),
+            "origins": {"first": str(self.origins[0].date()),
+                        "last": str(self.origins[-1].date())},
+            "members": list(self.members), "references": list(self.references),
+            "mean_weights": {f"h{h}": dict(zip(self.members,
+                                               map(float, self.weights.mean(axis=0)[k])))
+                             for k, h in enumerate(self.horizons)},
+            "config": _config_dict(self.config),
+            "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
+        }
+        if self.paths is not None:
+            invalid = self.invalid_counts()
+            out["invalid_values"] = invalid.total
+            out["invalid_values_detail"] = invalid.to_dict()
+        return out
+
+    def _unit(self, target: str) -> NDArray[np.float64]:
+        """Turns the target into counts for the PIT: N for I, 1 for a count."""
+        ones = np.ones_like(self.populations)
+        return (self.populations if target == SHARE else ones)[:, None, None]
+
+    def invalid_counts(self) -> InvalidCounts:
+        """Invalid values in the published paths (negative fractions, S rising, R falling)."""
+        total = InvalidCounts(0, 0, 0, 0)
+        if self.paths is None:
+            return total
+        for c, place in enumerate(self.places):
+            history = self.panel.histories[place]
+            for o, origin in enumerate(self.origins):
+                if not np.isfinite(self.paths[c, o]).all():
+                    continue
+                start = _state_at(history, origin)
+                total = add_counts(total, count_invalid(self.paths[c, o], start))
+        return total
+
+    def scores(self) -> pd.DataFrame:
+        """One row per scored cell × target × forecaster (:data:`SCORE_COLUMNS`)."""
+        return self._scores
+
+    @functools.cached_property
+    def _scores(self) -> pd.DataFrame:
+        frames = []
+        origins = pd.DatetimeIndex(list(self.origins))
+        for target in self.targets:
+            truth = self.truth[target]
+            for name, values in self.forecasts[target].items():
+                s = score_cells(values, truth, self.levels, self._unit(target))
+                c, o, h = np.nonzero(np.isfinite(s.wis))
+                horizon = np.asarray(self.horizons)[h]
+                frames.append(pd.DataFrame({
+                    "place": np.asarray(self.places, dtype=object)[c], "forecaster": name,
+                    "target": target, "horizon": horizon, "origin_date": origins[o],
+                    "target_end_date": origins[o] + pd.to_timedelta(DAYS_PER_WEEK * horizon,
+                                                                    unit="D"),
+                    "observed": truth[c, o, h], "median": s.median[c, o, h],
+                    "wis": s.wis[c, o, h], "dispersion": s.dispersion[c, o, h],
+                    "overprediction": s.overprediction[c, o, h],
+                    "underprediction": s.underprediction[c, o, h],
+                    **{f"covered_{round(100 * cov)}": v[c, o, h] > 0
+                       for cov, v in s.covered.items()},
+                    "pit": s.pit[c, o, h], "regime": self.regimes[c, o]}))
+        return pd.concat(frames, ignore_index=True).reindex(columns=list(SCORE_COLUMNS))
+
+    def weights_frame(self) -> pd.DataFrame:
+        """origin, horizon, member, weight of the published combination."""
+        o, h, m = np.meshgrid(np.arange(len(self.origins)), np.arange(len(self.horizons)),
+                              np.arange(len(self.members)), indexing="ij")
+        return pd.DataFrame({"origin_date": [self.origins[i].date() for i in o.ravel()],
+                             "horizon": [self.horizons[i] for i in h.ravel()],
+                             "member": [self.members[i] for i in m.ravel()],
+                             "weight": self.weights.ravel()})
+
+
+def _state_at(history: History, origin: pd.Timestamp) -> NDArray[np.float64]:
+    """S, I, R at ``origin`` of a daily history (a weekly one: S from its counts, I the last
+    week's count over N)."""
+    seen = history.up_to(origin)
+    if isinstance(seen, EpiHistory):
+        return np.array([seen.S[-1], seen.I[-1], seen.R[-1]])
+    s = float(seen.susceptible_at_weeks()[-1])
+    i = float(np.nan_to_num(seen.weekly_cases()[-1])) / seen.population
+    return np.array([s, i, 1.0 - s - i])
+
+
+def _config_dict(config: Any) -> dict[str, Any]:
+    out = dataclasses.asdict(config)
+    out["variants"] = {v.name: {"combine": dataclasses.asdict(v.combine), "members": v.members}
+                       for v in config.variants}
+    return out

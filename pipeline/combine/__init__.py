@@ -1,0 +1,1 @@
+"""Combining the members: averages, weights, recalibration, sample paths — one combiner."""

@@ -1,0 +1,115 @@
+"""Averaging the members' quantiles, and the weights of the average.
+
+**Quantile averaging** (Vincentization, :func:`vincentize`): the published τ-quantile is
+Σ_m w_m q_m(τ), on the scale of log(1 + q) by default — the weighted geometric mean of the
+members' quantiles (of counts + 1). Epidemic counts grow multiplicatively, so a member
+forecasting growth and one forecasting a plateau average to a damped growth *rate*, where the
+linear average is pulled to the larger member's scale.
+
+**Weights** per horizon from the scores known at the origin (:func:`fit_weights`):
+``"equal"`` (published); ``"inverse-wis"`` — ∝ 1 / (each member's geometric mean over places of
+its relative WIS) over the last scored origins, shrunk towards equal weights by
+n / (n + n0); ``"stacking"`` — the weights on a simplex grid whose average had the lowest mean
+over places of log(Σ WIS / Σ WIS of the hub baseline), shrunk the same way.
+
+**Mixtures** (:func:`mix_quantiles`): the equal mixture of K forecasts (a nowcast's
+completions) — the average of their CDFs, not of their quantiles — from stratified draws of each
+component's quantile function.
+"""
+from __future__ import annotations
+
+import itertools
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.errors import FlowcastError
+from pipeline.evaluation.quantile_function import quantiles_at
+from pipeline.evaluation.scoring import quantiles_from_samples, weighted_interval_score
+
+AverageScale = Literal["log", "linear"]
+WeightMethod = Literal["stacking", "inverse-wis", "equal"]
+_EPS_WIS = 1e-12
+
+
+class EnsembleError(FlowcastError):
+    """Members' forecasts that cannot be combined (shapes, names, weights, settings)."""
+
+
+def vincentize(values: NDArray[np.float64], weights: NDArray[np.float64],
+               scale: AverageScale = "linear") -> NDArray[np.float64]:
+    """Quantile average: ``values (M, ..., Q)`` with weights ``(M,)`` → ``(..., Q)`` (module
+    docstring)."""
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != values.shape[:1] or abs(w.sum() - 1.0) > 1e-9 or (w < 0).any():
+        raise EnsembleError(f"weights {w.tolist()} must be {values.shape[0]} non-negative "
+                            "numbers summing to 1")
+    if scale == "log":
+        return np.expm1(np.tensordot(w, np.log1p(np.maximum(values, 0.0)), axes=1))
+    if scale == "linear":
+        return np.tensordot(w, values, axes=1)
+    raise EnsembleError(f"average scale {scale!r}: use 'log' or 'linear'")
+
+
+def scored_wis(levels: NDArray[np.float64], q: NDArray[np.float64], y: NDArray[np.float64]
+               ) -> NDArray[np.float64]:
+    """WIS of quantiles ``(..., Q)`` against ``y (...)``; NaN where ``y`` is not observed."""
+    seen = np.isfinite(y)
+    out = weighted_interval_score(levels, q, np.where(seen, y, 0.0)).wis
+    return np.where(seen, out, np.nan)
+
+
+def simplex_grid(members: int, step: float) -> NDArray[np.float64]:
+    """Every weight vector of ``members`` non-negative multiples of ``step`` summing to 1."""
+    n = int(round(1.0 / step))
+    rows = [c for c in itertools.product(range(n + 1), repeat=members - 1) if sum(c) <= n]
+    return np.array([list(c) + [n - sum(c)] for c in rows], dtype=np.float64) / n
+
+
+def log_relative_wis_by_place(wis: NDArray[np.float64], baseline_wis: NDArray[np.float64]
+                              ) -> NDArray[np.float64]:
+    """Mean over places of log(Σ WIS / Σ baseline WIS); ``wis (..., C, n)``, NaN cells ignored."""
+    seen = np.isfinite(baseline_wis)
+    num = np.where(seen, wis, 0.0).sum(axis=-1) + _EPS_WIS
+    den = np.where(seen, baseline_wis, 0.0).sum(axis=-1) + _EPS_WIS
+    places = seen.any(axis=-1)
+    return np.where(places, np.log(num / den), 0.0).sum(axis=-1) / max(int(places.sum()), 1)
+
+
+def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
+                past_truth: NDArray[np.float64], past_baseline_wis: NDArray[np.float64],
+                levels: NDArray[np.float64], n_origins: int, *, scale: AverageScale,
+                shrinkage_origins: float, stacking_step: float) -> NDArray[np.float64]:
+    """Weights ``(M,)`` from past quantiles ``(M, C, n, Q)``, truth ``(C, n)`` and the
+    baseline's WIS ``(C, n)`` over ``n_origins`` scored origins (module docstring)."""
+    m = past_values.shape[0]
+    equal = np.full(m, 1.0 / m)
+    if method == "equal" or n_origins == 0 or m == 1:
+        return equal
+    lam = n_origins / (n_origins + shrinkage_origins)
+    if method == "inverse-wis":
+        member_wis = scored_wis(levels, past_values,
+                                np.broadcast_to(past_truth, past_values.shape[:-1]))
+        loss = np.exp(log_relative_wis_by_place(member_wis, past_baseline_wis))
+        skill = 1.0 / np.maximum(loss, 1e-12)
+        return lam * skill / skill.sum() + (1.0 - lam) * equal
+    grid = simplex_grid(m, stacking_step)                                  # (K, M)
+    combined = np.stack([vincentize(past_values, w, scale) for w in grid])  # (K, C, n, Q)
+    wis = scored_wis(levels, combined, np.broadcast_to(past_truth, combined.shape[:-1]))
+    loss = log_relative_wis_by_place(wis, past_baseline_wis)               # (K,)
+    return lam * grid[int(np.argmin(loss))] + (1.0 - lam) * equal
+
+
+MIX_LEVELS = 200
+
+
+def mix_quantiles(quantiles: NDArray[np.float64], levels: NDArray[np.float64],
+                  n_levels: int = MIX_LEVELS) -> NDArray[np.float64]:
+    """The equal mixture of K forecasts ``(K, ..., Q)`` as quantiles ``(..., Q)``: stratified
+    draws of each component's quantile function, pooled."""
+    u = (np.arange(n_levels) + 0.5) / n_levels
+    draws = quantiles_at(levels, quantiles, np.broadcast_to(u, quantiles.shape[:-1]
+                                                            + (n_levels,)))     # (K, ..., M)
+    pooled = np.moveaxis(draws, 0, -2).reshape(*quantiles.shape[1:-1], -1)
+    return quantiles_from_samples(pooled, levels)

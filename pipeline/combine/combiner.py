@@ -1,0 +1,225 @@
+"""The one combiner: the members' forecasts of every place and origin → the published forecast.
+
+Input: each member's quantiles of the panel's count target ``(C, O, H, Q)`` (places × origins ×
+horizons × levels), the hub baseline's, the truth ``(C, O, H)`` and each cell's regime. At
+origin t and horizon h only the scores of forecasts whose target week had ended by t are known
+(origin o with o + 7h ≤ t), in every place of the panel: the weights and the recalibration are
+learnt from those, nothing later. A single series is a panel of one place.
+
+**Published** (``CombineConfig()``): the equal-weight average of the members' log(1 + quantile)
+— the geometric mean of their quantiles — with no recalibration. Designed on California's
+counties (``bench/results/backtest_counties.json``): every choice that learns from recent scores
+made it worse there, and they are kept as the variants every backtest reports beside it:
+weights (:mod:`pipeline.combine.average`: ``inverse-wis``, ``stacking``), the linear average,
+and recalibration from past PITs (:mod:`pipeline.combine.recalibration`). The I of a daily
+source is the count over N: the published I and count are one forecast.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.combine.average import (AverageScale, EnsembleError, WeightMethod, fit_weights,
+                                      scored_wis, vincentize)
+from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
+from pipeline.combine.recalibration import (RECALIBRATION_METHODS, RecalibrationMethod,
+                                            calibrated_levels, fit_recalibration)
+from pipeline.evaluation.regimes import N_REGIMES
+from pipeline.members.base import Member, MemberForecast, forecast_within_reach
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import DAYS_PER_WEEK
+
+PUBLISHED = "published"
+UNCALIBRATED = "ensemble-uncalibrated"
+RESERVED_NAMES = (PUBLISHED, UNCALIBRATED)
+BeyondReach = Literal["missing", "reachable-members"]
+
+
+@dataclass(frozen=True)
+class CombineConfig:
+    """How the members are combined (module docstring)."""
+
+    weights: WeightMethod = "equal"
+    scale: AverageScale = "log"
+    window_origins: int = 12
+    stacking_step: float = 0.05
+    shrinkage_origins: float = 2.0
+    calibration: RecalibrationMethod = "none"
+    calibration_window_origins: int = 8
+    shrinkage_pits: float = 50.0
+    min_level: float = 1e-4
+    # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
+    # the same average over the members that reach it — a different forecaster, to be named so
+    beyond_reach: BeyondReach = "missing"
+
+    def __post_init__(self) -> None:
+        if self.beyond_reach not in ("missing", "reachable-members"):
+            raise EnsembleError(f"CombineConfig.beyond_reach={self.beyond_reach!r}: use "
+                                "missing or reachable-members")
+        if self.weights not in ("stacking", "inverse-wis", "equal"):
+            raise EnsembleError(f"CombineConfig.weights={self.weights!r}: use stacking, "
+                                "inverse-wis or equal")
+        if self.scale not in ("log", "linear"):
+            raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log or linear")
+        if self.calibration not in RECALIBRATION_METHODS:
+            raise EnsembleError(f"CombineConfig.calibration={self.calibration!r}: use one of "
+                                f"{RECALIBRATION_METHODS}")
+        if (self.window_origins < 1 or self.calibration_window_origins < 1
+                or not 0 < self.stacking_step <= 0.5 or self.shrinkage_origins < 0
+                or self.shrinkage_pits < 0):
+            raise EnsembleError(f"invalid CombineConfig {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class CombinedForecast:
+    """``published`` and ``uncalibrated`` count quantiles ``(C, O, H, Q)``; ``weights``
+    ``(O, H, M)``; ``calibration`` ``(O, H, R, 2)``: μ, σ per regime."""
+
+    published: NDArray[np.float64]
+    uncalibrated: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    calibration: NDArray[np.float64]
+
+
+def scored_before(origins: Sequence[pd.Timestamp], horizons: Sequence[int]
+                  ) -> NDArray[np.bool_]:
+    """``known[j, i, k]``: the forecast from origin i at horizon k is scored at origin j (its
+    target week ended by origin j)."""
+    days = pd.DatetimeIndex(list(origins)).to_numpy(dtype="datetime64[D]").astype(np.int64)
+    steps = DAYS_PER_WEEK * np.asarray(horizons, dtype=np.int64)
+    return days[None, :, None] + steps[None, None, :] <= days[:, None, None]
+
+
+# The truth as known at origin index j, (C, O, H): for vintaged data, the values of the vintage
+# then (a later revision must not teach the combiner); None: the one truth given.
+KnownTruth = Callable[[int], NDArray[np.float64]]
+
+
+def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.float64],
+            truth: NDArray[np.float64], regimes: NDArray[np.intp], levels: NDArray[np.float64],
+            horizons: tuple[int, ...], origins: Sequence[pd.Timestamp],
+            config: CombineConfig = CombineConfig(), *,
+            truth_at: KnownTruth | None = None) -> CombinedForecast:
+    """The published count quantiles of every cell (module docstring) from the members'
+    ``(C, O, H, Q)`` quantiles (NaN where a member has no forecast: it is left out of that
+    cell's equal-weight average), the hub baseline's, the truth ``(C, O, H)`` and each cell's
+    regime ``(C, O)``, origin j learning only from the cells :func:`scored_before` it."""
+    names = list(members)
+    if not names:
+        raise EnsembleError("no member forecasts to combine")
+    values = np.stack([members[n] for n in names])                        # (M, C, O, H, Q)
+    _, n_c, n_o, n_h, _ = values.shape
+    if len(horizons) != n_h or baseline.shape != values.shape[1:] or len(origins) != n_o:
+        raise EnsembleError(f"member quantiles {values.shape[1:]}, baseline {baseline.shape}, "
+                            f"{len(origins)} origins and {len(horizons)} horizons do not match")
+    known = scored_before(origins, horizons)                               # (O, O, H)
+    uncal = np.empty(values.shape[1:])
+    published = np.empty(values.shape[1:])
+    weights = np.empty((n_o, n_h, len(names)))
+    calibration = np.empty((n_o, n_h, N_REGIMES, 2))
+    wis_truth = truth
+    baseline_wis = scored_wis(levels, baseline, truth)                     # (C, O, H)
+    for j in range(n_o):
+        if truth_at is not None:
+            wis_truth = truth_at(j)
+            baseline_wis = scored_wis(levels, baseline, wis_truth)
+        for k in range(n_h):
+            past = np.flatnonzero(known[j, :, k])
+            fit = past[-config.window_origins:]
+            weights[j, k] = fit_weights(config.weights, values[:, :, fit, k],
+                                        wis_truth[:, fit, k], baseline_wis[:, fit, k], levels,
+                                        len(fit), scale=config.scale,
+                                        shrinkage_origins=config.shrinkage_origins,
+                                        stacking_step=config.stacking_step)
+            uncal[:, j, k] = _average(values[:, :, j, k], weights[j, k], config)
+            recent = past[-config.calibration_window_origins:]
+            pits = (_pits(levels, uncal[:, recent, k], wis_truth[:, recent, k])
+                    if config.calibration != "none" else np.empty(0))
+            calibration[j, k] = fit_recalibration(
+                config.calibration, pits, regimes[:, recent].ravel(),
+                shrinkage_pits=config.shrinkage_pits, min_level=config.min_level)
+            new_levels = calibrated_levels(levels, calibration[j, k][regimes[:, j]],
+                                           config.min_level)
+            cal = quantiles_at(levels, uncal[:, j, k], new_levels)
+            published[:, j, k] = np.maximum.accumulate(cal, axis=-1)
+    return CombinedForecast(np.where(np.isfinite(uncal), published, np.nan), uncal, weights,
+                            calibration)
+
+
+def _pits(levels: NDArray[np.float64], quantiles: NDArray[np.float64],
+          truth: NDArray[np.float64]) -> NDArray[np.float64]:
+    """PITs ``(C·n,)`` of the scored cells of quantiles ``(C, n, Q)`` (NaN elsewhere)."""
+    out = np.full(truth.shape, np.nan)
+    seen = np.isfinite(truth) & np.isfinite(quantiles).all(axis=-1)
+    out[seen] = pit_from_quantiles(levels, quantiles[seen], truth[seen])
+    return out.ravel()
+
+
+def _average(values: NDArray[np.float64], weights: NDArray[np.float64], config: CombineConfig
+             ) -> NDArray[np.float64]:
+    """The weighted average ``(C, Q)`` of ``values (M, C, Q)``; where a member is missing (NaN:
+    beyond its reach) NaN, or (``reachable-members``) the average of the others, their weights
+    renormalised."""
+    scale = config.scale
+    present = np.isfinite(values).all(axis=-1)                             # (M, C)
+    if present.all():
+        return vincentize(values, weights, scale)
+    out = np.full(values.shape[1:], np.nan)
+    if config.beyond_reach == "missing":
+        everyone = present.all(axis=0)
+        out[everyone] = vincentize(values[:, everyone], weights, scale)
+        return out
+    for pattern in np.unique(present, axis=1).T:                           # few patterns
+        cells = (present == pattern[:, None]).all(axis=0)
+        if not pattern.any():
+            continue
+        w = weights[pattern] / weights[pattern].sum()
+        out[cells] = vincentize(values[pattern][:, cells], w, scale)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Ensemble:
+    """The published rule at one time, where no past score is known (a hub round's cells, a
+    nowcast's completions): the members' equal-weight average on ``config.scale``, a member
+    beyond its reach left out per ``config.beyond_reach``. Its members' quantiles are exposed
+    (:meth:`member_quantiles`) beside the combination (:meth:`combine`), so that a nowcast's
+    completions are mixed per member before the members are averaged."""
+
+    members: tuple[Member, ...]
+    config: CombineConfig = CombineConfig()
+    name: str = PUBLISHED
+
+    def __post_init__(self) -> None:
+        if not self.members:
+            raise EnsembleError("an ensemble needs at least one member")
+        if self.config.weights != "equal" or self.config.calibration != "none":
+            raise EnsembleError(f"{self.name}: weights {self.config.weights!r} and "
+                                f"recalibration {self.config.calibration!r} learn from past "
+                                "scores: combine a backtest's forecasts instead")
+
+    @property
+    def member_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.members)
+
+    def member_quantiles(self, cells: Cells, horizons: tuple[int, ...],
+                         levels: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Count quantiles ``(M, B, H, Q)`` of every member, NaN beyond a member's reach."""
+        return np.stack([forecast_within_reach(m, cells, horizons, levels).count
+                         for m in self.members])
+
+    def combine(self, member_quantiles: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The published quantiles ``(..., Q)`` from the members' ``(M, ..., Q)``."""
+        m = member_quantiles.shape[0]
+        flat = member_quantiles.reshape(m, -1, member_quantiles.shape[-1])
+        return _average(flat, np.full(m, 1.0 / m), self.config).reshape(
+            member_quantiles.shape[1:])
+
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        return MemberForecast(self.combine(self.member_quantiles(cells, horizons, levels)))

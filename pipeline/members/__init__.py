@@ -1,0 +1,1 @@
+"""The forecasters of the published ensemble and its references, one interface (``base``)."""

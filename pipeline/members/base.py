@@ -1,0 +1,103 @@
+"""The one interface every forecaster implements, batched over places × origins.
+
+A member receives :class:`~pipeline.panels.panel.Cells` — B (place, origin) cells, each with its
+history cut at its origin, the panel it belongs to and its seed — and returns quantiles of the
+panel's count target at the requested weekly horizons and levels for every cell at once
+(:class:`MemberForecast`). A member that forecasts another target on its own series (the hub
+baseline's I from the daily I series) adds it; the others' I is the count over N
+(:func:`with_share`). Members that simulate weekly S/I/R paths return them (the published
+forecast's sample paths follow their ranks).
+
+``max_horizon``: the flows forecast a fixed number of weeks; beyond it a member has no forecast
+(:func:`reach`). Everything a member may use of the world is in the cells: a cell's forecast
+depends only on its own history, its panel as known at its origin and its own seed.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.panels.history import History
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import SHARE, TargetError
+
+
+@dataclass(frozen=True, eq=False)
+class MemberForecast:
+    """``count`` ``(B, H, Q)``: quantiles of the cells' weekly count; ``extra``: other targets
+    forecast on their own series; ``paths`` ``(B, n, H, 3)``: weekly S, I, R sample paths."""
+
+    count: NDArray[np.float64]
+    extra: Mapping[str, NDArray[np.float64]] = field(default_factory=dict)
+    paths: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        if self.count.ndim != 3:
+            raise TargetError(f"member quantiles must be (cells, horizons, levels), got "
+                              f"{self.count.shape}")
+
+    def values(self, histories: tuple[History, ...]) -> dict[str, NDArray[np.float64]]:
+        """Every target of the cells' panel: the count, and I where the panel has it."""
+        return with_share(self.count, histories, self.extra)
+
+
+def with_share(count: NDArray[np.float64], histories: tuple[History, ...],
+               extra: Mapping[str, NDArray[np.float64]] | None = None
+               ) -> dict[str, NDArray[np.float64]]:
+    """``{target: (B, H, Q)}`` of the cells' targets: the count, and I = count / N where the
+    cells are daily (their targets include I) and the member did not forecast I itself."""
+    targets = histories[0].targets if histories else ()
+    out = {histories[0].count_target: count} if histories else {}
+    if SHARE in targets:
+        population = np.array([h.population for h in histories], dtype=np.float64)
+        out[SHARE] = (extra or {}).get(SHARE, count / population[:, None, None])
+    return {t: out[t] for t in targets if t in out}
+
+
+@runtime_checkable
+class Member(Protocol):
+    """A forecaster of cells (module docstring)."""
+
+    @property
+    def name(self) -> str: ...
+
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast: ...
+
+
+@runtime_checkable
+class LimitedReach(Protocol):
+    """A member that forecasts at most ``max_horizon`` weeks ahead (the flows; a wrapper of
+    another member says None when the member it wraps has no limit)."""
+
+    @property
+    def max_horizon(self) -> int | None: ...
+
+
+def reach(member: object, horizons: tuple[int, ...]) -> tuple[int, ...]:
+    """The horizons ``member`` can forecast."""
+    limit = member.max_horizon if isinstance(member, LimitedReach) else None
+    return horizons if limit is None else tuple(h for h in horizons if h <= limit)
+
+
+def forecast_within_reach(member: Member, cells: Cells, horizons: tuple[int, ...],
+                          levels: NDArray[np.float64]) -> MemberForecast:
+    """``member``'s forecast at ``horizons``, NaN beyond its reach."""
+    steps = reach(member, horizons)
+    if steps == horizons:
+        return member.forecast(cells, horizons, levels)
+    count = np.full((len(cells), len(horizons), len(levels)), np.nan)
+    if steps:
+        made = member.forecast(cells, steps, levels)
+        count[:, [horizons.index(h) for h in steps]] = made.count
+    return MemberForecast(count)
+
+
+def quantiles_of_samples(samples: NDArray[np.float64], levels: NDArray[np.float64]
+                         ) -> NDArray[np.float64]:
+    """``(B, H, Q)`` quantiles of ``samples (B, n, H)`` along the draws."""
+    return np.moveaxis(np.quantile(samples, levels, axis=1), 0, -1)

@@ -1,0 +1,1 @@
+"""The nowcast of data still being reported, and forecasting from its completions."""

@@ -1,0 +1,1 @@
+"""Panels: the places forecast together, their histories as known at an origin, the targets."""

@@ -1,0 +1,198 @@
+"""Quantile functions, PIT, recalibration, weights, the combiner and the published sample paths."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+import pandas as pd
+
+from pipeline.combine.average import fit_weights, mix_quantiles, scored_wis, vincentize
+from pipeline.combine.combiner import CombineConfig, Ensemble, combine, scored_before
+from pipeline.combine.paths import count_invalid, sample_paths
+from pipeline.combine.recalibration import calibrated_levels, fit_recalibration
+from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+from tests.forecasting_helpers import POPULATION, random_walk_history
+
+LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
+
+
+def _lognormal(mu: float, sigma: float, p) -> np.ndarray:
+    return np.expm1(mu + sigma * norm.ppf(p))
+
+
+def test_quantile_function_and_pit_are_exact_for_a_log_normal_in_log1p():
+    q = _lognormal(6.0, 0.4, LEVELS)
+    far = np.array([0.001, 0.3, 0.5, 0.999])
+    np.testing.assert_allclose(quantiles_at(LEVELS, q, far), _lognormal(6.0, 0.4, far),
+                               rtol=1e-10)
+    y = _lognormal(6.0, 0.4, far)
+    np.testing.assert_allclose(pit_from_quantiles(LEVELS, np.tile(q, (4, 1)), y), far,
+                               rtol=1e-9)
+    # the same forecast of I = cases/N gives the same PIT with unit N
+    np.testing.assert_allclose(pit_from_quantiles(LEVELS, np.tile(q, (4, 1)) / POPULATION,
+                                                  y / POPULATION, unit=POPULATION), far,
+                               rtol=1e-9)
+    # ties (quantiles clipped at 0): the middle of the tied levels
+    tied = np.maximum(q - q[5], 0.0)              # levels 0.01 .. 0.20 are 0
+    assert pit_from_quantiles(LEVELS, tied, np.array(0.0)) == pytest.approx((0.01 + 0.20) / 2)
+
+
+def test_recalibration_hand_computed():
+    """Φ⁻¹(τ') = μ + σΦ⁻¹(τ): bias-scale shrinks (mean, sd) of the PITs' probits towards (0, 1)
+    by λ = n/(n + n0); scale uses their root mean square; widen-only never narrows."""
+    probits = np.array([-2.0, -1.0, 0.0, 1.0, 2.0])                # mean 0, sd √2.5, rms √2
+    pits = norm.cdf(probits)
+    regimes = np.ones(5, dtype=np.intp)
+    lam = 5 / 15
+    fit = fit_recalibration("bias-scale", pits, regimes, shrinkage_pits=10, min_level=1e-4)
+    np.testing.assert_allclose(fit, np.tile([0.0, lam * np.sqrt(2.5) + 1 - lam], (3, 1)),
+                               atol=1e-12)
+    scale = fit_recalibration("scale", pits, regimes, shrinkage_pits=10, min_level=1e-4)
+    assert scale[0, 1] == pytest.approx(lam * np.sqrt(2.0) + 1 - lam)
+    got = calibrated_levels(LEVELS, fit[0], 1e-4)
+    np.testing.assert_allclose(got, norm.cdf(fit[0, 1] * norm.ppf(LEVELS)), rtol=1e-9)
+    # over-dispersed past forecasts (every PIT 0.5): widen-only keeps the levels ...
+    half = np.full(10, 0.5)
+    widen = fit_recalibration("widen-only", half, np.ones(10, np.intp), shrinkage_pits=10,
+                              min_level=1e-4)
+    np.testing.assert_allclose(calibrated_levels(LEVELS, widen[1], 1e-4), LEVELS, rtol=1e-12)
+    # ... while the two-sided map narrows (towards the median)
+    narrow = fit_recalibration("bias-scale", half, np.ones(10, np.intp), shrinkage_pits=10,
+                               min_level=1e-4)
+    narrowed = calibrated_levels(LEVELS, narrow[1], 1e-4)
+    assert narrowed[0] > LEVELS[0] and narrowed[-1] < LEVELS[-1]
+    # per regime: each regime's own fit, shrunk towards the pooled one
+    split = fit_recalibration("bias-scale-regime", np.concatenate([pits, half]),
+                              np.repeat([0, 2], [5, 10]).astype(np.intp), shrinkage_pits=0,
+                              min_level=1e-4)
+    assert split[0, 1] == pytest.approx(np.sqrt(2.5)) and split[2, 1] == pytest.approx(0.0)
+
+
+def test_recalibration_widens_an_over_confident_forecast_and_restores_coverage():
+    rng = np.random.default_rng(0)
+    sigma_true, sigma_claimed = 0.5, 0.15        # the member is 3.3× too confident
+    forecast = _lognormal(5.0, sigma_claimed, LEVELS)
+    past_y = _lognormal(5.0, sigma_true, rng.uniform(size=200))
+    past_pits = pit_from_quantiles(LEVELS, np.tile(forecast, (200, 1)), past_y)
+    new_y = _lognormal(5.0, sigma_true, rng.uniform(size=2000))
+    # levels may go far into the tails: σ ≈ 3.3 maps the 5 % level to Φ(−5.4)
+    fit = fit_recalibration("widen-only", past_pits, np.ones(200, np.intp), shrinkage_pits=10,
+                            min_level=1e-9)
+    fixed = quantiles_at(LEVELS, forecast, calibrated_levels(LEVELS, fit[1], 1e-9))
+
+    def cover90(q):
+        return np.mean((q[2] <= new_y) & (new_y <= q[20]))
+
+    assert cover90(forecast) == pytest.approx(2 * norm.cdf(1.645 * 0.3) - 1, abs=0.03)  # ≈ 0.38
+    assert 0.82 <= cover90(fixed) <= 0.95
+    assert (np.diff(fixed) >= 0).all()
+
+
+def test_weights_hand_computed_and_equal_without_past_scores():
+    one = np.array([[[[0.0, 10.0, 20.0]]], [[[0.0, 5.0, 40.0]]]])      # (M, C, n, Q) at 3 levels
+    levels = np.array([0.05, 0.5, 0.95])
+    truth = np.array([[10.0]])
+    base_wis = scored_wis(levels, np.array([[[0.0, 20.0, 40.0]]]), truth)
+    kw = dict(scale="log", shrinkage_origins=2.0, stacking_step=0.5)
+    np.testing.assert_allclose(fit_weights("inverse-wis", one, truth, base_wis, levels, 0, **kw),
+                               [0.5, 0.5])
+    np.testing.assert_allclose(fit_weights("equal", one, truth, base_wis, levels, 5, **kw),
+                               [0.5, 0.5])
+    wis = scored_wis(levels, one, np.broadcast_to(truth, one.shape[:-1]))[:, 0, 0]
+    skill = (base_wis[0, 0] / wis) / (base_wis[0, 0] / wis).sum()     # ∝ 1 / relative WIS
+    lam = 1 / (1 + 2.0)
+    np.testing.assert_allclose(fit_weights("inverse-wis", one, truth, base_wis, levels, 1, **kw),
+                               lam * skill + (1 - lam) * 0.5)
+    np.testing.assert_allclose(vincentize(np.array([[[1.0, 3.0]], [[3.0, 7.0]]]),
+                                          np.array([0.75, 0.25])), [[1.5, 4.0]])
+
+
+def test_scored_before_is_the_real_time_mask_by_dates():
+    """A forecast from origin o at horizon h is scored at origin t only when o + 7h ≤ t — by
+    dates, so a missing week (a hub round without a vintage) counts as it should."""
+    origins = pd.to_datetime(["2025-01-04", "2025-01-11", "2025-01-25", "2025-02-01"])
+    known = scored_before(origins, (1, 2))
+    assert known[1, :, 0].tolist() == [True, False, False, False]          # 01-04 + 7 ≤ 01-11
+    assert known[2, :, 0].tolist() == [True, True, False, False]
+    assert known[2, :, 1].tolist() == [True, True, False, False]           # 01-11 + 14 ≤ 01-25
+    assert known[3, :, 1].tolist() == [True, True, False, False]           # 01-25 + 14 > 02-01
+
+
+def test_combiner_learns_only_from_the_past_and_averages_in_logs():
+    """Changing the truth of forecasts not yet scored at an origin changes nothing there."""
+    rng = np.random.default_rng(3)
+    levels = LEVELS
+    n_o = 12
+    origins = pd.date_range("2021-01-02", periods=n_o, freq="7D")
+    members = {m: np.sort(np.exp(rng.normal(5 + s, 0.4, (3, n_o, 2, levels.size))), axis=-1)
+               for m, s in (("a", 0.0), ("b", 0.3))}
+    baseline = np.sort(np.exp(rng.normal(5.2, 0.5, (3, n_o, 2, levels.size))), axis=-1)
+    truth = np.exp(rng.normal(5.1, 0.4, (3, n_o, 2)))
+    regimes = np.ones((3, n_o), dtype=np.intp)
+    config = CombineConfig(weights="inverse-wis", calibration="bias-scale")
+    full = combine(members, baseline, truth, regimes, levels, (1, 2), origins, config)
+    later = truth.copy()
+    later[:, 6:] *= 3.0                  # origins 6.. are scored at origin 7 at the earliest
+    changed = combine(members, baseline, later, regimes, levels, (1, 2), origins, config)
+    np.testing.assert_array_equal(full.published[:, :7], changed.published[:, :7])
+    assert not np.array_equal(full.published[:, 7:], changed.published[:, 7:])
+    equal = combine(members, baseline, truth, regimes, levels, (1, 2), origins)
+    np.testing.assert_allclose(equal.published, np.expm1(
+        0.5 * np.log1p(members["a"]) + 0.5 * np.log1p(members["b"])), rtol=1e-12)
+    # a member missing in a cell: no published forecast there, unless the others are asked for
+    gap = dict(members, b=members["b"].copy())
+    gap["b"][0, 3] = np.nan
+    missing = combine(gap, baseline, truth, regimes, levels, (1, 2), origins)
+    assert np.isnan(missing.published[0, 3]).all() and np.isfinite(missing.published[1]).all()
+    reach = combine(gap, baseline, truth, regimes, levels, (1, 2), origins,
+                    CombineConfig(beyond_reach="reachable-members"))
+    np.testing.assert_allclose(reach.published[0, 3], members["a"][0, 3], rtol=1e-12)
+
+
+def test_mixture_of_forecasts_averages_their_cdfs():
+    a, b = _lognormal(4.0, 0.3, LEVELS), _lognormal(6.0, 0.3, LEVELS)
+    mixed = mix_quantiles(np.stack([a, b]), LEVELS)
+    # the median of an equal mixture of two well-separated log-normals lies between them
+    # in the tails one component has (almost) all the mass: F_mix = F_a / 2 there
+    assert a[11] < mixed[11] < b[11]
+    assert mixed[0] == pytest.approx(_lognormal(4.0, 0.3, 0.02), rel=0.03)
+    assert mixed[-1] == pytest.approx(_lognormal(6.0, 0.3, 0.98), rel=0.03)
+
+
+def test_an_ensemble_refuses_rules_that_need_past_scores():
+    from pipeline.combine.average import EnsembleError
+    from tests.forecasting_helpers import LogNormalMember
+
+    with pytest.raises(EnsembleError, match="learn from past scores"):
+        Ensemble((LogNormalMember("a", 0.3),), CombineConfig(weights="stacking"))
+
+
+def test_published_paths_are_valid_by_construction_and_invalid_ones_are_counted():
+    history = random_walk_history(12, seed=5)
+    cases = np.stack([_lognormal(np.log(300 * k), 0.6, LEVELS) for k in (1, 2, 4, 8)])
+    paths = sample_paths(history, LEVELS, cases, 400)
+    start = np.array([history.S[-1], history.I[-1], history.R[-1]])
+    assert count_invalid(paths, start).total == 0
+    np.testing.assert_allclose(paths.sum(axis=-1), 1.0, atol=1e-12)
+    # comonotone: the path with the k-th smallest case count is the k-th at every horizon
+    order = np.argsort(paths[:, :, 1], axis=0)
+    assert (order == order[:, :1]).all()
+    # a forecast far beyond the population exhausts S exactly: S = 0, still valid
+    huge = np.full((4, LEVELS.size), 10.0 * POPULATION)
+    burnt = sample_paths(history, LEVELS, huge, 10)
+    assert (burnt[:, :, 0] == 0).all() and count_invalid(burnt, start).total == 0
+    # ensemble copula coupling follows a template's ranks
+    template = np.random.default_rng(1).uniform(size=(400, 4, 3))
+    ecc = sample_paths(history, LEVELS, cases, 400, template_paths=template)
+    assert (np.argsort(ecc[:, 0, 1]) == np.argsort(template[:, 0, 1])).all()
+    assert count_invalid(ecc, start).total == 0
+    # the counter itself: one S increase, one R decrease, one negative fraction
+    bad = paths[:2].copy()
+    bad[0, 2, 0] = bad[0, 1, 0] + 1e-3
+    bad[1, 3, 2] = bad[1, 2, 2] - 1e-3
+    bad[1, 0, 1] = -1e-6
+    counts = count_invalid(bad, start, rates=np.array([0.2, -0.1]))
+    assert counts.to_dict() == {"negative_fractions": 1, "s_increases": 1, "r_decreases": 1,
+                                "negative_rates": 1, "total": 4}
