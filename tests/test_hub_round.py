@@ -82,7 +82,7 @@ def test_compound_sample_ids_are_unique_per_location_and_target():
 
 
 def test_round_of_53_locations_is_written_valid_and_read_back_by_hubdata(tmp_path, hub):
-    hubdata = pytest.importorskip("hubdata")
+    import hubdata  # a dev dependency: its absence is a failure, not a skip
     locations = hub["locations"].location.tolist()
     assert len(locations) == 53
     frame = compound_sample_ids(_round(locations))
@@ -120,6 +120,11 @@ def test_round_of_53_locations_is_written_valid_and_read_back_by_hubdata(tmp_pat
     expected = 120.0 * np.exp(0.3 * norm.ppf(HUB_QUANTILE_LEVELS))
     np.testing.assert_allclose(us.sort_values("output_type_id", key=lambda c: c.astype(float))
                                .value, expected, rtol=1e-7)
+    samples = back[back.output_type == "sample"].assign(horizon=lambda f: f.horizon.astype(int))
+    assert samples.groupby(["location", "target"]).output_type_id.nunique().eq(200).all()
+    assert samples.groupby("output_type_id").horizon.nunique().eq(5).all()  # one id, one path
+    given = frame[frame.output_type == "sample"].set_index(keys).value
+    np.testing.assert_allclose(samples.set_index(keys).value.loc[given.index], given, rtol=1e-7)
 
 
 def _set(frame: pd.DataFrame, where: pd.Series, column: str, value) -> pd.DataFrame:  # noqa: ANN001

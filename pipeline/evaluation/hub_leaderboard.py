@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.hub_forecasts import TASK_COLUMNS, QuantileTable
-from pipeline.errors import FlowcastError
+from pipeline.errors import ConfigError, FlowcastError
 from pipeline.evaluation.pairwise import pairwise_comparison
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
 
@@ -90,6 +90,13 @@ class LeaderboardConfig:
     complete_rounds_only: bool = False
     baseline: str = "CovidHub-baseline"
     models: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.locations not in ("all", "states", "US"):
+            raise ConfigError(f"LeaderboardConfig.locations={self.locations!r}: use 'all', "
+                              "'states' or 'US'")
+        if not self.horizons:
+            raise ConfigError("LeaderboardConfig.horizons is empty")
 
 
 def leaderboard_scores(scores: pd.DataFrame, config: LeaderboardConfig,

@@ -97,6 +97,7 @@ MODEL_OUTPUT_COLUMNS: tuple[str, ...] = (*HUBVERSE_TASK_IDS, "output_type", "out
 TASKS_SCHEMA_URL = ("https://raw.githubusercontent.com/hubverse-org/schemas/main/v5.0.0/"
                     "tasks-schema.json")
 _MODEL_ID_PART = re.compile(r"^[A-Za-z0-9_+]+$")
+_MODEL_ID = re.compile(r"^[A-Za-z0-9_+]+-[A-Za-z0-9_+]+$")
 
 
 class HubValidationError(HubFormatError):
@@ -807,8 +808,7 @@ def write_hub_round(frame: pd.DataFrame, *, hub_dir: str | os.PathLike[str], mod
     so a refused round leaves the last good files as they were."""
     import yaml
 
-    if not all(_MODEL_ID_PART.match(part) for part in model_id.split("-", 1)) or \
-            model_id.count("-") < 1:
+    if not _MODEL_ID.match(model_id):
         raise HubFormatError(f"model id {model_id!r} must be <team_abbr>-<model_abbr> of "
                              "letters, digits, '_' and '+'")
     rounds = sorted(set(pd.to_datetime(frame["reference_date"]).dt.date)) \
