@@ -156,3 +156,27 @@ def test_model_output_folder_read_as_hubverse_partitions_it(tmp_path):
     stray.write_text("x")
     with pytest.raises(HubDataError, match="'teamC-m3' in the file name differs"):
         read_model_output_dir(tmp_path)
+
+
+def test_forecasts_that_cannot_be_ranked_are_refused_by_name():
+    from pipeline.data.hub_forecasts import QuantileTable
+    from pipeline.errors import ConfigError
+    from pipeline.evaluation.hub_leaderboard import LeaderboardError
+
+    tasks = pd.DataFrame({"model_id": ["a", "b"],
+                          "reference_date": pd.to_datetime(["2025-01-11"] * 2), "target": HOSP, "horizon": 0, "location": "US",
+                          "target_end_date": pd.to_datetime(["2025-01-11"] * 2)})
+    table = QuantileTable(tasks=tasks, levels=np.array([0.25, 0.5, 0.75]),
+                          values=np.array([[1.0, 2.0, 3.0], [1.0, 3.0, 2.0]]))
+    truth = pd.DataFrame({"target_end_date": pd.to_datetime(["2025-01-11"]), "location": ["US"],
+                          "value": [2.0]})
+    with pytest.raises(LeaderboardError, match="'model_id': 'b'.*quantiles decrease"):
+        score_quantile_forecasts(table, truth)
+    ok = score_quantile_forecasts(QuantileTable(tasks.iloc[:1], table.levels, table.values[:1]),
+                                  truth)
+    assert ok.wis.item() == pytest.approx((0.5 * 0 + 0.25 * 2) / 1.5)   # median exact, IS_0.5=2
+    assert ok.coverage_50.item() == 1.0 and np.isnan(ok.coverage_95.item())  # no 0.025 level
+    with pytest.raises(LeaderboardError, match="lacks the columns \\['value'\\]"):
+        score_quantile_forecasts(table, truth.drop(columns="value"))
+    with pytest.raises(ConfigError, match="locations='State'"):
+        LeaderboardConfig(locations="State")  # type: ignore[arg-type]

@@ -16,7 +16,8 @@ from scipy.stats import norm
 
 from pipeline.outputs.hubverse import (CDC_HUB_MODEL_ID, HUB_QUANTILE_LEVELS, HubValidationError,
                                        compound_sample_ids, load_model_metadata,
-                                       load_tasks_config, write_hub_round)
+                                       load_tasks_config, validate_model_output,
+                                       write_hub_round)
 
 REPO = Path(__file__).resolve().parents[1]
 NHSN = REPO.parent / "shared" / "data" / "nhsn"
@@ -198,3 +199,16 @@ def test_metadata_must_be_the_models_and_meet_the_schema(tmp_path, hub):
     with pytest.raises(HubValidationError, match="methods: '.*' is too long"):
         write_hub_round(good, model_id=CDC_HUB_MODEL_ID, metadata=long, **kwargs)
     assert not (kwargs["hub_dir"] / "model-output").exists()
+
+
+@pytest.mark.parametrize("cell", ["nan", "inf", "-inf"])
+def test_validator_refuses_a_file_holding_a_non_finite_value(tmp_path, hub, cell):
+    written = write_hub_round(compound_sample_ids(_round(["US"])), hub_dir=_hub_dir(tmp_path),
+                              model_id=CDC_HUB_MODEL_ID, tasks=hub["tasks"],
+                              metadata=hub["metadata"])
+    lines = written.path.read_text().splitlines()
+    lines[4] = lines[4].rsplit(",", 1)[0] + "," + cell    # a JSON Schema number lets NaN pass
+    written.path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(HubValidationError, match=rf"row 5: column 'value': {cell} is not a "
+                                                 "finite number"):
+        validate_model_output(written.path, hub["tasks"])

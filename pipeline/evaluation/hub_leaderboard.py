@@ -37,9 +37,10 @@ class LeaderboardError(FlowcastError):
 
 
 def score_quantile_forecasts(table: QuantileTable, truth: pd.DataFrame) -> pd.DataFrame:
-    """WIS (and its parts) and 50 % / 95 % coverage of every forecast of ``table`` whose week
-    ``truth`` (``target_end_date, location, value``; with a ``target`` column, matched on it
-    too) observes; one row per forecast, :data:`SCORE_COLUMNS`."""
+    """WIS (and its parts) and 50 % / 95 % coverage (1.0 or 0.0; NaN when the levels lack the
+    interval) of every forecast of ``table`` whose week ``truth`` (``target_end_date, location,
+    value``; with a ``target`` column, matched on it too) observes; one row per forecast,
+    :data:`SCORE_COLUMNS`."""
     keys = ["target_end_date", "location"] + (["target"] if "target" in truth.columns else [])
     missing = [c for c in [*keys, "value"] if c not in truth.columns]
     if missing:
@@ -68,9 +69,18 @@ def score_quantile_forecasts(table: QuantileTable, truth: pd.DataFrame) -> pd.Da
     scores = table.tasks.iloc[rows].reset_index(drop=True).assign(
         observed=y, wis=parts.wis, dispersion=parts.dispersion,
         overprediction=parts.overprediction, underprediction=parts.underprediction,
-        coverage_50=interval_coverage(table.levels, values, y, 0.5),
-        coverage_95=interval_coverage(table.levels, values, y, 0.95))
+        coverage_50=_coverage(table.levels, values, y, 0.5),
+        coverage_95=_coverage(table.levels, values, y, 0.95))
     return scores[list(SCORE_COLUMNS)]
+
+
+def _coverage(levels: np.ndarray, values: np.ndarray, y: np.ndarray,
+              central: float) -> np.ndarray:
+    """1.0 / 0.0 whether y lies in the central interval; NaN for levels without its bounds."""
+    tail = (1.0 - central) / 2.0
+    if not (np.isclose(levels, tail).any() and np.isclose(levels, 1.0 - tail).any()):
+        return np.full(y.shape, np.nan)
+    return interval_coverage(levels, values, y, central).astype(np.float64)
 
 
 @dataclass(frozen=True)
