@@ -71,7 +71,7 @@ def test_a_rerun_on_stored_models_cuts_no_windows_and_loads_refits_when_used(tmp
     def no_windows(*args, **kwargs):
         raise AssertionError("windows were cut on a rerun")
 
-    monkeypatch.setattr(nf_finetune, "real_windows", no_windows)
+    monkeypatch.setattr(nf_member.NFGrowthMember, "real_windows", no_windows)
     monkeypatch.setattr(nf_member, "growth_dataset", no_windows)
     reused = _refits(tmp_path, dates)
     assert {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")} == entries

@@ -16,7 +16,7 @@ are all this function on different panels.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -69,12 +69,12 @@ class BacktestConfig:
 
 
 class DataAtOrigins(Protocol):
-    """The data a backtest may use: the panel as known at each origin, and the latest."""
+    """The data a backtest may use: the panel as known at its i-th origin, and the latest."""
 
     @property
     def latest(self) -> Panel: ...
 
-    def known_at(self, origin: pd.Timestamp) -> Panel: ...
+    def known_at(self, index: int, origin: pd.Timestamp) -> Panel: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,21 +84,24 @@ class OneVintage:
 
     latest: Panel
 
-    def known_at(self, origin: pd.Timestamp) -> Panel:
+    def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
         return self.latest
 
 
 @dataclass(frozen=True, eq=False)
 class Vintages:
-    """A vintage per origin (the NHSN release each hub round was made from) and the latest."""
+    """The vintage each origin was forecast from (the NHSN release of each hub round; two
+    rounds may share an origin when a release brought no new week) and the latest."""
 
     latest: Panel
-    at_origin: Mapping[pd.Timestamp, Panel]
+    known: Sequence[Panel]
 
-    def known_at(self, origin: pd.Timestamp) -> Panel:
-        if origin not in self.at_origin:
-            raise EnsembleError(f"no vintage of the data for the origin {origin.date()}")
-        return self.at_origin[origin]
+    def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
+        panel = self.known[index]
+        if panel.last_date > origin:
+            raise EnsembleError(f"the vintage of origin {origin.date()} holds data up to "
+                                f"{panel.last_date.date()}, after its origin")
+        return panel
 
 
 def backtest_cells(data: DataAtOrigins, origins: Sequence[pd.Timestamp], seed: int) -> Cells:
@@ -108,8 +111,8 @@ def backtest_cells(data: DataAtOrigins, origins: Sequence[pd.Timestamp], seed: i
     histories: list[History] = []
     panels: list[Panel] = []
     for place in places:
-        for origin in origins:
-            panel = data.known_at(origin)
+        for i, origin in enumerate(origins):
+            panel = data.known_at(i, origin)
             if place not in panel.histories:
                 raise EnsembleError(f"{place} has no data as known at {origin.date()}")
             histories.append(panel.histories[place].up_to(origin))

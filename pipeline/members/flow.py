@@ -28,8 +28,10 @@ import functools
 import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar, NamedTuple, Protocol
 from pathlib import Path
 import numpy as np
+import pandas as pd
 import torch
 from numpy.typing import NDArray
 
@@ -87,8 +89,55 @@ class GrowthModelConfig:
         """Earliest origin (day index) with a full context and the week before it."""
         return self.context_days + DAYS_PER_WEEK - 1
 
+    kind: ClassVar[str] = "nf-growth"        # the model store's name for these models
+
     def identity(self) -> dict[str, object]:
         return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    def estimator_config(self) -> EstimatorConfig:
+        return estimator_config(self)
+
+    def build_dataset(self) -> WindowedDataset:
+        return growth_dataset(self)
+
+
+class FlowModelConfig(Protocol):
+    """What the model store and the fine-tuning need of a flow member's settings (the daily
+    :class:`GrowthModelConfig`, the weekly :class:`~pipeline.members.weekly_flow.WeeklyFlowConfig`):
+    a name, an identity, the training windows, the network and its optimiser."""
+
+    kind: ClassVar[str]
+
+    @property
+    def iterations(self) -> int: ...
+
+    @property
+    def batch_size(self) -> int: ...
+
+    @property
+    def lr(self) -> float: ...
+
+    @property
+    def val_fraction(self) -> float: ...
+
+    @property
+    def seed(self) -> int: ...
+
+    def identity(self) -> dict[str, object]: ...
+
+    def estimator_config(self) -> EstimatorConfig: ...
+
+    def build_dataset(self) -> WindowedDataset: ...
+
+
+class RealWindows(NamedTuple):
+    """Windows cut from real series: context ``(W, R, C)``, its mask ``(W, R)`` (False: a row
+    before the series began), target ``(W, D)`` and the index of the place each came from."""
+
+    context: NDArray[np.float32]
+    mask: NDArray[np.bool_]
+    target: NDArray[np.float32]
+    place: NDArray[np.int64]
 
 
 def trailing_week_sums(cases: NDArray[np.integer] | NDArray[np.floating]) -> NDArray[np.float64]:
@@ -202,7 +251,7 @@ def estimator_config(config: GrowthModelConfig) -> EstimatorConfig:
                                  layers=config.flow_layers, hidden_features=config.flow_hidden)
 
 
-def train_config(config: GrowthModelConfig) -> TrainConfig:
+def train_config(config: FlowModelConfig) -> TrainConfig:
     return TrainConfig(iterations=config.iterations, batch_size=config.batch_size, lr=config.lr,
                        schedule="cosine", eval_every=max(1, config.iterations // 20),
                        seed=config.seed + 1)
@@ -216,33 +265,34 @@ def growth_dataset(config: GrowthModelConfig) -> WindowedDataset:
 
 @dataclass(frozen=True, eq=False)
 class SyntheticWindows:
-    """:func:`growth_dataset` of ``config``, simulated and cut only when a model trains on it;
-    its hash (a model-store key's data part) comes from the store's training-data digests
-    (:mod:`pipeline.training.digests`) when ``digests`` is given and they hold it."""
+    """The training windows of ``config`` (:meth:`FlowModelConfig.build_dataset`), simulated
+    and cut only when a model trains on them; their hash (a model-store key's data part) comes
+    from the store's training-data digests (:mod:`pipeline.training.digests`) when ``digests``
+    is given and they hold it."""
 
-    config: GrowthModelConfig
+    config: FlowModelConfig
     digests: DataDigests | None = None
 
     @functools.cached_property
     def dataset(self) -> WindowedDataset:
-        return growth_dataset(self.config)
+        return self.config.build_dataset()
 
     @functools.cached_property
     def data_sha256(self) -> str:
         if self.digests is None:
             return self.dataset.meta.data_sha256
         return self.digests.get_or_compute(
-            ("nf-growth windows", self.config.identity()),
+            (f"{self.config.kind} windows", self.config.identity()),
             lambda: {"data_sha256": self.dataset.meta.data_sha256})["data_sha256"]
 
 
-def train_growth_model(config: GrowthModelConfig, dataset: WindowedDataset | None = None,
+def train_growth_model(config: FlowModelConfig, dataset: WindowedDataset | None = None,
                        progress: ProgressReporter | None = None) -> tuple[ConditionalEstimator,
                                                                            TrainResult]:
-    """Train the flow on ``dataset`` (default: :func:`growth_dataset`); best validation state."""
-    dataset = dataset if dataset is not None else growth_dataset(config)
+    """Train the flow on ``dataset`` (default: the config's windows); best validation state."""
+    dataset = dataset if dataset is not None else config.build_dataset()
     train_ds, val_ds = split_by_trajectory(dataset, config.val_fraction, config.seed)
-    estimator = build_estimator(estimator_config(config), train_ds.stats, seed=config.seed + 2)
+    estimator = build_estimator(config.estimator_config(), train_ds.stats, seed=config.seed + 2)
     result = train(estimator, train_ds, val_ds, train_config(config), progress=progress)
     return estimator, result
 
@@ -255,7 +305,7 @@ class StoredGrowthModel:
     best_val_nll: float
 
 
-def train_or_reuse_growth_model(config: GrowthModelConfig, store_root: Path, *,
+def train_or_reuse_growth_model(config: FlowModelConfig, store_root: Path, *,
                                 retrain: bool = False,
                                 progress: ProgressReporter | None = None,
                                 synthetic: SyntheticWindows | None = None) -> StoredGrowthModel:
@@ -267,17 +317,18 @@ def train_or_reuse_growth_model(config: GrowthModelConfig, store_root: Path, *,
 
     def build(out_dir: Path) -> dict[str, object]:
         estimator, result = train_growth_model(config, synthetic.dataset, progress)
-        save_checkpoint(out_dir / CHECKPOINT_NAME, estimator, config=estimator_config(config),
+        save_checkpoint(out_dir / CHECKPOINT_NAME, estimator, config=config.estimator_config(),
                         stats=estimator.stats, history=result.history_dicts(),
                         data_sha256=synthetic.dataset.meta.data_sha256,
-                        extra={"kind": "nf-growth", "growth_config": config.identity(),
+                        extra={"kind": config.kind, "growth_config": config.identity(),
                                "best_val_nll_original": result.best_val_nll_original})
         return {"best_val_nll": result.best_val_nll_original}
 
-    entry = ModelStore(store_root).get_or_build({"nf-growth": config.identity()},
+    entry = ModelStore(store_root).get_or_build({config.kind: config.identity()},
                                                 synthetic.data_sha256, build, retrain=retrain)
     # load_checkpoint rebuilds a ConditionalEstimator in eval mode
-    loaded = load_checkpoint(entry.path / CHECKPOINT_NAME, expected_config=estimator_config(config))
+    loaded = load_checkpoint(entry.path / CHECKPOINT_NAME,
+                             expected_config=config.estimator_config())
     return StoredGrowthModel(loaded.estimator, entry.key, entry.reused,
                              float(loaded.meta.extra.get("best_val_nll_original", float("nan"))))
 
@@ -349,6 +400,37 @@ class NFGrowthMember:
         s_origin = np.array([h.S[-1] for h in daily])[:, None]
         population = np.array([h.population for h in daily], dtype=np.int64)[:, None]
         return decode_paths(z, week_sums[:, -1:], s_before, s_origin, population)
+
+    def real_windows(self, histories: Sequence[History], cutoff: pd.Timestamp) -> RealWindows:
+        """Every daily window of ``histories`` whose last target week ends on or before
+        ``cutoff`` (nf-real's training windows), in this member's coordinates."""
+        config = self.config
+        contexts, targets, places = [], [], []
+        for index, history in enumerate(histories):
+            if not isinstance(history, EpiHistory):
+                raise TargetError(f"{self.name}: real windows are cut from daily series")
+            end = int(np.searchsorted(history.dates.to_numpy(dtype=np.int64), cutoff.value,
+                                      side="right")) - 1
+            last_origin = end - N_WEEKS * DAYS_PER_WEEK
+            if last_origin < config.first_origin:
+                continue
+            origins = np.arange(config.first_origin, last_origin + 1)
+            sums = np.repeat(trailing_week_sums(history.cases)[None], origins.size, axis=0)
+            context = context_features(sums, origins, config.context_days)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                target = growth_targets(sums, np.repeat(history.S[None], origins.size, axis=0),
+                                        origins, history.population)
+            finite = np.isfinite(target).all(axis=1) & np.isfinite(context).all(axis=(1, 2))
+            contexts.append(context[finite])
+            targets.append(target[finite])
+            places.append(np.full(int(finite.sum()), index, dtype=np.int64))
+        if not contexts:
+            return RealWindows(np.empty((0, config.context_days, 3), np.float32),
+                               np.empty((0, config.context_days), bool),
+                               np.empty((0, N_WEEKS), np.float32), np.empty(0, np.int64))
+        context = np.concatenate(contexts)
+        return RealWindows(context, np.ones(context.shape[:2], dtype=bool),
+                           np.concatenate(targets), np.concatenate(places))
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:

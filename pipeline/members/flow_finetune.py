@@ -23,6 +23,7 @@ import functools
 import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +31,9 @@ import pandas as pd
 import torch
 from numpy.typing import NDArray
 
-from pipeline.members.base import MemberForecast
-from pipeline.members.flow import (CHECKPOINT_NAME, N_WEEKS, GrowthModelConfig, NFGrowthMember,
-                                   SyntheticWindows, context_features, estimator_config,
-                                   growth_targets, trailing_week_sums)
-from pipeline.panels.history import EpiHistory
+from pipeline.members.base import Member, MemberForecast
+from pipeline.members.flow import CHECKPOINT_NAME, FlowModelConfig, RealWindows, SyntheticWindows
+from pipeline.panels.history import History
 from pipeline.panels.panel import Cells
 from pipeline.panels.targets import DAYS_PER_WEEK
 from pipeline.errors import CheckpointError, ConfigError
@@ -72,32 +71,21 @@ class FineTuneConfig:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
-def real_windows(histories: Sequence[EpiHistory], cutoff: pd.Timestamp,
-                 config: GrowthModelConfig) -> tuple[NDArray[np.float32], NDArray[np.float32],
-                                                     NDArray[np.int64]]:
-    """(context (W, R, 3), target (W, 4), place index (W,)) of every daily window whose last
-    target week ends on or before ``cutoff``."""
-    contexts, targets, places = [], [], []
-    for index, history in enumerate(histories):
-        end = int(np.searchsorted(history.dates.to_numpy(dtype=np.int64), cutoff.value,
-                                  side="right")) - 1
-        last_origin = end - N_WEEKS * DAYS_PER_WEEK
-        if last_origin < config.first_origin:
-            continue
-        origins = np.arange(config.first_origin, last_origin + 1)
-        sums = np.repeat(trailing_week_sums(history.cases)[None], origins.size, axis=0)
-        context = context_features(sums, origins, config.context_days)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            target = growth_targets(sums, np.repeat(history.S[None], origins.size, axis=0),
-                                    origins, history.population)
-        finite = np.isfinite(target).all(axis=1) & np.isfinite(context).all(axis=(1, 2))
-        contexts.append(context[finite])
-        targets.append(target[finite])
-        places.append(np.full(int(finite.sum()), index, dtype=np.int64))
-    if not contexts:
-        return (np.empty((0, config.context_days, 3), np.float32), np.empty((0, N_WEEKS),
-                np.float32), np.empty(0, np.int64))
-    return np.concatenate(contexts), np.concatenate(targets), np.concatenate(places)
+class FlowMember(Member, Protocol):
+    """A flow member that can be fine-tuned: its trained estimator and settings, its reach, and
+    the windows it would train on from real series (the daily flow's, the weekly one's)."""
+
+    @property
+    def estimator(self) -> ConditionalEstimator: ...
+
+    @property
+    def config(self) -> FlowModelConfig: ...
+
+    @property
+    def max_horizon(self) -> int: ...
+
+    def real_windows(self, histories: Sequence[History], cutoff: pd.Timestamp
+                     ) -> RealWindows: ...
 
 
 # Refits fall on a fixed calendar (every k-th week from this Saturday), not on every k-th origin
@@ -120,11 +108,11 @@ def latest_refit_date(origin: pd.Timestamp, every_weeks: int) -> pd.Timestamp:
     return origin - pd.Timedelta(days=(origin - REFIT_EPOCH).days % (DAYS_PER_WEEK * every_weeks))
 
 
-def _dataset(context: NDArray[np.float32], target: NDArray[np.float32],
+def _dataset(context: NDArray[np.float32], mask: NDArray[np.bool_], target: NDArray[np.float32],
              trajectory: NDArray[np.int64], like: WindowedDataset) -> WindowedDataset:
     """Windows in the synthetic dataset's standardization and metadata."""
     context_t = torch.from_numpy(np.ascontiguousarray(context))
-    draft = WindowedDataset(context_t, torch.ones(context_t.shape[:2], dtype=torch.bool),
+    draft = WindowedDataset(context_t, torch.from_numpy(np.ascontiguousarray(mask)),
                             torch.from_numpy(np.ascontiguousarray(target)),
                             torch.from_numpy(trajectory),
                             torch.zeros(len(trajectory), dtype=torch.float64), like.stats,
@@ -133,12 +121,11 @@ def _dataset(context: NDArray[np.float32], target: NDArray[np.float32],
         draft.meta, data_sha256=dataset_sha256(draft)))
 
 
-def training_windows(real: tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.int64]],
-                     synthetic: WindowedDataset, config: FineTuneConfig
+def training_windows(real: RealWindows, synthetic: WindowedDataset, config: FineTuneConfig
                      ) -> tuple[WindowedDataset, WindowedDataset]:
     """(train, validation): real windows (validation: a seeded share of the places) mixed with
     synthetic ones in the ratio ``synthetic_share``."""
-    context, target, place = real
+    context, mask, target, place = real
     held = validation_trajectories(torch.from_numpy(place), config.val_fraction,
                                    config.seed).numpy()
     is_val = np.isin(place, held)
@@ -146,13 +133,16 @@ def training_windows(real: tuple[NDArray[np.float32], NDArray[np.float32], NDArr
     rng = np.random.default_rng(config.seed)
     pick = rng.choice(len(synthetic), size=min(n_synth, len(synthetic)), replace=False)
     synth_context = synthetic.context[torch.from_numpy(pick)].numpy()
+    synth_mask = synthetic.mask[torch.from_numpy(pick)].numpy()
     synth_target = synthetic.target[torch.from_numpy(pick)].numpy()
     offset = int(place.max()) + 1
     train_ds = _dataset(np.concatenate([context[~is_val], synth_context]),
+                        np.concatenate([mask[~is_val], synth_mask]),
                         np.concatenate([target[~is_val], synth_target]),
                         np.concatenate([place[~is_val], offset + np.arange(len(pick))]),
                         synthetic)
-    return train_ds, _dataset(context[is_val], target[is_val], place[is_val], synthetic)
+    return train_ds, _dataset(context[is_val], mask[is_val], target[is_val], place[is_val],
+                              synthetic)
 
 
 def finetune(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: WindowedDataset,
@@ -198,7 +188,7 @@ class FineTunedGrowthMember:
     """``models[r]``: the flow fine-tuned at refit date r; a cell at origin o is forecast by the
     model of the latest r ≤ o (the synthetic flow before the first refit)."""
 
-    base: NFGrowthMember
+    base: FlowMember
     models: Mapping[pd.Timestamp, Refit]
     name: str = NF_REAL
 
@@ -211,13 +201,13 @@ class FineTunedGrowthMember:
         dates = [r for r in self.models if r <= origin]
         return max(dates) if dates else None
 
-    def model_for(self, origin: pd.Timestamp) -> NFGrowthMember:
+    def model_for(self, origin: pd.Timestamp) -> FlowMember:
         refit = self.refit_for(origin)
         if refit is None:
             return self.base
         model = self.models[refit]
         estimator = model.estimator if isinstance(model, StoredRefit) else model
-        return dataclasses.replace(self.base, estimator=estimator)
+        return dataclasses.replace(self.base, estimator=estimator)  # type: ignore[type-var]
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
@@ -238,24 +228,28 @@ class FineTunedGrowthMember:
         return MemberForecast(count, paths=paths)
 
 
-def fit_finetuned_member(base: NFGrowthMember, synthetic: SyntheticWindows,
-                         histories: Sequence[EpiHistory], dates: Sequence[pd.Timestamp],
+def fit_finetuned_member(base: FlowMember, synthetic: SyntheticWindows,
+                         histories: Sequence[History], dates: Sequence[pd.Timestamp],
                          config: FineTuneConfig, store_root: Path | None = None,
                          progress: ProgressReporter | None = None, *,
-                         newest_first: bool = False) -> FineTunedGrowthMember:
+                         newest_first: bool = False,
+                         known_at: Callable[[pd.Timestamp], Sequence[History]] | None = None
+                         ) -> FineTunedGrowthMember:
     """Fine-tune at each refit date on ``histories`` as they stood then (module docstring);
     with ``store_root`` every model is kept in the model store (key: the configs and the
     windows' hash), so a rerun on the same data trains nothing, and the windows' hashes in the
     store's digests (:mod:`pipeline.training.digests`), so it cuts no windows either.
     ``newest_first``: fine-tune the latest date first (a second process filling the same store
     from the other end, :mod:`pipeline.forecast.member_training`); the models are the same
-    either way."""
+    either way. ``known_at``: the places' data as released by a date (a source with vintages:
+    a refit learns from the vintage of its date, not from later revisions of it)."""
     progress = progress or SilentProgress()
     models: dict[pd.Timestamp, Refit] = {}
     for date in (sorted(dates, reverse=True) if newest_first else dates):
-        known = [h.up_to(date) for h in histories if h.dates[0] <= date]
+        known = (list(known_at(date)) if known_at is not None
+                 else [h.up_to(date) for h in histories if h.dates[0] <= date])
         windows = functools.cache(functools.partial(
-            _refit_windows, known, date - pd.Timedelta(days=config.revision_days), base.config,
+            _refit_windows, base, known, date - pd.Timedelta(days=config.revision_days),
             synthetic, config))
         if store_root is None:
             cut = windows()
@@ -270,12 +264,12 @@ def fit_finetuned_member(base: NFGrowthMember, synthetic: SyntheticWindows,
     return FineTunedGrowthMember(base, models)
 
 
-def _refit_windows(known: Sequence[EpiHistory], cutoff: pd.Timestamp, growth: GrowthModelConfig,
+def _refit_windows(base: FlowMember, known: Sequence[History], cutoff: pd.Timestamp,
                    synthetic: SyntheticWindows, config: FineTuneConfig
                    ) -> tuple[WindowedDataset, WindowedDataset] | None:
     """A refit's (train, validation) windows; None when the places known then have too few."""
-    real = real_windows(known, cutoff, growth)
-    if len(real[2]) < config.min_windows or len(np.unique(real[2])) < 2:
+    real = base.real_windows(known, cutoff)
+    if len(real.place) < config.min_windows or len(np.unique(real.place)) < 2:
         return None
     return training_windows(real, synthetic.dataset, config)
 
@@ -288,7 +282,7 @@ def _refit_digests(windows: tuple[WindowedDataset, WindowedDataset] | None) -> D
             "validation_sha256": val_ds.meta.data_sha256}
 
 
-def _stored_finetune(base: NFGrowthMember, known: Sequence[EpiHistory], date: pd.Timestamp,
+def _stored_finetune(base: FlowMember, known: Sequence[History], date: pd.Timestamp,
                      synthetic: SyntheticWindows, config: FineTuneConfig, store_root: Path,
                      windows: Callable[[], tuple[WindowedDataset, WindowedDataset] | None]
                      ) -> StoredRefit | None:
@@ -305,12 +299,12 @@ def _stored_finetune(base: NFGrowthMember, known: Sequence[EpiHistory], date: pd
             raise CheckpointError(f"the refit windows of {date.date()} do not match their "
                                   f"recorded digests in {store_root}")
         model = finetune(base.estimator, *cut, config)
-        save_checkpoint(out_dir / CHECKPOINT_NAME, model, config=estimator_config(base.config),
+        save_checkpoint(out_dir / CHECKPOINT_NAME, model, config=base.config.estimator_config(),
                         stats=model.stats, data_sha256=digests["train_sha256"],
                         extra={"kind": NF_REAL})
         return {}
 
-    key = {NF_REAL: config.identity(), "nf-growth": base.config.identity(),
+    key = {NF_REAL: config.identity(), base.config.kind: base.config.identity(),
            "validation_sha256": digests["validation_sha256"]}
     entry = ModelStore(store_root).get_or_build(key, digests["train_sha256"], build)
-    return StoredRefit.of(entry, estimator_config(base.config))
+    return StoredRefit.of(entry, base.config.estimator_config())

@@ -26,9 +26,12 @@ from pipeline.members.base import Member
 from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
                                    train_or_reuse_growth_model)
 from pipeline.members.flow_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMember
+from pipeline.members.weekly_flow import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
 from pipeline.members.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.panels.history import EpiHistory
+from pipeline.errors import ConfigError
+from pipeline.panels.history import EpiHistory, History
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter
 from pipeline.training.digests import DataDigests
@@ -96,3 +99,70 @@ def build_members(config: MembersConfig, store_root: Path, panel: Panel,
                                             store_root, progress,
                                             newest_first=newest_refits_first))
     return ChosenMembers(members, stored.key, stored.reused)
+
+
+# ------------------------------------------------------------------- the hub's weekly panels
+
+
+@dataclass(frozen=True)
+class HubMembersConfig:
+    """The hub forecast's members: the weekly flow (``flow``), its refits (``finetune``), the
+    seasonal member, and which of them the published average takes: ``published`` names them
+    (the others are scored beside it)."""
+
+    flow: WeeklyFlowConfig = field(default_factory=WeeklyFlowConfig)
+    finetune: FineTuneConfig = field(default_factory=lambda: FineTuneConfig(
+        revision_days=14, min_windows=200))
+    seasonal: SeasonalConfig = field(default_factory=SeasonalConfig)
+    regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
+    published: tuple[str, ...] = (NF_WEEKLY, SEASONAL)
+    flow_samples: int = 1000
+    baseline_samples: int = BASELINE_SAMPLES
+
+
+@dataclass(frozen=True, eq=False)
+class HubMembers:
+    """The published members and the others scored beside them; the flow's store entry."""
+
+    published: list[Member]
+    references: list[Member]
+    model_key: str
+    reused: bool
+
+
+def build_hub_members(config: HubMembersConfig, store_root: Path,
+                      refit_vintages: Sequence[tuple[pd.Timestamp, Panel]],
+                      climatology: Sequence[tuple[pd.Timestamp, Panel]],
+                      progress: ProgressReporter | None = None) -> HubMembers:
+    """The hub forecast's members (docs/forecasting.md "The hub forecast"): the weekly flow
+    (model store), that flow fine-tuned at the refit dates among the vintages' last weeks on
+    the windows of the vintage of each (``nf-real``), the seasonal member on the
+    ``climatology`` vintages (the ED-visit share), the hub baseline and growth-qr pooled over
+    the 53 locations; ``config.published`` chooses the average's members."""
+    synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
+    stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
+                                         synthetic=synthetic)
+    flow = WeeklyFlowMember(stored.estimator, config.flow, n_samples=config.flow_samples)
+    vintages = sorted(refit_vintages, key=lambda v: v[0])
+
+    def known_at(date: pd.Timestamp) -> list[History]:
+        """The newest vintage whose data end by ``date``: at a round's origin, its own."""
+        released = [panel for _, panel in vintages if panel.last_date <= date]
+        return list(released[-1].histories.values()) if released else []
+
+    dates = refit_dates(sorted({panel.last_date for _, panel in vintages}),
+                        config.finetune.refit_every_weeks)
+    members: list[Member] = [
+        flow, SeasonalGrowthMember(tuple(climatology), config.seasonal),
+        HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
+        PooledGrowthMember(config.regression)]
+    if dates:
+        members.append(fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
+                                            store_root, progress, known_at=known_at))
+    unknown = [n for n in config.published if n not in {m.name for m in members}]
+    if unknown:
+        raise ConfigError(f"the hub forecast's published members {unknown} are not among "
+                          f"{[m.name for m in members]}")
+    return HubMembers([m for m in members if m.name in config.published],
+                      [m for m in members if m.name not in config.published], stored.key,
+                      stored.reused)

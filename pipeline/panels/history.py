@@ -180,12 +180,15 @@ class WeeklyHistory:
 
     ``dates``: the weeks' last days, 7 days apart; ``cases``: the week's count (NaN: a week the
     source did not report); ``target``: the count's name (the hub's, e.g. ``wk inc covid
-    hosp``); ``population`` N."""
+    hosp``); ``population`` N. ``depletes``: whether the counts are people leaving the
+    susceptibles (admissions); a rate (the ED share per 100,000 visits) does not, and its S is
+    1 — the flows' bound is then the rate's own, N per N."""
 
     dates: pd.DatetimeIndex
     cases: NDArray[np.float64]
     population: int
     target: str
+    depletes: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dates", pd.DatetimeIndex(self.dates).as_unit("ns"))
@@ -223,7 +226,8 @@ class WeeklyHistory:
                               f"{pd.Timestamp(date).date()}")
         head = object.__new__(WeeklyHistory)
         for name, value in (("dates", self.dates[:keep]), ("cases", self.cases[:keep]),
-                            ("population", self.population), ("target", self.target)):
+                            ("population", self.population), ("target", self.target),
+                            ("depletes", self.depletes)):
             object.__setattr__(head, name, value)
         return head
 
@@ -231,11 +235,14 @@ class WeeklyHistory:
         return self.cases
 
     def susceptible_at_weeks(self) -> NDArray[np.float64]:
-        """1 − (counts up to each week) / N: the share never counted (missing weeks add 0)."""
+        """1 − (counts up to each week) / N: the share never counted (missing weeks add 0);
+        1 for a rate."""
+        if not self.depletes:
+            return np.ones(len(self))
         return 1.0 - np.cumsum(np.nan_to_num(self.cases)) / self.population
 
     def fingerprint(self) -> str:
-        return fingerprint(self.dates, self.cases, self.population, self.target)
+        return fingerprint(self.dates, self.cases, self.population, self.target, self.depletes)
 
     def observed(self, origin: pd.Timestamp, horizons: tuple[int, ...]
                  ) -> dict[str, NDArray[np.float64]]:

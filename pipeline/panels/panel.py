@@ -58,12 +58,14 @@ class Panel:
     """``histories``: the places forecast, by name (one vintage of their data); ``references``:
     places only pooled (a place's own reference series is never in its pool); ``skipped``:
     places the data gate left out, with why (the run names them); ``name``: what the panel is
-    (``san-francisco``, ``california-counties``, ``nhsn-covid-hosp``)."""
+    (``san-francisco``, ``california-counties``, ``nhsn-covid-hosp``); ``as_of``: the
+    vintage's release date, where the source has vintages."""
 
     histories: Mapping[str, History]
     references: Mapping[str, History] = field(default_factory=dict)
     skipped: Mapping[str, str] = field(default_factory=dict)
     name: str = "panel"
+    as_of: pd.Timestamp | None = None       # when this vintage of the data was released
 
     def __post_init__(self) -> None:
         if not self.histories:
@@ -106,7 +108,8 @@ class Panel:
         def cut(histories: Mapping[str, History]) -> dict[str, History]:
             return {p: h.up_to(date) for p, h in histories.items() if h.dates[0] <= date}
 
-        return Panel(cut(self.histories), cut(self.references), self.skipped, self.name)
+        return Panel(cut(self.histories), cut(self.references), self.skipped, self.name,
+                     self.as_of)
 
     def only(self, places: Sequence[str]) -> Panel:
         """The same panel forecasting only ``places`` (the others become references)."""
@@ -115,7 +118,8 @@ class Panel:
             raise TargetError(f"places {unknown} are not in panel {self.name!r}")
         return Panel({p: self.histories[p] for p in places},
                      {**self.references, **{p: h for p, h in self.histories.items()
-                                            if p not in places}}, self.skipped, self.name)
+                                            if p not in places}}, self.skipped, self.name,
+                     self.as_of)
 
     def pool(self, place: str, origin: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
         """``(P, n_weeks)`` weekly counts a pooled member learns from for a cell of ``place``:

@@ -1,0 +1,209 @@
+"""The CDC COVID-19 Forecast Hub's rounds, forecast in real time → bench/results/nhsn.json.
+
+Every round the shared hub data have a vintage for (``../shared/data/nhsn``: 44 admissions
+rounds 2024-11-23 … 2025-09-27, 15 ED-share rounds from 2025-06-21): each round from the vintage
+released by its due date only, nowcast, forecast by the members, combined, reconciled
+(:mod:`pipeline.backtest.hub_rounds`), written as the hub's file, scored against the latest
+vintage, and ranked among every team of the hub by pairwise relative WIS (Cramer et al. 2022;
+``CovidHub-baseline`` = 1) on the forecasts both made, horizons 0–3, with the hub's exclusions.
+
+Beside the published forecast: every member alone, the variants (the members the issue named —
+hub baseline, growth-qr, the flows — and others), and the published design with the seasonal
+member's climatology taken from a later vintage for the rounds before the ED share was released
+(``*-pseudo``: not real time, reported for what it would have been).
+
+    python -m bench.nhsn                  # both targets, every round
+    python -m bench.nhsn --target hosp    # admissions only
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "nhsn"
+TEAM_MODEL = "flowcast-nfhub"
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--target", choices=("hosp", "ed", "both"), default="both")
+    p.add_argument("--hub", default=str(SHARED), help="the hub data (time series, forecasts)")
+    p.add_argument("--out", default=None, help="output JSON path")
+    p.add_argument("--files", default=None, help="write every round's hub file under DIR")
+    p.add_argument("--seed", type=int, default=0)
+    return p.parse_args(argv)
+
+
+def load_vintages(hub: Path, target: str, populations: dict[str, int]) -> list[Any]:
+    """Every vintage of ``target`` in the hub's time series as (as_of, panel), oldest first."""
+    from pipeline.data.hub_forecasts import read_target_data, target_data_vintages
+    from pipeline.panels.hub import vintage_panel
+
+    path = hub / "time-series.parquet"
+    return [(as_of, vintage_panel(read_target_data(path, target, as_of), target, populations,
+                                  as_of))
+            for as_of in target_data_vintages(path, target)]
+
+
+def leaderboards(ours: Any, teams: Any, target: str, exclusions: Any) -> dict[str, Any]:
+    """Pairwise relative WIS of every model with ours added: overall, by horizon, US, states."""
+    import pandas as pd
+
+    from pipeline.evaluation.hub_leaderboard import LeaderboardConfig, hub_leaderboard
+
+    scores = pd.concat([teams, ours], ignore_index=True)
+    out: dict[str, Any] = {}
+    for name, config, by in (
+            ("all", LeaderboardConfig(target=target), ()),
+            ("by_horizon", LeaderboardConfig(target=target), ("horizon",)),
+            ("US", LeaderboardConfig(target=target, locations="US"), ()),
+            ("states", LeaderboardConfig(target=target, locations="states"), ())):
+        table = hub_leaderboard(scores, config, exclusions, by=by)
+        out[name] = table.to_dict(orient="records")
+    return out
+
+
+def relative(board: dict[str, Any], model: str) -> dict[str, float | None]:
+    """A model's relative WIS overall and per horizon from :func:`leaderboards`."""
+    rows = {r["model_id"]: r for r in board["all"] if "horizon" not in r}
+    out: dict[str, float | None] = {"all": _value(rows.get(model))}
+    for r in board["by_horizon"]:
+        if r["model_id"] == model:
+            out[f"h{int(r['horizon'])}"] = float(r["relative_wis"])
+    for part in ("US", "states"):
+        out[part] = _value({r["model_id"]: r for r in board[part]}.get(model))
+    return out
+
+
+def _value(row: dict[str, Any] | None) -> float | None:
+    return None if row is None else float(row["relative_wis"])
+
+
+def run_target(target: str, args: argparse.Namespace, populations: dict[str, int],
+               climatology: list[Any], teams: Any, exclusions: Any) -> dict[str, Any]:
+    import dataclasses
+
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
+                                              summary_by_horizon)
+    from pipeline.combine.combiner import PUBLISHED, CombineConfig
+    from pipeline.members.published import HubMembersConfig, build_hub_members
+    from pipeline.members.seasonal import SeasonalGrowthMember
+    from pipeline.panels.hub import hub_rounds
+    from pipeline.training.model_store import default_store_root
+
+    started = time.perf_counter()
+    vintages = load_vintages(Path(args.hub), target, populations)
+    rounds = hub_rounds(vintages)
+    latest = vintages[-1][1]
+    members = build_hub_members(HubMembersConfig(), default_store_root(), vintages,
+                                climatology)
+    t_members = time.perf_counter() - started
+    first_ed = climatology[0]
+    pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
+                                  name="seasonal-pseudo")
+    names = [m.name for m in members.published]
+    reach = CombineConfig(beyond_reach="reachable-members")
+    variants = (
+        Variant("v-flow-alone", reach, ("nf-weekly",)),
+        Variant("v-issue-members (baseline, growth-qr, flows)", reach,
+                ("hub-baseline", "growth-qr", "nf-weekly", "nf-real")),
+        Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
+        Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
+        Variant("v-nf-real+seasonal", reach, ("nf-real", "seasonal")),
+        Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
+        Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
+                ("nf-weekly", "seasonal-pseudo")),
+    )
+    result = run_hub_rounds(rounds, latest, members.published,
+                            HubBacktestConfig(variants=variants, seed=args.seed),
+                            references=(*members.references, pseudo))
+    t_backtest = time.perf_counter() - started - t_members
+    ours = result.scores()
+    board_names = [PUBLISHED, UNRECONCILED, *[m.name for m in members.published],
+                   *[m.name for m in (*members.references, pseudo)], *[v.name for v in variants]]
+    ours = ours[ours["model_id"].isin(board_names)]
+    per_model = {}
+    for name in board_names:
+        if name not in set(ours["model_id"]):
+            continue
+        board = leaderboards(ours[ours["model_id"] == name], teams, target, exclusions)
+        per_model[name] = relative(board, name) | {
+            "coverage": summary_by_horizon(result, name)}
+    published = leaderboards(ours[ours["model_id"] == PUBLISHED], teams, target, exclusions)
+    gap = result.gap
+    return {
+        "target": target,
+        "pairwise_relative_wis": relative(published, PUBLISHED),
+        "coverage50": summary_by_horizon(result)["all"]["coverage50"],
+        "coverage95": summary_by_horizon(result)["all"]["coverage95"],
+        "coverage_by_horizon": summary_by_horizon(result),
+        "n_rounds": len(rounds), "n_locations": len(result.places),
+        "rounds": {"first": str(rounds[0].reference.date()),
+                   "last": str(rounds[-1].reference.date())},
+        "teams": {r["model_id"]: {"relative_wis": float(r["relative_wis"]),
+                                  "n_forecasts": int(r["n_forecasts"]),
+                                  "n_rounds": int(r["n_rounds"])}
+                  for r in published["all"]},
+        "teams_by_horizon": published["by_horizon"],
+        "members_and_variants": per_model,
+        "reconciliation": None if gap is None else {
+            "median_abs_log_gap_before": float(np.nanmedian(np.abs(gap))),
+            "p90_abs_log_gap_before": float(np.nanquantile(np.abs(gap), 0.9))},
+        "seconds": {"members": round(t_members, 1), "backtest": round(t_backtest, 1),
+                    "parts": {k: round(v, 1) for k, v in result.seconds.items()}},
+    }
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = _parse(argv)
+    import pandas as pd
+
+    from pipeline.data.hub_forecasts import read_excluded_locations, read_hub_forecasts, \
+        quantile_table, read_target_data
+    from pipeline.evaluation.hub_leaderboard import score_quantile_forecasts
+    from pipeline.io import atomic_write_json
+    from pipeline.panels.hub import ED_COVID, HOSP_COVID, populations_from_table
+
+    hub = Path(args.hub)
+    populations = populations_from_table(pd.read_csv(hub / "locations.csv", dtype=str))
+    climatology = load_vintages(hub, ED_COVID, populations)
+    exclusions = read_excluded_locations(hub / "excluded_locations.toml")
+    out: dict[str, Any] = {}
+    targets = {"hosp": [HOSP_COVID], "ed": [ED_COVID], "both": [HOSP_COVID, ED_COVID]}
+    for target in targets[args.target]:
+        truth = read_target_data(hub / "time-series.parquet", target)
+        teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
+            hub / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
+        out[target] = run_target(target, args, populations, climatology, teams, exclusions)
+        s = out[target]
+        print(f"{target}: published pairwise relative WIS {s['pairwise_relative_wis']}, "
+              f"coverage {s['coverage50']:.2f}/{s['coverage95']:.2f}")
+        for name, m in s["members_and_variants"].items():
+            print(f"  {name:60s} all {m['all']}  " + " ".join(
+                f"{k}={v:.3f}" for k, v in m.items() if k.startswith("h") and v is not None))
+    result = {**out.get(HOSP_COVID, {}),
+              "ed_visits": out.get(ED_COVID),
+              "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
+              "python": sys.version.split()[0],
+              "command": "python -m bench.nhsn " + " ".join(argv if argv is not None
+                                                            else sys.argv[1:])}
+    path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+    atomic_write_json(path, json.loads(json.dumps(result, default=str)))
+    print(f"→ {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

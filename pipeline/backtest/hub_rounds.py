@@ -1,0 +1,274 @@
+"""The hub's rounds, forecast in real time: every round from the vintage released by its due
+date, nowcast, forecast, combined, reconciled, and laid out as the hub's horizons.
+
+For each round (:class:`~pipeline.panels.hub.HubRound`) the newest weeks of its vintage are
+nowcast from the revision pattern of the vintages released before it
+(:mod:`pipeline.nowcast.revisions`); the members forecast every location from the nowcast's
+median history, steps 1 … S after the vintage's last week, all rounds and locations as the one
+backtest's cells (:func:`~pipeline.backtest.backtest.run_backtest`, a vintage per origin); the
+combiner's average is reconciled top-down (:mod:`pipeline.combine.reconcile`: the states'
+medians sum to the national one). Each round's hub horizons −1 … 3 are then the steps
+``h + lag`` (the vintage is ``lag`` weeks behind the reference date): a step ≤ 0 is a week in
+the data, whose forecast is its nowcast.
+
+The result holds every forecaster's quantiles ``(C, R, H, Q)`` in the hub's units (counts, or
+the ED share as a proportion) at the hub's horizons, the truth of the latest vintage, the
+published sample trajectories, and each round's hub file (:meth:`HubRoundsResult.round_frame`).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.backtest.backtest import BacktestConfig, Variant, Vintages, run_backtest
+from pipeline.backtest.result import BacktestResult
+from pipeline.combine.average import EnsembleError
+from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
+from pipeline.combine.reconcile import median_gap, top_down
+from pipeline.evaluation.quantile_function import quantiles_at
+from pipeline.evaluation.summary import score_cells
+from pipeline.members.base import Member
+from pipeline.nowcast.revisions import RevisionNowcastConfig, WeekNowcast, nowcast_weeks
+from pipeline.panels.hub import HUB_HORIZONS, US, HubRound, is_share, target_scale
+from pipeline.panels.panel import Panel, weeks_ending
+from pipeline.panels.targets import DAYS_PER_WEEK, HUB_QUANTILE_LEVELS, format_level
+from pipeline.progress import ProgressReporter
+
+UNRECONCILED = "published-unreconciled"
+
+
+@dataclass(frozen=True)
+class HubBacktestConfig:
+    """The hub's horizons and levels, the members' seed, the published combiner (a member
+    without a forecast — the seasonal one before its data existed — is left out of a cell's
+    average), the variants, the nowcast, top-down reconciliation (counts with a national total),
+    and the sample trajectories per location and target."""
+
+    horizons: tuple[int, ...] = HUB_HORIZONS
+    levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
+    seed: int = 0
+    combine: CombineConfig = field(
+        default_factory=lambda: CombineConfig(beyond_reach="reachable-members"))
+    variants: tuple[Variant, ...] = ()
+    nowcast: RevisionNowcastConfig = field(default_factory=RevisionNowcastConfig)
+    reconcile: bool = True
+    n_samples: int = 200
+
+
+@dataclass(frozen=True, eq=False)
+class HubRoundsResult:
+    """Every round of one target (module docstring). ``forecasts[name]`` ``(C, R, H, Q)`` and
+    ``truth`` ``(C, R, H)`` in the hub's units; ``samples`` ``(C, R, n, H)`` of the published
+    forecast; ``gap`` ``(R, S)``: log(US median / Σ states' medians) before reconciliation."""
+
+    target: str
+    rounds: tuple[HubRound, ...]
+    places: tuple[str, ...]
+    horizons: tuple[int, ...]
+    levels: NDArray[np.float64]
+    forecasts: dict[str, NDArray[np.float64]]
+    truth: NDArray[np.float64]
+    samples: NDArray[np.float64] | None
+    backtest: BacktestResult
+    nowcasts: tuple[WeekNowcast, ...]
+    gap: NDArray[np.float64] | None
+    seconds: dict[str, float]
+
+    @property
+    def references(self) -> tuple[pd.Timestamp, ...]:
+        return tuple(r.reference for r in self.rounds)
+
+    def target_ends(self) -> NDArray[np.datetime64]:
+        """``(R, H)`` the week each round's horizon ends."""
+        return np.array([[r.target_end(h) for h in self.horizons] for r in self.rounds],
+                        dtype="datetime64[ns]")
+
+    def scores(self, forecasters: Sequence[str] | None = None) -> pd.DataFrame:
+        """One row per scored (forecaster, round, horizon, location): WIS and its parts,
+        50 %/95 % coverage, in the hub's units."""
+        frames = []
+        ends = self.target_ends()
+        for name in forecasters or list(self.forecasts):
+            s = score_cells(self.forecasts[name], self.truth, self.levels)
+            c, r, h = np.nonzero(np.isfinite(s.wis))
+            frames.append(pd.DataFrame({
+                "model_id": name, "reference_date": np.asarray(self.references,
+                                                               dtype="datetime64[ns]")[r],
+                "target": self.target, "horizon": np.asarray(self.horizons)[h],
+                "location": np.asarray(self.places, dtype=object)[c],
+                "target_end_date": ends[r, h], "observed": self.truth[c, r, h],
+                "wis": s.wis[c, r, h], "dispersion": s.dispersion[c, r, h],
+                "overprediction": s.overprediction[c, r, h],
+                "underprediction": s.underprediction[c, r, h],
+                "coverage_50": s.covered[0.5][c, r, h],
+                "coverage_95": s.covered[0.95][c, r, h]}))
+        return pd.concat(frames, ignore_index=True)
+
+    def round_frame(self, index: int, forecaster: str = PUBLISHED) -> pd.DataFrame:
+        """Round ``index``'s forecast in the hubverse format (quantiles and, for the published
+        forecast, the sample trajectories: one id per location × target, across horizons)."""
+        rnd = self.rounds[index]
+        values = self.forecasts[forecaster][:, index]                        # (C, H, Q)
+        keep = np.isfinite(values).all(axis=(1, 2))
+        places = np.asarray(self.places, dtype=object)[keep]
+        n_h, n_q = values.shape[1:]
+        ends = [str(rnd.target_end(h).date()) for h in self.horizons]
+        quantiles = pd.DataFrame({
+            "location": np.repeat(places, n_h * n_q),
+            "horizon": np.tile(np.repeat(self.horizons, n_q), len(places)),
+            "target_end_date": np.tile(np.repeat(ends, n_q), len(places)),
+            "output_type": "quantile",
+            "output_type_id": np.tile([format_level(lv) for lv in self.levels],
+                                      len(places) * n_h),
+            "value": values[keep].reshape(-1)})
+        frames = [quantiles]
+        if forecaster == PUBLISHED and self.samples is not None:
+            draws = self.samples[keep, index]                                 # (C', n, H)
+            n = draws.shape[1]
+            ids = (np.arange(len(places))[:, None] * n + np.arange(n)[None, :] + 1)
+            frames.append(pd.DataFrame({
+                "location": np.repeat(places, n * n_h),
+                "horizon": np.tile(np.tile(self.horizons, n), len(places)),
+                "target_end_date": np.tile(np.tile(ends, n), len(places)),
+                "output_type": "sample",
+                "output_type_id": np.repeat(ids.reshape(-1), n_h).astype(str),
+                "value": draws.reshape(-1)}))
+        frame = pd.concat(frames, ignore_index=True)
+        frame.insert(0, "reference_date", str(rnd.reference.date()))
+        frame.insert(1, "target", self.target)
+        return frame[["reference_date", "target", "horizon", "location", "target_end_date",
+                      "output_type", "output_type_id", "value"]]
+
+
+def forecast_places(rounds: Sequence[HubRound]) -> tuple[str, ...]:
+    """The locations every round's vintage holds (the others are named as skipped there)."""
+    common = set(rounds[0].panel.places)
+    for rnd in rounds[1:]:
+        common &= set(rnd.panel.places)
+    order = [p for p in rounds[-1].panel.places if p in common]
+    return tuple(order)
+
+
+def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[Member],
+                   config: HubBacktestConfig = HubBacktestConfig(), *,
+                   references: Sequence[Member] = (),
+                   progress: ProgressReporter | None = None) -> HubRoundsResult:
+    """Every round in real time (module docstring), scored against ``latest``."""
+    if not rounds:
+        raise EnsembleError("no hub round to forecast")
+    started = time.perf_counter()
+    levels = np.asarray(config.levels, dtype=np.float64)
+    target = latest.count_target
+    places = forecast_places(rounds)
+    nowcasts = tuple(nowcast_weeks(r.panel, [e.panel for e in rounds[:i]], levels,
+                                   config.nowcast) for i, r in enumerate(rounds))
+    known = [n.panel.only(places) for n in nowcasts]
+    truth_panel = Panel({p: latest.histories[p] for p in places if p in latest.histories},
+                        name=latest.name, as_of=latest.as_of)
+    steps = tuple(range(1, max(config.horizons) + max(r.lag_weeks for r in rounds) + 1))
+    result = run_backtest(
+        Vintages(_aligned(truth_panel, places, known), known), members,
+        [r.origin for r in rounds],
+        BacktestConfig(horizons=steps, levels=config.levels, seed=config.seed,
+                       combine=config.combine, variants=config.variants,
+                       n_paths=config.n_samples),
+        references=references, progress=progress)
+    seconds = {"nowcast_and_backtest": time.perf_counter() - started}
+    count = result.forecasts[target]
+    gap = None
+    if config.reconcile and not is_share(target) and US in places:
+        gap = median_gap(count[PUBLISHED], places, US, levels)
+        count[UNRECONCILED] = count[PUBLISHED]
+        for name in (PUBLISHED, UNCALIBRATED, *(v.name for v in config.variants)):
+            count[name] = top_down(count[name], places, US, levels)
+    scale = target_scale(target)
+    by_hub = {name: _hub_horizons(values, rounds, nowcasts, places, config.horizons, steps,
+                                  levels) / scale
+              for name, values in count.items()}
+    samples = (_hub_samples(result, by_hub[PUBLISHED] * scale, rounds, config.horizons, steps,
+                            levels) / scale if result.paths is not None else None)
+    truth = _truth(latest, places, rounds, config.horizons) / scale
+    seconds["total"] = time.perf_counter() - started
+    return HubRoundsResult(target, tuple(rounds), places, tuple(config.horizons), levels,
+                           by_hub, truth, samples, result, nowcasts, gap, seconds)
+
+
+def _aligned(latest: Panel, places: Sequence[str], known: Sequence[Panel]) -> Panel:
+    """The latest panel with the forecast places in the rounds' order."""
+    missing = [p for p in places if p not in latest.histories]
+    if missing:
+        raise EnsembleError(f"the latest vintage has no data for {missing}")
+    return Panel({p: latest.histories[p] for p in places}, name=latest.name, as_of=latest.as_of)
+
+
+def _hub_horizons(values: NDArray[np.float64], rounds: Sequence[HubRound],
+                  nowcasts: Sequence[WeekNowcast], places: Sequence[str],
+                  horizons: Sequence[int], steps: Sequence[int], levels: NDArray[np.float64]
+                  ) -> NDArray[np.float64]:
+    """``(C, R, H, Q)`` at the hub horizons from the steps' ``(C, R, S, Q)``; a week in the
+    data (step ≤ 0) is its nowcast."""
+    out = np.full((len(places), len(rounds), len(horizons), len(levels)), np.nan)
+    for r, (rnd, nowcast) in enumerate(zip(rounds, nowcasts)):
+        for k, h in enumerate(horizons):
+            step = h + rnd.lag_weeks
+            if step >= 1:
+                out[:, r, k] = values[:, r, list(steps).index(step)]
+            elif -step < len(nowcast.ends):
+                out[:, r, k] = np.stack([nowcast.quantiles[p][-step] for p in places])
+    return out
+
+
+def _hub_samples(result: BacktestResult, published: NDArray[np.float64],
+                 rounds: Sequence[HubRound], horizons: Sequence[int], steps: Sequence[int],
+                 levels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(C, R, n, H)`` trajectories: the published paths' weekly counts at the forecast weeks
+    (their ranks from the flow's paths), and at a week in the data draws of its nowcast ranked
+    like the first forecast week (a larger nowcast goes with a larger forecast)."""
+    assert result.paths is not None
+    counts = result.paths[..., 1] * result.populations[:, None, None, None]  # (C, R, n, S)
+    n_c, n_r, n = counts.shape[:3]
+    out = np.full((n_c, n_r, n, len(horizons)), np.nan)
+    for r, rnd in enumerate(rounds):
+        first = counts[:, r, :, 0]
+        ranks = np.argsort(np.argsort(first, axis=1, kind="stable"), axis=1, kind="stable")
+        u = (ranks + 0.5) / n
+        for k, h in enumerate(horizons):
+            step = h + rnd.lag_weeks
+            if step >= 1:
+                out[:, r, :, k] = counts[:, r, :, list(steps).index(step)]
+            elif np.isfinite(published[:, r, k]).all():
+                out[:, r, :, k] = quantiles_at(levels, published[:, r, k], u)
+    return np.maximum(out, 0.0)
+
+
+def _truth(latest: Panel, places: Sequence[str], rounds: Sequence[HubRound],
+           horizons: Sequence[int]) -> NDArray[np.float64]:
+    """``(C, R, H)`` the latest vintage's value of each round's hub weeks (NaN: not held)."""
+    out = np.full((len(places), len(rounds), len(horizons)), np.nan)
+    for c, place in enumerate(places):
+        history = latest.histories.get(place)
+        if history is None:
+            continue
+        for r, rnd in enumerate(rounds):
+            ends = [rnd.target_end(h) for h in horizons]
+            out[c, r] = [weeks_ending(history, end, 1)[0] for end in ends]
+    return out
+
+
+def summary_by_horizon(result: HubRoundsResult, forecaster: str = PUBLISHED
+                       ) -> dict[str, Any]:
+    """Coverage of a forecaster per hub horizon (50 %, 95 %) and overall."""
+    s = score_cells(result.forecasts[forecaster], result.truth, result.levels)
+    out: dict[str, Any] = {}
+    for k, h in enumerate(result.horizons):
+        out[f"h{h}"] = {f"coverage{round(100 * c)}": float(np.nanmean(v[:, :, k]))
+                        for c, v in s.covered.items() if c in (0.5, 0.95)}
+    out["all"] = {f"coverage{round(100 * c)}": float(np.nanmean(v))
+                  for c, v in s.covered.items() if c in (0.5, 0.95)}
+    return out
