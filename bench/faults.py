@@ -392,7 +392,7 @@ def faults() -> list[Fault]:
         Fault("header-drip", lambda rows, _: header_drip, "within the request deadline",
               {"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
         Fault("body-over-size-limit", lambda rows, _: lambda h: h.send_rows(rows),
-              "body larger than 20000 bytes; refused", {"max_body_bytes": 20_000}),
+              "body larger than 20,000 bytes (after decoding); refused", {"max_body_bytes": 20_000}),
         Fault("server-ignores-offset", lambda rows, _: ignores_offset(rows),
               "the page at $offset=100 repeats the page at $offset=0", {"page_size": 100}),
         Fault("connection-refused", lambda rows, _: status(500), "Connection refused",

@@ -51,7 +51,8 @@ from pipeline.data.cache import (CacheDamagedError, CachedPayload, CacheManifest
                                  SourceKind, utc_now)
 from pipeline.data.cdph import COUNT_COLUMNS, CDPHFormatError, CDPHVintage, parse_cdph_csv
 from pipeline.data.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient, CHHSClientConfig,
-                                CHHSNetworkError, CKANResourceSpec)
+                                CKANResourceSpec)
+from pipeline.data.transport import NetworkError
 from pipeline.data.plausibility import PlausibilityRule, check_plausible as check_counts
 from pipeline.data.revisions import RevisionRefusedError
 from pipeline.errors import DataSourceError, OfflineError, ValidationError
@@ -312,7 +313,7 @@ def load_cdph(config: CDPHConfig | None = None, *, offline: bool = False,
         return _from_cache(cache, now, why=None)
     try:
         return _fetch_live(cache, config, session, now)
-    except CHHSNetworkError as exc:
+    except NetworkError as exc:
         why = f"CHHS portal unreachable: {exc}"
         if not cache.has(SPEC):
             raise OfflineError(f"{why}; and no cached CDPH county data: {_IMPORT_HINT}") from exc
