@@ -31,7 +31,9 @@ Run: ``python -m bench.faults`` -> ``bench/results/faults.json``. Also the harne
 from __future__ import annotations
 
 import contextlib
+import functools
 import gzip
+import io
 import json
 import os
 import platform
@@ -166,6 +168,10 @@ class FakeDataSF:
         return f"http://{host}:{port}"
 
     @property
+    def port(self) -> int:
+        return int(self._server.server_address[1])
+
+    @property
     def seen(self) -> list[Seen]:
         return self._server.seen
 
@@ -248,6 +254,24 @@ def header_drip(h: _Handler) -> None:
     h.close_connection = True
 
 
+BOMB_BYTES = 404 << 20   # issue 32's gzip bomb: 404 MiB decoded, 0.4 MB on the wire
+
+
+@functools.cache
+def gzip_bomb(decoded_bytes: int = BOMB_BYTES) -> bytes:
+    """``decoded_bytes`` of zeros, gzip-compressed in chunks (never held whole in memory)."""
+    out = io.BytesIO()
+    with gzip.GzipFile(fileobj=out, mode="wb", compresslevel=9) as gz:
+        chunk = b"0" * (1 << 20)
+        for _ in range(decoded_bytes >> 20):
+            gz.write(chunk)
+    return out.getvalue()
+
+
+def gzipped(data: bytes) -> Responder:
+    return lambda h: h.send_body(200, data, headers={"Content-Encoding": "gzip"})
+
+
 def raw_body(body: bytes) -> Responder:
     return lambda h: h.send_body(200, body)
 
@@ -269,12 +293,13 @@ def closed_port_url() -> str:
 
 
 @contextlib.contextmanager
-def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z") -> Iterator[None]:
+def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z",
+                    folder: str = "datasf") -> Iterator[None]:
     """The dataset's cache lock held, as by a stuck run (flock on its own open file, which
     conflicts with any other open of it, in this process too)."""
     import fcntl
 
-    path = data_dir / "datasf" / ".locks" / f"{dataset_id}.lock"
+    path = data_dir / folder / ".locks" / f"{dataset_id}.lock"
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -285,9 +310,36 @@ def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z") -> Iterator[N
 
 
 def live_request_threads() -> list[threading.Thread]:
-    from pipeline.data.datasf import REQUEST_THREAD_NAME
+    from pipeline.data.transport import REQUEST_THREAD_NAME
 
     return [t for t in threading.enumerate() if t.name == REQUEST_THREAD_NAME and t.is_alive()]
+
+
+def client_sockets_to(port: int) -> int:
+    """Sockets this process holds whose peer is ``port`` (the client side of a connection to a
+    fake portal; its server side has ``port`` as the local port): from /proc (Linux)."""
+    inodes = set()
+    for fd in Path("/proc/self/fd").iterdir():
+        try:
+            target = fd.readlink().as_posix()
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = 0
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if int(fields[2].rsplit(":", 1)[1], 16) == port and fields[9] in inodes:
+                found += 1
+    return found
+
+
+def leftovers(port: int) -> str:
+    """What a fetch left running: request threads and sockets to the portal ("" when none)."""
+    threads, sockets = len(live_request_threads()), client_sockets_to(port)
+    return (f" | {threads} request thread(s) and {sockets} socket(s) to the portal still open"
+            if threads or sockets else "")
 
 
 def redirect(location: str) -> Responder:
@@ -341,9 +393,28 @@ class Fault:
     base_url: Callable[[], str] | None = None
     hold_lock: bool = False
     max_seconds: float | None = None
+    issue: int = 15
+
+
+def ramp(rows: Rows) -> Rows:
+    """Issue 32's ramp: the last three days at 2,800, 56,000 and 89,000 cases (6-10 % of San
+    Francisco a day, each under the old 10 %-a-day limit)."""
+    changed = [dict(r) for r in rows]
+    for row, value in zip(changed[-3:], ("2800", "56000", "89000"), strict=True):
+        row["new_cases"] = value
+    return changed
+
+
+ISSUE_22 = {"json-nested-200000-deep", "json-5000-digit-integer", "99999999-cases-in-open-window",
+            "spike-far-above-history", "header-drip", "body-over-size-limit",
+            "server-ignores-offset", "connection-refused", "unknown-host"}
 
 
 def faults() -> list[Fault]:
+    return [replace(f, issue=22) if f.name in ISSUE_22 else f for f in _faults()]
+
+
+def _faults() -> list[Fault]:
     s = lambda build: (lambda rows, other: (lambda h: h.send_rows(build(rows))))  # noqa: E731
     return [
         Fault("http-429", lambda rows, _: status(429), "HTTP 429"),
@@ -383,11 +454,11 @@ def faults() -> list[Fault]:
               "Exceeds the limit (4300 digits) for integer string conversion"),
         Fault("99999999-cases-in-open-window",
               s(lambda r: with_value(r, "new_cases", "99999999", index=len(r) - 10)),
-              "implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 10% of the "
-              "population 873,965 in one day"),
+              "implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 5% of the "
+              "population 873,965 (2020 Census) in one day"),
         Fault("spike-far-above-history",
-              s(lambda r: with_value(r, "new_cases", "60000", index=len(r) - 5)),
-              "implausible count 60,000 in 'new_cases' on 2022-03-12: more than 20× the "
+              s(lambda r: with_value(r, "new_cases", "30000", index=len(r) - 5)),
+              "implausible count 30,000 in 'new_cases' on 2022-03-12: more than 20× the "
               "plausible bracket of the previous 28 day(s)"),
         Fault("header-drip", lambda rows, _: header_drip, "within the request deadline",
               {"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
@@ -402,7 +473,18 @@ def faults() -> list[Fault]:
               max_seconds=3.0),
         Fault("cache-lock-held-by-stuck-run", lambda rows, _: lambda h: h.send_rows(rows),
               "fetched but not stored, cache kept", series={"lock_timeout_s": 0.5},
-              hold_lock=True, max_seconds=3.0),
+              hold_lock=True, max_seconds=3.0, issue=22),
+        # -- issue 32, on DataSF too (one place: a failing count refuses the payload)
+        Fault("infinity-count", s(lambda r: with_value(r, "new_cases", "Infinity")),
+              "non-finite count 'Infinity' in 'New Cases' at row 101", issue=32),
+        Fault("1e300-count", s(lambda r: with_value(r, "new_cases", "1e300")),
+              "count '1e300' in 'New Cases' at row 101 (date 2020-06-11) is not below the bound",
+              issue=32),
+        Fault("ramp-under-the-old-daily-limit", s(ramp),
+              "implausible count 56,000 in 'new_cases' on 2022-03-15: more than 5% of the "
+              "population 873,965 (2020 Census) in one day", issue=32),
+        Fault("gzip-bomb-404-mib", lambda rows, _: gzipped(gzip_bomb()),
+              "body larger than 2,097,152 bytes (after decoding); refused", issue=32),
     ]
 
 
@@ -435,6 +517,8 @@ class CaseResult:
     seconds: float
     bytes_lost: int
     note: str
+    source: str = "datasf"
+    issue: int = 15
 
 
 def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
@@ -461,16 +545,15 @@ def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
         except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
             return CaseResult(fault.name, False, time.monotonic() - started,
                               bytes_lost(before, cache_bytes(data_dir)),
-                              f"raised {type(exc).__name__}: {exc}")
+                              f"raised {type(exc).__name__}: {exc}", issue=fault.issue)
         seconds = time.monotonic() - started
-        threads = live_request_threads()
-        note = " | ".join(provenance.notes) + (
-            f" | {len(threads)} request thread(s) still running" if threads else "")
+        left = leftovers(server.port)
+        note = " | ".join(provenance.notes) + left
         lost = bytes_lost(before, cache_bytes(data_dir))
         passed = (provenance.from_cache and fault.expect in note and lost == 0
-                  and len(validated.frame) == 744 and not other.seen and not threads
+                  and len(validated.frame) == 744 and not other.seen and not left
                   and (fault.max_seconds is None or seconds <= fault.max_seconds))
-        return CaseResult(fault.name, passed, seconds, lost, note)
+        return CaseResult(fault.name, passed, seconds, lost, note, issue=fault.issue)
 
 
 # ------------------------------------------------------------------------------ command line

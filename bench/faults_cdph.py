@@ -41,7 +41,8 @@ from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from bench.faults import FakeDataSF, Responder, bytes_lost, cache_bytes, redirect, status, trickle
+from bench.faults import (CaseResult, FakeDataSF, gzip_bomb, Responder, bytes_lost, cache_bytes, leftovers,
+                          header_drip, held_cache_lock, redirect, status, trickle)
 from pipeline.data.cdph_source import SPEC, CDPHConfig
 from pipeline.data.chhs import CHHSClientConfig
 from pipeline.io import atomic_write_json
@@ -56,8 +57,7 @@ OLDER_VINTAGE = "hhaeri__CA_State_COVID-19_Cases_Deaths_Tests"  # 2021-09-23
 CSV_NAME = "covid19cases_test.csv"
 DOWNLOAD_PATH = (f"/dataset/{SPEC.package_uuid}/resource/{SPEC.resource_id}/download/"
                  f"{SPEC.resource_name}")
-BOMB_BYTES = 64 << 20          # decoded size of the gzip bomb (64 KB on the wire)
-BODY_LIMIT = 16 << 20          # the client's limit in these cases (the real file is 4 MB)
+BODY_LIMIT = 32 << 20          # the client's default cap (the real file is 4 MB)
 
 
 # ------------------------------------------------------------------------------ payloads
@@ -93,15 +93,26 @@ def with_cell(frame: pd.DataFrame, area: str, day: str, column: str, value: str
 
 
 def revised_settled(frame: pd.DataFrame) -> pd.DataFrame:
-    """Los Angeles' cases of 2021-01-04 … 2021-01-10 (ten months settled) times ten."""
+    """Los Angeles' cases of 2021-01-04 … 2021-01-10 (ten months settled) times three: within
+    the gate's bounds (1.7 % of the county a day at most), beyond the revision policy."""
     days = (frame["area"] == "Los Angeles") & frame["date"].between("2021-01-04", "2021-01-10")
-    frame.loc[days, "cases"] = (frame.loc[days, "cases"].astype(float) * 10).map(str)
+    frame.loc[days, "cases"] = (frame.loc[days, "cases"].astype(float) * 3).map(str)
     return frame
 
 
-@functools.cache
-def gzip_bomb() -> bytes:
-    return gzip.compress(b"0" * BOMB_BYTES, compresslevel=9)
+def ramp(frame: pd.DataFrame, area: str = "San Francisco") -> pd.DataFrame:
+    """Issue 32's ramp: the county's last three days at 2,800, 56,000 and 89,000 cases."""
+    days = sorted(d for d in frame.loc[frame["area"] == area, "date"].unique() if d)[-3:]
+    for day, value in zip(days, ("2800", "56000", "89000"), strict=True):
+        frame = with_cell(frame, area, day, "cases", value)
+    return frame
+
+
+def with_county(frame: pd.DataFrame, name: str = "Atlantis",
+                population: str = "1500000") -> pd.DataFrame:
+    """A made-up county: a copy of Alameda's rows under another name and population."""
+    made_up = frame[frame["area"] == "Alameda"].assign(area=name, population=population)
+    return pd.concat([frame, made_up], ignore_index=True)
 
 
 def package_show(download_url: str, *,
@@ -197,7 +208,10 @@ Build = Callable[["FakeCKAN", "FakeCKAN"], Responder]
 class Fault:
     """One failure served after a good fetch. ``package``/``download`` build the responders
     (None: the good one) from the portal and another host; ``expect``: text the note must hold;
-    ``held``: the payload must land in held/; ``base_url``: overrides the portal's URL."""
+    ``held``: the payload must land in held/; ``base_url``: overrides the portal's URL;
+    ``skipped``: the outcome is not the cache but the new payload with that county skipped
+    (named with ``expect``); ``hold_lock``: the cache lock is held by a stuck run meanwhile;
+    ``max_seconds``: how long the fallback may take; ``issue``: the issue that found it."""
 
     name: str
     expect: str
@@ -206,6 +220,14 @@ class Fault:
     config: dict[str, float] = field(default_factory=dict)
     held: bool = False
     base_url: Callable[[], str] | None = None
+    skipped: str | None = None
+    hold_lock: bool = False
+    max_seconds: float | None = None
+    issue: int = 19
+
+
+def _poisoned(area: str, day: str, column: str, value: str) -> Build:
+    return lambda s, o: body(edited(lambda f: with_cell(f, area, day, column, value)))
 
 
 def faults() -> list[Fault]:
@@ -217,8 +239,7 @@ def faults() -> list[Fault]:
               download=lambda s, o: status(503, {"Retry-After": "3600"})),
         Fault("truncated-body", "IncompleteRead",
               download=lambda s, o: short_of_length(vintage_bytes())),
-        Fault("truncated-without-length",
-              "covid19cases_test.csv: San Bernardino ends on 2020-02-29, the file on 2021-11-04",
+        Fault("truncated-without-length", "county dropped: San Diego, San Francisco",
               download=lambda s, o: cut_without_length(vintage_bytes())),
         Fault("html-instead-of-csv", "answered with an HTML page, not the CSV",
               download=lambda s, o: body(b"<!DOCTYPE html><html><body>Site maintenance"
@@ -238,8 +259,6 @@ def faults() -> list[Fault]:
         Fault("resource-missing", "has no resource covid19cases_test.csv",
               package=lambda s, o: body(package_show(s.url + DOWNLOAD_PATH, resources=[]),
                                         "application/json")),
-        Fault("gzip-bomb", f"body larger than {BODY_LIMIT:,} bytes (after decoding); refused",
-              download=lambda s, o: body(gzip_bomb(), headers={"Content-Encoding": "gzip"})),
         Fault("bad-gzip", "ContentDecodingError",
               download=lambda s, o: body(gzip.compress(b"x")[:10] + b"\x00not deflate" * 50,
                                          headers={"Content-Encoding": "gzip"})),
@@ -254,14 +273,13 @@ def faults() -> list[Fault]:
               "date range shrinks: new vintage starts 2020-03-01",
               download=lambda s, o: body(edited(starting_later))),
         Fault("absurd-count",
-              "implausible count 5,000,000 in 'cases' on 2021-06-01: more than 10% of the "
-              "population 892,280 in one day",
-              download=lambda s, o: body(edited(
-                  lambda f: with_cell(f, "San Francisco", "2021-06-01", "cases", "5000000.0")))),
+              "San Francisco: implausible count 5,000,000 in 'cases' on 2021-06-01: more than "
+              "5% of the population 873,965 (2020 Census) in one day",
+              download=_poisoned("San Francisco", "2021-06-01", "cases", "5000000.0")),
         Fault("revised-settled-days",
               "revision beyond policy: 'cases' changed on 7 settled county-day(s)",
               download=lambda s, o: body(edited(revised_settled)), held=True),
-        Fault("connection-refused", "Connection refused", base_url=closed_port),
+        Fault("connection-refused", "Connection refused", base_url=closed_port, max_seconds=1.5),
         Fault("drip-past-deadline", "within the request deadline",
               download=lambda s, o: trickle([{"x": "y" * 100}]),
               config={"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
@@ -270,6 +288,37 @@ def faults() -> list[Fault]:
         Fault("download-url-on-other-host", "names the download",
               package=lambda s, o: body(package_show(o.url + DOWNLOAD_PATH),
                                         "application/json")),
+        # -- issue 32: the CDPH source held to DataSF's standard, through the one gate
+        Fault("infinity-in-a-county", "San Francisco: 'cases' is not finite ('Infinity') on "
+              "2021-06-01", download=_poisoned("San Francisco", "2021-06-01", "cases",
+                                               "Infinity"), issue=32),
+        Fault("1e19-in-a-county", "San Francisco: implausible count 1e+19 in 'cases' on "
+              "2021-06-01: more than 5% of the population",
+              download=_poisoned("San Francisco", "2021-06-01", "cases", "1e19"), issue=32),
+        Fault("1e300-deaths", "Los Angeles: implausible count 1e+300 in 'deaths' on 2021-06-01",
+              download=_poisoned("Los Angeles", "2021-06-01", "deaths", "1e300"), issue=32),
+        Fault("population-inf", "San Francisco: its population 'inf' is not within 25% of the "
+              "2020 Census figure 873,965",
+              download=_poisoned("San Francisco", "2021-06-01", "population", "inf"), issue=32),
+        Fault("population-1e19", "San Francisco: its population '1e19' is not within 25% of "
+              "the 2020 Census figure 873,965",
+              download=_poisoned("San Francisco", "2021-06-01", "population", "1e19"),
+              issue=32),
+        Fault("ramp-under-the-old-daily-limit", "San Francisco: implausible count 56,000 in "
+              "'cases' on 2021-11-03: more than 5% of the population 873,965",
+              download=lambda s, o: body(edited(ramp)), issue=32),
+        Fault("made-up-county", "'Atlantis' is not one of the 58 known California county "
+              "names (CDPH)", download=lambda s, o: body(edited(with_county)),
+              skipped="Atlantis", issue=32),
+        Fault("gzip-bomb-404-mib", f"body larger than {BODY_LIMIT:,} bytes (after decoding); "
+              "refused", download=lambda s, o: body(gzip_bomb(),
+                                                    headers={"Content-Encoding": "gzip"}),
+              issue=32),
+        Fault("header-drip-no-thread-or-socket-left", "within the request deadline",
+              download=lambda s, o: header_drip, issue=32,
+              config={"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
+        Fault("cache-lock-held-by-stuck-run", "fetched but not stored, cache kept",
+              hold_lock=True, max_seconds=3.0, issue=32),
     ]
 
 
@@ -291,17 +340,10 @@ def held_files(data_dir: Path) -> list[Path]:
         if held.is_dir() else []
 
 
-@dataclass
-class CaseResult:
-    name: str
-    passed: bool
-    seconds: float
-    bytes_lost: int
-    note: str
-
-
 def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
-    """Good fetch, then the fault; the loader must fall back to the untouched cache."""
+    """Good fetch, then the fault; the loader must fall back to the untouched cache (or, for a
+    ``skipped`` case, take the new payload with that county skipped and named, every file of the
+    good cache still on disk unchanged: only the manifest moves to the new payload)."""
     from pipeline.data.cdph_source import load_cdph
 
     with FakeCKAN() as portal, FakeCKAN() as other:
@@ -312,22 +354,37 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
         if fault.download is not None:
             portal.download = fault.download(portal, other)
         base = fault.base_url() if fault.base_url is not None else portal.url
-        config = CDPHConfig(client=client_config(base, **fault.config), data_dir=data_dir)
+        config = CDPHConfig(client=client_config(base, **fault.config), data_dir=data_dir,
+                            lock_timeout_s=0.5)
         started = time.monotonic()
         try:
-            loaded = load_cdph(config)
+            with held_cache_lock(data_dir, SPEC.dataset_id, SPEC.cache_folder) \
+                    if fault.hold_lock else contextlib.nullcontext():
+                loaded = load_cdph(config)
         except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
             return CaseResult(fault.name, False, time.monotonic() - started,
                               bytes_lost(before, cache_bytes(data_dir)),
-                              f"raised {type(exc).__name__}: {exc}")
+                              f"raised {type(exc).__name__}: {exc}", source="cdph",
+                              issue=fault.issue)
         seconds = time.monotonic() - started
-        note = " | ".join(loaded.provenance.notes)
-        lost = bytes_lost(before, cache_bytes(data_dir))
+        left = leftovers(portal.http.port)
+        note = " | ".join(loaded.provenance.notes) + left
+        after = cache_bytes(data_dir)
+        if fault.skipped is None:
+            lost = bytes_lost(before, after)
+            outcome = loaded.provenance.from_cache and fault.expect in note
+        else:
+            lost = bytes_lost({k: v for k, v in before.items() if not k.endswith("manifest.json")},
+                              after)
+            outcome = (not loaded.provenance.from_cache
+                       and fault.expect in loaded.vintage.skipped.get(fault.skipped, "")
+                       and fault.expect in note and len(loaded.vintage.counties) == 58)
         held_ok = bool(held_files(data_dir)) == fault.held
-        passed = (loaded.provenance.from_cache and fault.expect in note and lost == 0
-                  and held_ok and str(loaded.vintage.as_of.date()) == "2021-11-04"
-                  and not other.seen)
-        return CaseResult(fault.name, passed, seconds, lost, note)
+        passed = (outcome and lost == 0 and held_ok and not left
+                  and str(loaded.vintage.as_of.date()) == "2021-11-04" and not other.seen
+                  and (fault.max_seconds is None or seconds <= fault.max_seconds))
+        return CaseResult(fault.name, passed, seconds, lost, note, source="cdph",
+                          issue=fault.issue)
 
 
 @contextlib.contextmanager

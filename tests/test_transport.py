@@ -11,10 +11,10 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 
 import pytest
 
+from bench.faults import client_sockets_to
 from pipeline.data.transport import (REQUEST_THREAD_NAME, NetworkError, RedirectRefusedError,
                                      Transport, TransportConfig, UnreachableError)
 from pipeline.errors import DataSourceError
@@ -95,25 +95,6 @@ FAST = TransportConfig(timeout_s=2.0, request_deadline_s=1.0, fetch_deadline_s=5
 def transport(server: _Server, **config: float) -> Transport:
     from dataclasses import replace
     return Transport(replace(FAST, **config), source="test portal", origin=server.url)
-
-
-def client_sockets_to(port: int) -> int:
-    """Sockets this process holds whose peer is ``port`` (the client side of a connection)."""
-    inodes = set()
-    for fd in Path("/proc/self/fd").iterdir():
-        try:
-            target = fd.readlink().as_posix()
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
-    count = 0
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        for line in Path(table).read_text().splitlines()[1:]:
-            fields = line.split()
-            if int(fields[2].rsplit(":", 1)[1], 16) == port and fields[9] in inodes:
-                count += 1
-    return count
 
 
 def test_retries_honour_retry_after_then_return_the_body(serve):

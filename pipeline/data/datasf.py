@@ -35,7 +35,12 @@ from urllib.parse import urlsplit
 
 import requests
 
-from pipeline.data.plausibility import PlausibilityRule
+import pandas as pd
+
+from pipeline.data.california import SAN_FRANCISCO
+from pipeline.data.gate import (GateRules, Places, cases_bound, deaths_bound, gate,
+                                tests_bound)
+from pipeline.data.plausibility import DAILY, JumpRule
 from pipeline.data.soda import SodaClient, SodaConfig
 from pipeline.data.transport import (REQUEST_THREAD_NAME, HTTPStatusError, NetworkError,
                                      RedirectRefusedError, UnreachableError, backoff_delay,
@@ -49,9 +54,9 @@ BASE_URL_ENV = "FLOWCAST_DATASF_BASE_URL"
 DEFAULT_BASE_URL = "https://data.sfgov.org"
 
 # San Francisco's population (2020 Census): the scale of every DataSF count (S/I/R conversion,
-# plausibility of a day's count).
+# the validation gate's bounds).
 SF_POPULATION_2020_CENSUS = 873_965
-SF_PLAUSIBILITY = PlausibilityRule(population=SF_POPULATION_2020_CENSUS)
+SF_PLACES = Places("San Francisco", {SAN_FRANCISCO: SF_POPULATION_2020_CENSUS}, "2020 Census")
 
 # Date formats seen in DataSF payloads: API floating timestamps, CSV-export US timestamps,
 # and the slash-ISO form of the tests export.
@@ -148,6 +153,26 @@ DATASETS: dict[str, DatasetSpec] = {s.key: s for s in (CASES, DEATHS, TESTS)}
 DATASETS_BY_ID: dict[str, DatasetSpec] = {s.dataset_id: s for s in DATASETS.values()}
 
 
+# The gate's bound of each daily count column (pipeline.data.gate: cases, deaths, tests)
+_BOUNDS = {"new_cases": cases_bound, "positives": cases_bound, "new_deaths": deaths_bound,
+           "tests": tests_bound, "negatives": tests_bound, "indeterminate": tests_bound}
+
+
+def gate_rules(spec: DatasetSpec, jump: JumpRule = DAILY) -> GateRules:
+    """The validation gate's rules for one DataSF dataset (San Francisco, its daily counts)."""
+    return GateRules(source=f"DataSF {spec.key}", places=SF_PLACES,
+                     counts=tuple(_BOUNDS[c](c) for c in spec.count_columns), jump=jump)
+
+
+def check_gate(frame: pd.DataFrame, spec: DatasetSpec, *, source: str,
+               jump: JumpRule = DAILY) -> None:
+    """A validated daily frame of ``spec`` through the validation gate; San Francisco is the
+    only place, so a failure refuses the payload (:class:`~pipeline.data.gate.GateError`
+    naming the count, the day and the bound)."""
+    rows = frame.assign(place=SAN_FRANCISCO)[["place", "date", *spec.count_columns]]
+    gate(rows, gate_rules(spec, jump), source=source)
+
+
 def describe_schema(spec: DatasetSpec) -> str:
     """What ``spec`` needs, every accepted name listed: for errors about unknown schemas."""
     return (f"{spec.key} ({spec.dataset_id}) needs "
@@ -240,8 +265,9 @@ class DataSFClient:
 
 
 __all__ = ["APP_TOKEN_ENV", "BASE_URL_ENV", "CASES", "DATASETS", "DATASETS_BY_ID", "DEATHS",
-           "DEFAULT_BASE_URL", "REQUEST_THREAD_NAME", "SF_PLAUSIBILITY",
+           "DEFAULT_BASE_URL", "REQUEST_THREAD_NAME", "SF_PLACES",
            "SF_POPULATION_2020_CENSUS", "TESTS", "ClientConfig", "DataSFClient", "DatasetSpec",
            "FetchResult", "FieldSpec", "HTTPStatusError", "NetworkError", "RedirectRefusedError",
-           "UnreachableError", "describe_schema", "parse_retry_after", "redirect_allowed",
+           "UnreachableError", "check_gate", "describe_schema", "gate_rules",
+           "parse_retry_after", "redirect_allowed",
            "token_allowed"]
