@@ -93,26 +93,12 @@ BY_LOCATION: dict[str, HubLocation] = {h.location: h for h in HUB_LOCATIONS}
 BY_JURISDICTION: dict[str, HubLocation] = {h.jurisdiction: h for h in HUB_LOCATIONS}
 BY_NAME: dict[str, HubLocation] = {h.name.casefold(): h for h in HUB_LOCATIONS}
 POPULATION: dict[str, int] = {h.location: h.population for h in HUB_LOCATIONS}
+JURISDICTION_LOCATION: dict[str, str] = {j: h.location for j, h in BY_JURISDICTION.items()}
+# NSSP names the nation "United States"; the hub, "US".
+NAME_LOCATION: dict[str, str] = {**{n: h.location for n, h in BY_NAME.items()},
+                                 "united states": "US"}
 NOT_HUB_JURISDICTIONS: frozenset[str] = frozenset(
     {"AS", "GU", "MP", "VI", *(f"Region {k}" for k in range(1, 11))})
-# NSSP names the nation "United States"; the hub, "US".
-_NSSP_NATION = "united states"
-
-
-def location_of_jurisdiction(jurisdiction: str) -> str | None:
-    """The hub location of an NHSN jurisdiction (``USA`` -> ``US``, ``CA`` -> ``06``); None for
-    a name the hub does not know (the caller skips it, named)."""
-    found = BY_JURISDICTION.get(jurisdiction.strip().upper())
-    return found.location if found is not None else None
-
-
-def location_of_name(name: str) -> str | None:
-    """The hub location of an NSSP ``geography`` (a state's name, or "United States")."""
-    folded = " ".join(name.split()).casefold()
-    if folded == _NSSP_NATION:
-        return US
-    found = BY_NAME.get(folded)
-    return found.location if found is not None else None
 
 
 def hub_location(code: str) -> HubLocation:
