@@ -1,4 +1,9 @@
-"""Benchmark: fault injection against the DataSF fetch path; a good cache must never be lost.
+"""Benchmark: fault injection against every source's fetch path; a good cache must never be lost.
+
+``python -m bench.faults`` runs the whole catalogue: the DataSF cases below, the CDPH (CKAN)
+cases of :mod:`bench.faults_cdph` and the NHSN (data.cdc.gov) cases of :mod:`bench.faults_nhsn`,
+and writes ``bench/results/faults.json`` (per case: source, the issue that found it, pass,
+seconds, bytes of good cache lost, the note; totals per source and per issue).
 
 A fake DataSF (:class:`FakeDataSF`, a threaded ``http.server`` on 127.0.0.1, never any other
 address) serves the real cases export (``../shared/data/datasf``) as Socrata JSON pages, then each
@@ -25,8 +30,7 @@ note that names the problem, (c) leave every cache file byte-identical and (d) l
 thread running. "bytes of good cache lost" sums the sizes of cache files that changed or vanished
 (must be 0).
 
-Run: ``python -m bench.faults`` -> ``bench/results/faults.json``. Also the harness of
-``tests/test_faults.py``.
+Also the harness of ``tests/test_faults.py``.
 """
 from __future__ import annotations
 
@@ -46,6 +50,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 import pandas as pd
@@ -307,6 +312,29 @@ def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z",
         yield
     finally:
         os.close(fd)  # releases the flock
+
+
+def _racer(job: Callable[[], str], start: Any, results: Any) -> None:
+    start.wait()
+    try:
+        results.put(job())
+    except Exception as exc:  # noqa: BLE001 - reported to the parent: the failure tested
+        results.put(f"{type(exc).__name__}: {exc}")
+
+
+def race(jobs: list[Callable[[], str]], timeout_s: float = 60.0) -> list[str]:
+    """Run each job in its own forked process, all released at the same moment (a barrier);
+    their results (or "<Error>: message"), sorted."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    start, results = context.Barrier(len(jobs)), context.Queue()
+    workers = [context.Process(target=_racer, args=(job, start, results)) for job in jobs]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join(timeout_s)
+    return sorted(results.get(timeout=5) for _ in workers)
 
 
 def live_request_threads() -> list[threading.Thread]:
@@ -661,31 +689,48 @@ def _scratch() -> Iterator[Path]:
         yield Path(tmp)
 
 
-def _print(result: CaseResult) -> None:
-    print(f"{'PASS' if result.passed else 'FAIL'} {result.name:34s} {result.seconds:5.2f} s "
-          f"lost {result.bytes_lost} B — {result.note[:150]}")
+def show(result: CaseResult) -> CaseResult:
+    print(f"{'PASS' if result.passed else 'FAIL'} {result.source:6s} {result.name:38s} "
+          f"{result.seconds:5.2f} s lost {result.bytes_lost} B — {result.note[:140]}",
+          flush=True)
+    return result
+
+
+def run_all(scratch: Path) -> list[CaseResult]:
+    """Every DataSF case (each on a fresh cache under ``scratch``) and the command-line cases."""
+    rows = cases_api_rows()
+    results = [show(run_fault(fault, rows, scratch / f"case-{k}" / "data"))
+               for k, fault in enumerate(faults())]
+    commands = scratch / "commands"  # one filled cache for every command case
+    commands.mkdir()
+    results += [show(run_command_fault(command, commands)) for command in command_faults()]
+    return results
+
+
+def _totals(results: list[CaseResult]) -> dict[str, int]:
+    return {"cases_tried": len(results), "cases_passed": sum(r.passed for r in results),
+            "bytes_of_good_cache_lost": sum(r.bytes_lost for r in results)}
 
 
 def main() -> int:
+    """The whole catalogue: DataSF, CDPH (CKAN) and NHSN (data.cdc.gov), every case."""
     import logging
 
+    from bench import faults_cdph, faults_nhsn
+
     logging.basicConfig(level=logging.ERROR)
-    rows = cases_api_rows()
-    results = []
-    for fault in faults():
+    started = time.monotonic()
+    results: list[CaseResult] = []
+    for run in (run_all, faults_cdph.run_all, faults_nhsn.run_all):
         with _scratch() as tmp:
-            result = run_fault(fault, rows, tmp / "data")
-        results.append(result)
-        _print(result)
-    with _scratch() as tmp:  # one filled cache for every command case
-        for command in command_faults():
-            result = run_command_fault(command, tmp)
-            results.append(result)
-            _print(result)
+            results += run(tmp)
+    sources = sorted({r.source for r in results})
     summary = {
-        "cases_tried": len(results),
-        "cases_passed": sum(r.passed for r in results),
-        "bytes_of_good_cache_lost": sum(r.bytes_lost for r in results),
+        **_totals(results),
+        "by_source": {s: _totals([r for r in results if r.source == s]) for s in sources},
+        "by_issue": {str(i): _totals([r for r in results if r.issue == i])
+                     for i in sorted({r.issue for r in results})},
+        "seconds": round(time.monotonic() - started, 1),
         "cases": [asdict(r) for r in results],
         "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
                     "cpus": os.cpu_count()},
@@ -694,7 +739,9 @@ def main() -> int:
     }
     atomic_write_json(RESULT_PATH, summary)
     print(f"cases tried {summary['cases_tried']}, passed {summary['cases_passed']}, bytes of good "
-          f"cache lost {summary['bytes_of_good_cache_lost']} -> {RESULT_PATH}")
+          f"cache lost {summary['bytes_of_good_cache_lost']} ("
+          + ", ".join(f"{s} {t['cases_passed']}/{t['cases_tried']}"
+                      for s, t in summary["by_source"].items()) + f") -> {RESULT_PATH}")
     return 0 if summary["cases_passed"] == summary["cases_tried"] else 1
 
 

@@ -17,8 +17,8 @@ note naming the problem, (c) leave every cache file byte-identical (``held/`` ma
 payload) and (d) never contact the other host. "bytes of good cache lost" sums the sizes of
 cache files that changed or vanished (must be 0).
 
-Run: ``python -m bench.faults_cdph`` -> ``bench/results/faults_cdph.json``. Also the harness of
-``tests/test_cdph.py``.
+Run as part of ``python -m bench.faults`` (-> ``bench/results/faults.json``, every source); also
+the harness of ``tests/test_cdph.py``.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from bench.faults import (CaseResult, FakeDataSF, gzip_bomb, Responder, bytes_lost, cache_bytes, leftovers,
+from bench.faults import (CaseResult, FakeDataSF, gzip_bomb, race, show, Responder, bytes_lost, cache_bytes, leftovers,
                           header_drip, held_cache_lock, redirect, status, trickle)
 from pipeline.data.cdph_source import SPEC, CDPHConfig
 from pipeline.data.chhs import CHHSClientConfig
@@ -50,7 +50,6 @@ from pipeline.io import atomic_write_json
 if TYPE_CHECKING:
     from bench.faults import _Handler
 
-RESULT_PATH = Path(__file__).parent / "results" / "faults_cdph.json"
 CDPH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cdph"
 GOOD_VINTAGE = "ofaye98__CSC508_Mentor_Class"              # 2021-11-04
 OLDER_VINTAGE = "hhaeri__CA_State_COVID-19_Cases_Deaths_Tests"  # 2021-09-23
@@ -387,40 +386,42 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
                           issue=fault.issue)
 
 
-@contextlib.contextmanager
-def _scratch() -> Iterator[Path]:
-    with tempfile.TemporaryDirectory(prefix="flowcast-faults-cdph-") as tmp:
-        yield Path(tmp)
+def _import_one(path: Path, data_dir: Path) -> str:
+    from pipeline.data.cdph_source import import_cdph_exports
+    return import_cdph_exports([path], data_dir)[0].action
 
 
-def main() -> int:
-    import logging
+def run_concurrent_imports(data_dir: Path, trials: int = 3) -> CaseResult:
+    """Two processes import the real vintages of 2021-09-23 and 2021-11-04 at the same moment,
+    ``trials`` times on fresh caches: the newer must end live, both archived by their own dates;
+    before the decision moved under the lock, the older one failed with "last date moves
+    backwards" in 3 of 3 trials of the issue-32 probe."""
+    from pipeline.data.cache import DatasetCache
+    from pipeline.data.cdph_source import cached_vintages
 
-    logging.basicConfig(level=logging.ERROR)
+    started = time.monotonic()
+    problems = []
+    for trial in range(trials):
+        cache = data_dir / f"trial-{trial}"
+        actions = race([functools.partial(_import_one, CDPH / f / CSV_NAME, cache)
+                        for f in (GOOD_VINTAGE, OLDER_VINTAGE)])
+        kept = [str(v.as_of.date()) for v in cached_vintages(cache)]
+        manifest = DatasetCache(cache).read_manifest(SPEC)
+        live = manifest.last_date if manifest is not None else None
+        if kept != ["2021-09-23", "2021-11-04"] or live != "2021-11-04" or actions not in (
+                ["archived", "imported"], ["imported", "imported"]):
+            problems.append(f"trial {trial}: actions {actions}, vintages {kept}, live {live}")
+    note = "; ".join(problems) or (f"{trials} of {trials} trials: the vintage of 2021-11-04 "
+                                   f"live, 2021-09-23 and 2021-11-04 both kept by their own "
+                                   f"dates")
+    return CaseResult("concurrent-imports-older-and-newer", not problems,
+                      time.monotonic() - started, 0, note, source="cdph", issue=32)
+
+
+def run_all(scratch: Path) -> list[CaseResult]:
+    """Every CDPH case (each on a fresh cache under ``scratch``), printed as it ends."""
     results = []
-    for fault in faults():
-        with _scratch() as tmp:
-            result = run_fault(fault, tmp / "data")
-        results.append(result)
-        print(f"{'PASS' if result.passed else 'FAIL'} {result.name:34s} {result.seconds:5.2f} s "
-              f"lost {result.bytes_lost} B — {result.note[:150]}")
-    summary = {
-        "cases": len(results),
-        "passed": sum(r.passed for r in results),
-        "bytes_of_good_cache_lost": sum(r.bytes_lost for r in results),
-        "results": [asdict(r) for r in results],
-        "good_vintage": f"{GOOD_VINTAGE}/{CSV_NAME} (2021-11-04, "
-                        f"{len(vintage_bytes()):,} bytes)",
-        "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
-                    "cpus": os.cpu_count()},
-        "command": "python -m bench.faults_cdph",
-        "date": time.strftime("%Y-%m-%d"),
-    }
-    atomic_write_json(RESULT_PATH, summary)
-    print(f"cases {summary['cases']}, passed {summary['passed']}, bytes of good cache lost "
-          f"{summary['bytes_of_good_cache_lost']} -> {RESULT_PATH}")
-    return 0 if summary["passed"] == summary["cases"] else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    for k, fault in enumerate(faults()):
+        results.append(show(run_fault(fault, scratch / f"case-{k}" / "data")))
+    results.append(show(run_concurrent_imports(scratch / "concurrent")))
+    return results

@@ -110,7 +110,7 @@ def hub_location(code: str) -> HubLocation:
     if found is not None:
         return found
     known = [*BY_LOCATION, *BY_JURISDICTION]
-    close = difflib.get_close_matches(text.upper(), known, n=3, cutoff=0.6)
+    close = difflib.get_close_matches(text.upper(), known, n=3, cutoff=0.5)
     hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
     raise ConfigError(f"unknown hub location {code!r}{hint}; the hub's 53 locations are US and "
                       f"the two-digit FIPS codes of the 50 states, DC and PR")

@@ -170,6 +170,8 @@ def rows_of_payload(spec: TargetSpec, data: bytes, *, suffix: str, source: str
         return rows, gate_rules(spec, "value"), 1.0
     records = pd.DataFrame.from_records(decode_json_records(data, source=source,
                                                             max_bytes=MAX_JSON_BYTES))
+    if records.empty:
+        raise ValidationError(f"{source}: empty payload (no rows) for {spec.target}")
     if spec.kind == "admissions":
         needed = ("weekendingdate", "jurisdiction", spec.live_column)
         _need(records, needed, source)
@@ -269,6 +271,11 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
     if new.as_of < cached.as_of:
         raise RevisionRefusedError(f"{t}: vintage date moves backwards: new {new.as_of.date()}, "
                                    f"the cached copy {cached.as_of.date()}; cached copy kept")
+    new_first, old_first = new.frame["target_end_date"].min(), cached.frame["target_end_date"].min()
+    if new_first > old_first:
+        raise RevisionRefusedError(f"{t}: payload shrinks: new vintage starts "
+                                   f"{pd.Timestamp(new_first).date()}, the cached copy "
+                                   f"{pd.Timestamp(old_first).date()}; cached copy kept")
     if new.last_week < cached.last_week:
         raise RevisionRefusedError(f"{t}: last week moves backwards: new vintage ends "
                                    f"{new.last_week.date()}, the cached copy "

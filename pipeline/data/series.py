@@ -23,6 +23,7 @@ construction; DataSF's own cumulative columns were compared in validation.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import date, datetime
 from pathlib import Path
@@ -90,6 +91,7 @@ class DatasetProvenance:
     stale_days: float       # age of the cached copy when it was used; 0 for a live fetch
     notes: tuple[str, ...] = ()
     final_url: str | None = None  # where DataSF answered from after redirects (API only)
+    skipped: Mapping[str, str] = field(default_factory=dict)  # place -> why the gate dropped it
 
 
 @dataclass(frozen=True)
