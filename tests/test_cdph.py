@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 
 from bench.faults import bytes_lost, cache_bytes
 from bench.faults_cdph import (CDPH, DOWNLOAD_PATH, GOOD_VINTAGE, FakeCKAN, client_config,
-                               closed_port,
+                               closed_port, run_concurrent_imports,
                                edited, faults, held_files, package_show, revised_settled,
                                run_fault, vintage_bytes)
 from pipeline.cli.data import data_app
@@ -254,6 +254,13 @@ def test_fault_falls_back_to_the_untouched_cache(name, data_dir):
     # the margin is for a loaded machine (the cache fallback parses a 4 MB file).
     deadline = fault.config.get("fetch_deadline_s", client_config("http://x").fetch_deadline_s)
     assert result.seconds < deadline + 2.0, result
+
+
+def test_concurrent_imports_of_an_older_and_a_newer_vintage_both_land(tmp_path):
+    """Issue 32, item 7: the older of two vintages imported at the same moment is archived by
+    its own date (decided under the cache lock), never refused as "moving backwards"."""
+    result = run_concurrent_imports(tmp_path, trials=2)
+    assert result.passed, result.note
 
 
 def test_held_revision_is_taken_after_review(data_dir):
