@@ -680,7 +680,7 @@ def run_command_fault(fault: CommandFault, tmp: Path) -> CaseResult:
     ok = (result.exit_code == 0) == fault.succeeds and fault.check(tmp)
     passed = clean_exit and ok and " ".join(fault.expect.split()) in output and lost == 0
     note = output[-300:] if clean_exit else f"raised {result.exception!r}"
-    return CaseResult(fault.name, passed, seconds, lost, note)
+    return CaseResult(fault.name, passed, seconds, lost, note, issue=22)
 
 
 @contextlib.contextmanager

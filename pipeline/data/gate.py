@@ -381,15 +381,15 @@ def _jump_checks(rows: _Rows, rule: JumpRule, clean: NDArray[np.bool_]
 
 def cases_bound(column: str, *, negative_ok: bool = False) -> CountBound:
     """People with a positive test, by day: at most 5 % of the place in a day, 10 % in a week,
-    never below 100 people. Largest real shares: CDPH 1.7 % in a day (Alpine, 21 reported of
-    1,204) and 4.4 % in a week (Lassen's reported cases, 2020-12-15); San Francisco 0.36 % and
-    1.9 % (Omicron)."""
+    never below 100 people. Largest real shares (of the 2020 Census figures): CDPH 1.7 % in a
+    day (Alpine's 21 reported cases of 1,204, 2020-11-21) and 3.7 % in a week (Lassen's
+    reported cases, 2020-12-15); San Francisco 0.36 % and 1.9 % (Omicron)."""
     return CountBound(column, per_day=0.05, per_week=0.10, floor=100, negative_ok=negative_ok)
 
 
 def deaths_bound(column: str) -> CountBound:
     """Deaths: at most 0.5 % of the place in a day and 1 % in a week, never below 20. Largest
-    real shares: 0.023 % in a day (Modoc, 2 of 8,700), 0.03 % in a week."""
+    real shares: 0.023 % in a day (Modoc, 2 of 8,700), 0.031 % in a week (Imperial)."""
     return CountBound(column, per_day=0.005, per_week=0.01, floor=20)
 
 

@@ -63,8 +63,9 @@ IMPORT_HINT = ("import a hub's target data with `flowcast data import <hub folde
 @dataclass(frozen=True)
 class NHSNClientConfig(SodaConfig):
     """data.cdc.gov through the shared transport. Size caps from the genuine payloads: a page
-    of 1,000 HRD rows with the three selected fields is about 90 KB, of NSSP rows about 110 KB;
-    a page may have 1 MB, one target's pages together 16 MB."""
+    of 1,000 HRD rows with the three selected fields is 98 KB, of NSSP rows 116 KB (built from
+    the hub's real vintages as the portal writes them); a page may have 1 MB, one target's
+    pages together 16 MB."""
 
     base_url: str | None = None          # None: $FLOWCAST_NHSN_BASE_URL or data.cdc.gov
     app_token_env: str = APP_TOKEN_ENV

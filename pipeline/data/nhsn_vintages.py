@@ -199,8 +199,9 @@ def _need(records: pd.DataFrame, columns: Sequence[str], source: str) -> None:
                               f"{sorted(map(str, records.columns))[:12]}")
 
 
-# Genuine sizes (docs/data.md): a vintage as the canonical CSV is at most 86 KB in the hub's
-# design data (ED shares, 7,592 rows); one Socrata page of 1,000 rows about 100 KB.
+# Genuine sizes (docs/data.md): a vintage as the canonical CSV is at most 196,811 bytes in the
+# hub's design data (ED shares since 2022-10-01; admissions 47,291); one Socrata page of 1,000
+# rows 98 KB (HRD) or 116 KB (NSSP).
 MAX_CSV_BYTES = 16 << 20
 MAX_JSON_BYTES = 16 << 20
 _PARSED: dict[tuple[str, str], WeeklyVintage] = {}
