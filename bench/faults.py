@@ -46,7 +46,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -335,6 +335,52 @@ def race(jobs: list[Callable[[], str]], timeout_s: float = 60.0) -> list[str]:
     for w in workers:
         w.join(timeout_s)
     return sorted(results.get(timeout=5) for _ in workers)
+
+
+def race_case(source: str, trial: Callable[[int], str | None], trials: int,
+              success: str) -> CaseResult:
+    """Issue 32, item 7, on one source: ``trial(k)`` races two imports on a fresh cache and
+    returns what went wrong (None: both landed where they belong)."""
+    started = time.monotonic()
+    problems = [p for p in (trial(k) for k in range(trials)) if p is not None]
+    note = "; ".join(problems) or f"{trials} of {trials} trials: {success}"
+    return CaseResult("concurrent-imports-older-and-newer", not problems,
+                      time.monotonic() - started, 0, note, source=source, issue=32)
+
+
+class CaseCrashed(Exception):
+    """A load that raised: the case failed (its result says how)."""
+
+    def __init__(self, result: CaseResult) -> None:
+        super().__init__(result.note)
+        self.result = result
+
+
+def load_timed(load: Callable[[], Any], *, name: str, source: str, issue: int, data_dir: Path,
+               before: dict[str, bytes], lock: tuple[str, str] | None = None
+               ) -> tuple[Any, float]:
+    """``load()`` (with the cache lock of ``lock`` = (dataset id, folder) held by a "stuck run"
+    meanwhile) and its seconds; a crash raises :class:`CaseCrashed` carrying the failed case."""
+    started = time.monotonic()
+    try:
+        with held_cache_lock(data_dir, *lock) if lock else contextlib.nullcontext():
+            return load(), time.monotonic() - started
+    except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
+        raise CaseCrashed(CaseResult(name, False, time.monotonic() - started,
+                                     bytes_lost(before, cache_bytes(data_dir)),
+                                     f"raised {type(exc).__name__}: {exc}", source=source,
+                                     issue=issue)) from exc
+
+
+def run_cases(scratch: Path, cases: Sequence[Callable[[Path], CaseResult]]) -> list[CaseResult]:
+    """Each case on its own fresh folder under ``scratch``, printed as it ends."""
+    results = []
+    for k, case in enumerate(cases):
+        try:
+            results.append(show(case(scratch / f"case-{k}")))
+        except CaseCrashed as crashed:
+            results.append(show(crashed.result))
+    return results
 
 
 def live_request_threads() -> list[threading.Thread]:

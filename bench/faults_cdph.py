@@ -22,7 +22,6 @@ the harness of ``tests/test_cdph.py``.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import gzip
@@ -33,7 +32,6 @@ import platform
 import socket
 import sys
 import tempfile
-import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -41,8 +39,9 @@ from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from bench.faults import (CaseResult, FakeDataSF, gzip_bomb, race, show, Responder, bytes_lost, cache_bytes, leftovers,
-                          header_drip, held_cache_lock, redirect, status, trickle)
+from bench.faults import (CaseResult, FakeDataSF, gzip_bomb, load_timed, race, race_case,
+                          run_cases, Responder, bytes_lost, cache_bytes, leftovers,
+                          header_drip, redirect, status, trickle)
 from pipeline.data.cdph_source import SPEC, CDPHConfig
 from pipeline.data.chhs import CHHSClientConfig
 from pipeline.io import atomic_write_json
@@ -355,17 +354,10 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
         base = fault.base_url() if fault.base_url is not None else portal.url
         config = CDPHConfig(client=client_config(base, **fault.config), data_dir=data_dir,
                             lock_timeout_s=0.5)
-        started = time.monotonic()
-        try:
-            with held_cache_lock(data_dir, SPEC.dataset_id, SPEC.cache_folder) \
-                    if fault.hold_lock else contextlib.nullcontext():
-                loaded = load_cdph(config)
-        except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
-            return CaseResult(fault.name, False, time.monotonic() - started,
-                              bytes_lost(before, cache_bytes(data_dir)),
-                              f"raised {type(exc).__name__}: {exc}", source="cdph",
-                              issue=fault.issue)
-        seconds = time.monotonic() - started
+        loaded, seconds = load_timed(
+            lambda: load_cdph(config), name=fault.name, source="cdph", issue=fault.issue,
+            data_dir=data_dir, before=before,
+            lock=(SPEC.dataset_id, SPEC.cache_folder) if fault.hold_lock else None)
         left = leftovers(portal.http.port)
         note = " | ".join(loaded.provenance.notes) + left
         after = cache_bytes(data_dir)
@@ -399,29 +391,27 @@ def run_concurrent_imports(data_dir: Path, trials: int = 3) -> CaseResult:
     from pipeline.data.cache import DatasetCache
     from pipeline.data.cdph_source import cached_vintages
 
-    started = time.monotonic()
-    problems = []
-    for trial in range(trials):
-        cache = data_dir / f"trial-{trial}"
+    def trial(k: int) -> str | None:
+        cache = data_dir / f"trial-{k}"
         actions = race([functools.partial(_import_one, CDPH / f / CSV_NAME, cache)
                         for f in (GOOD_VINTAGE, OLDER_VINTAGE)])
         kept = [str(v.as_of.date()) for v in cached_vintages(cache)]
         manifest = DatasetCache(cache).read_manifest(SPEC)
         live = manifest.last_date if manifest is not None else None
-        if kept != ["2021-09-23", "2021-11-04"] or live != "2021-11-04" or actions not in (
+        if kept == ["2021-09-23", "2021-11-04"] and live == "2021-11-04" and actions in (
                 ["archived", "imported"], ["imported", "imported"]):
-            problems.append(f"trial {trial}: actions {actions}, vintages {kept}, live {live}")
-    note = "; ".join(problems) or (f"{trials} of {trials} trials: the vintage of 2021-11-04 "
-                                   f"live, 2021-09-23 and 2021-11-04 both kept by their own "
-                                   f"dates")
-    return CaseResult("concurrent-imports-older-and-newer", not problems,
-                      time.monotonic() - started, 0, note, source="cdph", issue=32)
+            return None
+        return f"trial {k}: actions {actions}, vintages {kept}, live {live}"
+
+    return race_case("cdph", trial, trials, "the vintage of 2021-11-04 live, 2021-09-23 and "
+                                            "2021-11-04 both kept by their own dates")
 
 
 def run_all(scratch: Path) -> list[CaseResult]:
-    """Every CDPH case (each on a fresh cache under ``scratch``), printed as it ends."""
-    results = []
-    for k, fault in enumerate(faults()):
-        results.append(show(run_fault(fault, scratch / f"case-{k}" / "data")))
-    results.append(show(run_concurrent_imports(scratch / "concurrent")))
-    return results
+    """Every CDPH case, each on a fresh cache under ``scratch``."""
+    return run_cases(scratch, [functools.partial(_in_data, f) for f in faults()]
+                     + [run_concurrent_imports])
+
+
+def _in_data(fault: Fault, folder: Path) -> CaseResult:
+    return run_fault(fault, folder / "data")

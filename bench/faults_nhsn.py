@@ -21,11 +21,9 @@ Run as part of ``python -m bench.faults`` (-> ``bench/results/faults.json``); al
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import json
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,8 +34,9 @@ import pandas as pd
 
 from bench.faults import (CaseResult, FakeDataSF, Responder, bad_gzip, bytes_lost, cache_bytes,
                           closed_port_url, dropped_mid_body, gzip_bomb, gzipped, header_drip,
-                          held_cache_lock, html_body, ignores_offset, leftovers, race,
-                          raw_body, redirect, show, status, trickle, truncated_json)
+                          html_body, ignores_offset, leftovers, load_timed, race,
+                          race_case, raw_body, redirect, run_cases, status, trickle,
+                          truncated_json)
 from pipeline.data.nhsn import (ED_COVID, HOSP_COVID, NHSNClientConfig, NHSNConfig, load_nhsn)
 from pipeline.data.nhsn_vintages import TARGETS
 
@@ -380,17 +379,10 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
                 cdc.nssp = answer
         base = fault.base_url() if fault.base_url is not None else cdc.url
         config = nhsn_config(base, data_dir, fault.target, **fault.config)
-        started = time.monotonic()
-        try:
-            with held_cache_lock(data_dir, spec.dataset_id, spec.cache_folder) \
-                    if fault.hold_lock else contextlib.nullcontext():
-                loaded = load_nhsn(config)
-        except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
-            return CaseResult(fault.name, False, time.monotonic() - started,
-                              bytes_lost(before, cache_bytes(data_dir)),
-                              f"raised {type(exc).__name__}: {exc}", source="nhsn",
-                              issue=fault.issue)
-        seconds = time.monotonic() - started
+        loaded, seconds = load_timed(
+            lambda: load_nhsn(config), name=fault.name, source="nhsn", issue=fault.issue,
+            data_dir=data_dir, before=before,
+            lock=(spec.dataset_id, spec.cache_folder) if fault.hold_lock else None)
         provenance, vintage = loaded.provenance[fault.target], loaded[fault.target]
         left = leftovers(cdc.http.port)
         note = " | ".join(provenance.notes) + left
@@ -436,11 +428,10 @@ def run_concurrent_imports(data_dir: Path, trials: int = 3) -> CaseResult:
     from pipeline.data.nhsn import cached_weekly_vintages
     from pipeline.data.nhsn_vintages import live_manifest
 
-    started = time.monotonic()
     older, newer = "2025-09-17", GOOD_AS_OF
-    problems = []
-    for trial in range(trials):
-        cache = data_dir / f"trial-{trial}"
+
+    def trial(k: int) -> str | None:
+        cache = data_dir / f"trial-{k}"
         cache.mkdir(parents=True)
         files = {d: write_target_csv(cache, d) for d in (older, newer)}
         actions = race([functools.partial(_import_one, files[d], d, cache / "data")
@@ -448,19 +439,20 @@ def run_concurrent_imports(data_dir: Path, trials: int = 3) -> CaseResult:
         kept = [str(v.as_of.date()) for v in cached_weekly_vintages(HOSP_COVID, cache / "data")]
         manifest = live_manifest(HOSP_COVID, cache / "data")
         live = manifest.data_as_of if manifest is not None else None
-        if kept != [older, newer] or live != newer or actions not in (["archived", "live"],
-                                                                      ["live", "live"]):
-            problems.append(f"trial {trial}: actions {actions}, vintages {kept}, live {live}")
-    note = "; ".join(problems) or (f"{trials} of {trials} trials: the vintage of {newer} live, "
-                                   f"{older} and {newer} both kept by their own dates")
-    return CaseResult("concurrent-imports-older-and-newer", not problems,
-                      time.monotonic() - started, 0, note, source="nhsn", issue=32)
+        if kept == [older, newer] and live == newer and actions in (["archived", "live"],
+                                                                    ["live", "live"]):
+            return None
+        return f"trial {k}: actions {actions}, vintages {kept}, live {live}"
+
+    return race_case("nhsn", trial, trials, f"the vintage of {newer} live, {older} and {newer} "
+                                            f"both kept by their own dates")
 
 
 def run_all(scratch: Path) -> list[CaseResult]:
-    """Every NHSN case (each on a fresh cache under ``scratch``), printed as it ends."""
-    results = []
-    for k, fault in enumerate(faults()):
-        results.append(show(run_fault(fault, scratch / f"case-{k}" / "data")))
-    results.append(show(run_concurrent_imports(scratch / "concurrent")))
-    return results
+    """Every NHSN case, each on a fresh cache under ``scratch``."""
+    return run_cases(scratch, [functools.partial(_in_data, f) for f in faults()]
+                     + [run_concurrent_imports])
+
+
+def _in_data(fault: Fault, folder: Path) -> CaseResult:
+    return run_fault(fault, folder / "data")

@@ -17,7 +17,7 @@ from pipeline.errors import ConfigError, FlowcastError
 if TYPE_CHECKING:
     from datetime import datetime
 
-    from pipeline.data.cache import DatasetCache
+    from pipeline.data.cache import CacheManifest, CacheSpec, DatasetCache
     from pipeline.data.hub_import import HubImportSummary
     from pipeline.data.series import SFDataConfig
     from pipeline.data.sir_transform import SIRConversionConfig
@@ -235,10 +235,8 @@ def status_command() -> None:
     typer.echo(f"cache: {cache.root.resolve() / 'datasf'}")
     now = utc_now()
     for spec in DATASETS.values():
-        try:
-            manifest = cache.read_manifest(spec)
-        except FlowcastError as exc:
-            typer.echo(f"{spec.key} ({spec.dataset_id}): {exc}")
+        readable, manifest = _manifest(cache, spec, f"{spec.key} ({spec.dataset_id})")
+        if not readable:
             continue
         if manifest is None:
             typer.echo(f"{spec.key} ({spec.dataset_id}): not cached — `flowcast data fetch` or "
@@ -258,14 +256,22 @@ def status_command() -> None:
     _status_nhsn(cache, now)
 
 
+def _manifest(cache: DatasetCache, spec: CacheSpec, label: str
+              ) -> tuple[bool, CacheManifest | None]:
+    """(readable, the manifest or None when nothing is cached); a damaged one is said."""
+    try:
+        return True, cache.read_manifest(spec)
+    except FlowcastError as exc:
+        typer.echo(f"{label}: {exc}")
+        return False, None
+
+
 def _status_chhs(cache: DatasetCache, now: datetime) -> None:
     from pipeline.data.cdph_source import SPEC, vintages_dir
     label = f"{SPEC.key} ({SPEC.dataset_id})"
     typer.echo(f"cache: {cache.root.resolve() / SPEC.cache_folder}")
-    try:
-        manifest = cache.read_manifest(SPEC)
-    except FlowcastError as exc:
-        typer.echo(f"{label}: {exc}")
+    readable, manifest = _manifest(cache, SPEC, label)
+    if not readable:
         return
     if manifest is None:
         typer.echo(f"{label}: not cached — `flowcast data fetch --source chhs` or "
@@ -292,11 +298,7 @@ def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
         typer.echo("NHSN: not cached — `flowcast data fetch --source nhsn` or `flowcast data "
                    "import <hub folder or time-series.parquet>`")
     for target, spec in TARGETS.items():
-        try:
-            manifest = cache.read_manifest(spec)
-        except FlowcastError as exc:
-            typer.echo(f"{target}: {exc}")
-            continue
+        readable, manifest = _manifest(cache, spec, target)
         if manifest is None:
             continue
         dates = [str(d) for d, _ in VintageArchive(cache, spec).listing()]

@@ -53,7 +53,7 @@ from pipeline.data.cache import CachedPayload, CacheManifest, DatasetCache, Sour
 from pipeline.data.cdph import COUNT_COLUMNS, CDPHFormatError, CDPHVintage, parse_cdph_csv
 from pipeline.data.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient, CHHSClientConfig,
                                 CKANResourceSpec)
-from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache
+from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.revisions import RevisionRefusedError
 from pipeline.data.vintages import Committed, VintageArchive
 from pipeline.errors import DataSourceError, OfflineError, ValidationError
@@ -265,10 +265,8 @@ def _provenance(manifest: CacheManifest, vintage: CDPHVintage, *, from_cache: bo
 def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad:
     cached = cache.load(SPEC)
     if cached is None:
-        reason = f" ({why})" if why else ""
-        raise OfflineError(f"no cached CDPH county data in {cache.directory(SPEC)}{reason}. "
-                           f"Fetch it with `flowcast data fetch --source chhs` when online, or "
-                           f"{_IMPORT_HINT}.")
+        raise no_cache_error("CDPH county data", cache.directory(SPEC), why,
+                             fetch="flowcast data fetch --source chhs", otherwise=_IMPORT_HINT)
     vintage = parse_cached(cache, cached.payload, str(cached.path))
     stale = cached.manifest.age_days(now)
     data_age = (now.date() - date.fromisoformat(cached.manifest.last_date[:10])).days

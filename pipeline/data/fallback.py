@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 from pipeline.data.transport import NetworkError
-from pipeline.errors import DataSourceError
+from pipeline.errors import DataSourceError, OfflineError
 from pipeline.io import LockTimeoutError
 
 T = TypeVar("T")
@@ -56,3 +56,12 @@ def live_or_cache(fetch: Callable[[], T], *, source: str, has_cache: Callable[[]
         if not has_cache():
             raise
         return Live(None, f"{source} payload rejected, cache kept: {exc}")
+
+
+def no_cache_error(what: str, directory: object, why: str | None, *, fetch: str,
+                   otherwise: str) -> OfflineError:
+    """The error of a cache reader with nothing cached: what is missing, where, why the cache
+    was asked (when a fetch failed), and the two ways to fill it."""
+    reason = f" ({why})" if why else ""
+    return OfflineError(f"no cached {what} in {directory}{reason}. Fetch it with `{fetch}` when "
+                        f"online, or {otherwise}.")

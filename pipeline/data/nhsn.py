@@ -40,7 +40,7 @@ from urllib.parse import urlsplit
 import requests
 
 from pipeline.data.cache import CacheManifest, DatasetCache, SourceKind, utc_now
-from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache
+from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.hub_import import (HubImportSummary, VintageImport, import_hub_time_series,
                                       import_target_csv)
 from pipeline.data.nhsn_vintages import (ED_COVID, ED_FLU, ED_RSV, FIRST_WEEK, HOSP_COVID,
@@ -49,7 +49,7 @@ from pipeline.data.nhsn_vintages import (ED_COVID, ED_FLU, ED_RSV, FIRST_WEEK, H
                                          cached_weekly_vintages, commit_weekly, disease_targets,
                                          parse_vintage, skipped_note, target_spec, vintage_as_of)
 from pipeline.data.soda import SodaClient, SodaConfig
-from pipeline.errors import ConfigError, OfflineError
+from pipeline.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -160,10 +160,8 @@ def _from_cache(cache: DatasetCache, spec: TargetSpec, now: datetime,
                 why: str | None) -> tuple[WeeklyVintage, NHSNProvenance]:
     cached = cache.load(spec)
     if cached is None:
-        reason = f" ({why})" if why else ""
-        raise OfflineError(f"no cached NHSN data for {spec.target!r} in "
-                           f"{cache.directory(spec)}{reason}. Fetch it with `flowcast data "
-                           f"fetch --source nhsn` when online, or {IMPORT_HINT}.")
+        raise no_cache_error(f"NHSN data for {spec.target!r}", cache.directory(spec), why,
+                             fetch="flowcast data fetch --source nhsn", otherwise=IMPORT_HINT)
     as_of = date.fromisoformat(str(cached.manifest.data_as_of)[:10])
     vintage = parse_vintage(spec, cached.payload, suffix=cached.path.suffix.lstrip("."),
                             as_of=as_of, source=str(cached.path))

@@ -38,7 +38,7 @@ from pipeline.data.california import SAN_FRANCISCO
 from pipeline.data.datasf import (DATASETS, CASES, SF_POPULATION_2020_CENSUS,
                                   ClientConfig, DataSFClient, DatasetSpec)
 from pipeline.data.decoding import decode_boundary
-from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache
+from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.payloads import decode_cached as _decode_payload
 from pipeline.data.payloads import rows_frame
 from pipeline.data.plausibility import DAILY, JumpRule
@@ -172,12 +172,10 @@ def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
                 now: datetime, why: str | None) -> tuple[ValidatedFrame, DatasetProvenance]:
     cached = cache.load(spec)
     if cached is None:
-        reason = f" ({why})" if why else ""
-        raise OfflineError(
-            f"no cached DataSF {spec.key} data ({spec.dataset_id}) in "
-            f"{cache.directory(spec)}{reason}. Fetch it with `flowcast data fetch` when online, "
-            f"or import a DataSF CSV export ({spec.export_url()}) with "
-            f"`flowcast data import FILE`.")
+        raise no_cache_error(f"DataSF {spec.key} data ({spec.dataset_id})", cache.directory(spec),
+                             why, fetch="flowcast data fetch",
+                             otherwise=f"import a DataSF CSV export ({spec.export_url()}) with "
+                                       f"`flowcast data import FILE`")
     validated = validate_frame(_decode_payload(cached), spec, source=str(cached.path),
                                gap_policy=gap_policy)
     stale = cached.manifest.age_days(now)
