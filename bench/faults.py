@@ -1,4 +1,9 @@
-"""Benchmark: fault injection against the DataSF fetch path; a good cache must never be lost.
+"""Benchmark: fault injection against every source's fetch path; a good cache must never be lost.
+
+``python -m bench.faults`` runs the whole catalogue: the DataSF cases below, the CDPH (CKAN)
+cases of :mod:`bench.faults_cdph` and the NHSN (data.cdc.gov) cases of :mod:`bench.faults_nhsn`,
+and writes ``bench/results/faults.json`` (per case: source, the issue that found it, pass,
+seconds, bytes of good cache lost, the note; totals per source and per issue).
 
 A fake DataSF (:class:`FakeDataSF`, a threaded ``http.server`` on 127.0.0.1, never any other
 address) serves the real cases export (``../shared/data/datasf``) as Socrata JSON pages, then each
@@ -25,13 +30,14 @@ note that names the problem, (c) leave every cache file byte-identical and (d) l
 thread running. "bytes of good cache lost" sums the sizes of cache files that changed or vanished
 (must be 0).
 
-Run: ``python -m bench.faults`` -> ``bench/results/faults.json``. Also the harness of
-``tests/test_faults.py``.
+Also the harness of ``tests/test_faults.py``.
 """
 from __future__ import annotations
 
 import contextlib
+import functools
 import gzip
+import io
 import json
 import os
 import platform
@@ -40,10 +46,11 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 import pandas as pd
@@ -166,6 +173,10 @@ class FakeDataSF:
         return f"http://{host}:{port}"
 
     @property
+    def port(self) -> int:
+        return int(self._server.server_address[1])
+
+    @property
     def seen(self) -> list[Seen]:
         return self._server.seen
 
@@ -248,6 +259,24 @@ def header_drip(h: _Handler) -> None:
     h.close_connection = True
 
 
+BOMB_BYTES = 404 << 20   # issue 32's gzip bomb: 404 MiB decoded, 1.8 MB on the wire
+
+
+@functools.cache
+def gzip_bomb(decoded_bytes: int = BOMB_BYTES) -> bytes:
+    """``decoded_bytes`` of zeros, gzip-compressed in chunks (never held whole in memory)."""
+    out = io.BytesIO()
+    with gzip.GzipFile(fileobj=out, mode="wb", compresslevel=1) as gz:
+        chunk = b"0" * (1 << 20)
+        for _ in range(decoded_bytes >> 20):
+            gz.write(chunk)
+    return out.getvalue()
+
+
+def gzipped(data: bytes) -> Responder:
+    return lambda h: h.send_body(200, data, headers={"Content-Encoding": "gzip"})
+
+
 def raw_body(body: bytes) -> Responder:
     return lambda h: h.send_body(200, body)
 
@@ -269,12 +298,13 @@ def closed_port_url() -> str:
 
 
 @contextlib.contextmanager
-def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z") -> Iterator[None]:
+def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z",
+                    folder: str = "datasf") -> Iterator[None]:
     """The dataset's cache lock held, as by a stuck run (flock on its own open file, which
     conflicts with any other open of it, in this process too)."""
     import fcntl
 
-    path = data_dir / "datasf" / ".locks" / f"{dataset_id}.lock"
+    path = data_dir / folder / ".locks" / f"{dataset_id}.lock"
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -284,10 +314,106 @@ def held_cache_lock(data_dir: Path, dataset_id: str = "gyr2-k29z") -> Iterator[N
         os.close(fd)  # releases the flock
 
 
+def _racer(job: Callable[[], str], start: Any, results: Any) -> None:
+    start.wait()
+    try:
+        results.put(job())
+    except Exception as exc:  # noqa: BLE001 - reported to the parent: the failure tested
+        results.put(f"{type(exc).__name__}: {exc}")
+
+
+def race(jobs: list[Callable[[], str]], timeout_s: float = 60.0) -> list[str]:
+    """Run each job in its own forked process, all released at the same moment (a barrier);
+    their results (or "<Error>: message"), sorted."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    start, results = context.Barrier(len(jobs)), context.Queue()
+    workers = [context.Process(target=_racer, args=(job, start, results)) for job in jobs]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join(timeout_s)
+    return sorted(results.get(timeout=5) for _ in workers)
+
+
+def race_case(source: str, trial: Callable[[int], str | None], trials: int,
+              success: str) -> CaseResult:
+    """Issue 32, item 7, on one source: ``trial(k)`` races two imports on a fresh cache and
+    returns what went wrong (None: both landed where they belong)."""
+    started = time.monotonic()
+    problems = [p for p in (trial(k) for k in range(trials)) if p is not None]
+    note = "; ".join(problems) or f"{trials} of {trials} trials: {success}"
+    return CaseResult("concurrent-imports-older-and-newer", not problems,
+                      time.monotonic() - started, 0, note, source=source, issue=32)
+
+
+class CaseCrashed(Exception):
+    """A load that raised: the case failed (its result says how)."""
+
+    def __init__(self, result: CaseResult) -> None:
+        super().__init__(result.note)
+        self.result = result
+
+
+def load_timed(load: Callable[[], Any], *, name: str, source: str, issue: int, data_dir: Path,
+               before: dict[str, bytes], lock: tuple[str, str] | None = None
+               ) -> tuple[Any, float]:
+    """``load()`` (with the cache lock of ``lock`` = (dataset id, folder) held by a "stuck run"
+    meanwhile) and its seconds; a crash raises :class:`CaseCrashed` carrying the failed case."""
+    started = time.monotonic()
+    try:
+        with held_cache_lock(data_dir, *lock) if lock else contextlib.nullcontext():
+            return load(), time.monotonic() - started
+    except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
+        raise CaseCrashed(CaseResult(name, False, time.monotonic() - started,
+                                     bytes_lost(before, cache_bytes(data_dir)),
+                                     f"raised {type(exc).__name__}: {exc}", source=source,
+                                     issue=issue)) from exc
+
+
+def run_cases(scratch: Path, cases: Sequence[Callable[[Path], CaseResult]]) -> list[CaseResult]:
+    """Each case on its own fresh folder under ``scratch``, printed as it ends."""
+    results = []
+    for k, case in enumerate(cases):
+        try:
+            results.append(show(case(scratch / f"case-{k}")))
+        except CaseCrashed as crashed:
+            results.append(show(crashed.result))
+    return results
+
+
 def live_request_threads() -> list[threading.Thread]:
-    from pipeline.data.datasf import REQUEST_THREAD_NAME
+    from pipeline.data.transport import REQUEST_THREAD_NAME
 
     return [t for t in threading.enumerate() if t.name == REQUEST_THREAD_NAME and t.is_alive()]
+
+
+def client_sockets_to(port: int) -> int:
+    """Sockets this process holds whose peer is ``port`` (the client side of a connection to a
+    fake portal; its server side has ``port`` as the local port): from /proc (Linux)."""
+    inodes = set()
+    for fd in Path("/proc/self/fd").iterdir():
+        try:
+            target = fd.readlink().as_posix()
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = 0
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if int(fields[2].rsplit(":", 1)[1], 16) == port and fields[9] in inodes:
+                found += 1
+    return found
+
+
+def leftovers(port: int) -> str:
+    """What a fetch left running: request threads and sockets to the portal ("" when none)."""
+    threads, sockets = len(live_request_threads()), client_sockets_to(port)
+    return (f" | {threads} request thread(s) and {sockets} socket(s) to the portal still open"
+            if threads or sockets else "")
 
 
 def redirect(location: str) -> Responder:
@@ -341,9 +467,28 @@ class Fault:
     base_url: Callable[[], str] | None = None
     hold_lock: bool = False
     max_seconds: float | None = None
+    issue: int = 15
+
+
+def ramp(rows: Rows) -> Rows:
+    """Issue 32's ramp: the last three days at 2,800, 56,000 and 89,000 cases (6-10 % of San
+    Francisco a day, each under the old 10 %-a-day limit)."""
+    changed = [dict(r) for r in rows]
+    for row, value in zip(changed[-3:], ("2800", "56000", "89000"), strict=True):
+        row["new_cases"] = value
+    return changed
+
+
+ISSUE_22 = {"json-nested-200000-deep", "json-5000-digit-integer", "99999999-cases-in-open-window",
+            "spike-far-above-history", "header-drip", "body-over-size-limit",
+            "server-ignores-offset", "connection-refused", "unknown-host"}
 
 
 def faults() -> list[Fault]:
+    return [replace(f, issue=22) if f.name in ISSUE_22 else f for f in _faults()]
+
+
+def _faults() -> list[Fault]:
     s = lambda build: (lambda rows, other: (lambda h: h.send_rows(build(rows))))  # noqa: E731
     return [
         Fault("http-429", lambda rows, _: status(429), "HTTP 429"),
@@ -383,16 +528,16 @@ def faults() -> list[Fault]:
               "Exceeds the limit (4300 digits) for integer string conversion"),
         Fault("99999999-cases-in-open-window",
               s(lambda r: with_value(r, "new_cases", "99999999", index=len(r) - 10)),
-              "implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 10% of the "
-              "population 873,965 in one day"),
+              "implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 5% of the "
+              "population 873,965 (2020 Census) in one day"),
         Fault("spike-far-above-history",
-              s(lambda r: with_value(r, "new_cases", "60000", index=len(r) - 5)),
-              "implausible count 60,000 in 'new_cases' on 2022-03-12: more than 20× the "
+              s(lambda r: with_value(r, "new_cases", "30000", index=len(r) - 5)),
+              "implausible count 30,000 in 'new_cases' on 2022-03-12: more than 20× the "
               "plausible bracket of the previous 28 day(s)"),
         Fault("header-drip", lambda rows, _: header_drip, "within the request deadline",
               {"request_deadline_s": 1.0, "fetch_deadline_s": 2.5}),
         Fault("body-over-size-limit", lambda rows, _: lambda h: h.send_rows(rows),
-              "body larger than 20000 bytes; refused", {"max_body_bytes": 20_000}),
+              "body larger than 20,000 bytes (after decoding); refused", {"max_body_bytes": 20_000}),
         Fault("server-ignores-offset", lambda rows, _: ignores_offset(rows),
               "the page at $offset=100 repeats the page at $offset=0", {"page_size": 100}),
         Fault("connection-refused", lambda rows, _: status(500), "Connection refused",
@@ -402,7 +547,18 @@ def faults() -> list[Fault]:
               max_seconds=3.0),
         Fault("cache-lock-held-by-stuck-run", lambda rows, _: lambda h: h.send_rows(rows),
               "fetched but not stored, cache kept", series={"lock_timeout_s": 0.5},
-              hold_lock=True, max_seconds=3.0),
+              hold_lock=True, max_seconds=3.0, issue=22),
+        # -- issue 32, on DataSF too (one place: a failing count refuses the payload)
+        Fault("infinity-count", s(lambda r: with_value(r, "new_cases", "Infinity")),
+              "non-finite count 'Infinity' in 'New Cases' at row 101", issue=32),
+        Fault("1e300-count", s(lambda r: with_value(r, "new_cases", "1e300")),
+              "count '1e300' in 'New Cases' at row 101 (date 2020-06-11) is not below the bound",
+              issue=32),
+        Fault("ramp-under-the-old-daily-limit", s(ramp),
+              "implausible count 56,000 in 'new_cases' on 2022-03-15: more than 5% of the "
+              "population 873,965 (2020 Census) in one day", issue=32),
+        Fault("gzip-bomb-404-mib", lambda rows, _: gzipped(gzip_bomb()),
+              "body larger than 2,097,152 bytes (after decoding); refused", issue=32),
     ]
 
 
@@ -435,6 +591,8 @@ class CaseResult:
     seconds: float
     bytes_lost: int
     note: str
+    source: str = "datasf"
+    issue: int = 15
 
 
 def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
@@ -461,16 +619,15 @@ def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
         except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
             return CaseResult(fault.name, False, time.monotonic() - started,
                               bytes_lost(before, cache_bytes(data_dir)),
-                              f"raised {type(exc).__name__}: {exc}")
+                              f"raised {type(exc).__name__}: {exc}", issue=fault.issue)
         seconds = time.monotonic() - started
-        threads = live_request_threads()
-        note = " | ".join(provenance.notes) + (
-            f" | {len(threads)} request thread(s) still running" if threads else "")
+        left = leftovers(server.port)
+        note = " | ".join(provenance.notes) + left
         lost = bytes_lost(before, cache_bytes(data_dir))
         passed = (provenance.from_cache and fault.expect in note and lost == 0
-                  and len(validated.frame) == 744 and not other.seen and not threads
+                  and len(validated.frame) == 744 and not other.seen and not left
                   and (fault.max_seconds is None or seconds <= fault.max_seconds))
-        return CaseResult(fault.name, passed, seconds, lost, note)
+        return CaseResult(fault.name, passed, seconds, lost, note, issue=fault.issue)
 
 
 # ------------------------------------------------------------------------------ command line
@@ -569,7 +726,7 @@ def run_command_fault(fault: CommandFault, tmp: Path) -> CaseResult:
     ok = (result.exit_code == 0) == fault.succeeds and fault.check(tmp)
     passed = clean_exit and ok and " ".join(fault.expect.split()) in output and lost == 0
     note = output[-300:] if clean_exit else f"raised {result.exception!r}"
-    return CaseResult(fault.name, passed, seconds, lost, note)
+    return CaseResult(fault.name, passed, seconds, lost, note, issue=22)
 
 
 @contextlib.contextmanager
@@ -578,31 +735,48 @@ def _scratch() -> Iterator[Path]:
         yield Path(tmp)
 
 
-def _print(result: CaseResult) -> None:
-    print(f"{'PASS' if result.passed else 'FAIL'} {result.name:34s} {result.seconds:5.2f} s "
-          f"lost {result.bytes_lost} B — {result.note[:150]}")
+def show(result: CaseResult) -> CaseResult:
+    print(f"{'PASS' if result.passed else 'FAIL'} {result.source:6s} {result.name:38s} "
+          f"{result.seconds:5.2f} s lost {result.bytes_lost} B — {result.note[:140]}",
+          flush=True)
+    return result
+
+
+def run_all(scratch: Path) -> list[CaseResult]:
+    """Every DataSF case (each on a fresh cache under ``scratch``) and the command-line cases."""
+    rows = cases_api_rows()
+    results = [show(run_fault(fault, rows, scratch / f"case-{k}" / "data"))
+               for k, fault in enumerate(faults())]
+    commands = scratch / "commands"  # one filled cache for every command case
+    commands.mkdir()
+    results += [show(run_command_fault(command, commands)) for command in command_faults()]
+    return results
+
+
+def _totals(results: list[CaseResult]) -> dict[str, int]:
+    return {"cases_tried": len(results), "cases_passed": sum(r.passed for r in results),
+            "bytes_of_good_cache_lost": sum(r.bytes_lost for r in results)}
 
 
 def main() -> int:
+    """The whole catalogue: DataSF, CDPH (CKAN) and NHSN (data.cdc.gov), every case."""
     import logging
 
+    from bench import faults_cdph, faults_nhsn
+
     logging.basicConfig(level=logging.ERROR)
-    rows = cases_api_rows()
-    results = []
-    for fault in faults():
+    started = time.monotonic()
+    results: list[CaseResult] = []
+    for run in (run_all, faults_cdph.run_all, faults_nhsn.run_all):
         with _scratch() as tmp:
-            result = run_fault(fault, rows, tmp / "data")
-        results.append(result)
-        _print(result)
-    with _scratch() as tmp:  # one filled cache for every command case
-        for command in command_faults():
-            result = run_command_fault(command, tmp)
-            results.append(result)
-            _print(result)
+            results += run(tmp)
+    sources = sorted({r.source for r in results})
     summary = {
-        "cases_tried": len(results),
-        "cases_passed": sum(r.passed for r in results),
-        "bytes_of_good_cache_lost": sum(r.bytes_lost for r in results),
+        **_totals(results),
+        "by_source": {s: _totals([r for r in results if r.source == s]) for s in sources},
+        "by_issue": {str(i): _totals([r for r in results if r.issue == i])
+                     for i in sorted({r.issue for r in results})},
+        "seconds": round(time.monotonic() - started, 1),
         "cases": [asdict(r) for r in results],
         "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
                     "cpus": os.cpu_count()},
@@ -611,7 +785,9 @@ def main() -> int:
     }
     atomic_write_json(RESULT_PATH, summary)
     print(f"cases tried {summary['cases_tried']}, passed {summary['cases_passed']}, bytes of good "
-          f"cache lost {summary['bytes_of_good_cache_lost']} -> {RESULT_PATH}")
+          f"cache lost {summary['bytes_of_good_cache_lost']} ("
+          + ", ".join(f"{s} {t['cases_passed']}/{t['cases_tried']}"
+                      for s, t in summary["by_source"].items()) + f") -> {RESULT_PATH}")
     return 0 if summary["cases_passed"] == summary["cases_tried"] else 1
 
 

@@ -23,12 +23,13 @@ from bench.faults import (FakeDataSF, api_rows, bytes_lost, cache_bytes, client_
                           held_cache_lock, live_request_threads, run_command_fault, with_value)
 from pipeline.cli.output_paths import OutputPathError, output_dir, output_file
 from pipeline.data.cache import DatasetCache
-from pipeline.data.datasf import (CASES, DATASETS, SF_PLAUSIBILITY, DataSFClient,
+from pipeline.data.datasf import (CASES, DATASETS, DataSFClient, check_gate,
                                   UnreachableError)
 from pipeline.data.decoding import (PayloadRejectedError, decode_boundary, decode_csv_frame,
                                     decode_json_records)
 from pipeline.data.payloads import rows_frame
-from pipeline.data.plausibility import ImplausibleCountError, PlausibilityRule, check_plausible
+from pipeline.data.gate import CountBound, GateError, GateRules, Places, gate
+from pipeline.data.plausibility import DAILY
 from pipeline.data.series import SFDataConfig, load_dataset, load_sf_series
 from pipeline.data.validation import validate_frame
 from pipeline.errors import DataSourceError
@@ -104,7 +105,7 @@ def test_malformed_json_falls_back_to_the_untouched_cache(rows, data_dir):
 def test_the_real_series_are_plausible(rows):
     for key, spec in DATASETS.items():
         validated = validate_frame(rows_frame(rows[key]), spec, source=key)
-        check_plausible(validated.frame, spec.count_columns, SF_PLAUSIBILITY, source=key)
+        check_gate(validated.frame, spec, source=key)
 
 
 def test_absurd_count_in_the_open_window_never_replaces_the_cache(rows, data_dir):
@@ -119,8 +120,8 @@ def test_absurd_count_in_the_open_window_never_replaces_the_cache(rows, data_dir
         _, provenance = load_dataset(CASES, config)
         assert provenance.notes[0] == (
             f"DataSF payload rejected, cache kept: {server.url}/resource/gyr2-k29z.json: "
-            f"implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 10% of the "
-            f"population 873,965 in one day; 1 such day(s); refused")
+            f"implausible count 99,999,999 in 'new_cases' on 2022-03-07: more than 5% of the "
+            f"population 873,965 (2020 Census) in one day; refused")
         assert bytes_lost(before, cache_bytes(data_dir)) == 0
         # --accept-revisions does not take it either: no review makes it true.
         _, accepted = load_dataset(CASES, replace(config, accept_revisions=True))
@@ -144,14 +145,16 @@ def test_a_poisoned_cache_is_repaired_by_the_next_correct_fetch_not_held(rows, d
 
 
 def test_history_bound_names_the_day_and_the_bracket():
-    frame = pd.DataFrame({"date": pd.date_range("2021-01-01", periods=40),
+    frame = pd.DataFrame({"place": "X", "date": pd.date_range("2021-01-01", periods=40),
                           "n": [100] * 35 + [30_000] + [100] * 4})
-    with pytest.raises(ImplausibleCountError, match=r"^s: implausible count 30,000 in 'n' on "
-                                                    r"2021-02-05: more than 20× the plausible "
-                                                    r"bracket of the previous 28 day\(s\) "
-                                                    r"\(median 100, largest of the last 7 100, "
-                                                    r"bound 3,000\)"):
-        check_plausible(frame, ["n"], PlausibilityRule(population=1_000_000), source="s")
+    rules = GateRules(source="t", places=Places("place", {"X": 1_000_000}, "a table"),
+                      counts=(CountBound("n", per_day=0.05, per_week=0.10),), jump=DAILY)
+    with pytest.raises(GateError, match=r"^s: implausible count 30,000 in 'n' on "
+                                        r"2021-02-05: more than 20× the plausible "
+                                        r"bracket of the previous 28 day\(s\) "
+                                        r"\(median 100, largest of the last 7 100, "
+                                        r"bound 3,000\); refused"):
+        gate(frame, rules, source="s")
 
 
 # ------------------------------------------------------------------ 3. no configuration at import

@@ -12,18 +12,21 @@ import typer
 from pipeline.cli import app
 from pipeline.cli.output_paths import output_dir, output_file
 from pipeline.data.datasf import SF_POPULATION_2020_CENSUS
-from pipeline.errors import FlowcastError
+from pipeline.errors import ConfigError, FlowcastError
 
 if TYPE_CHECKING:
     from datetime import datetime
 
-    from pipeline.data.cache import DatasetCache
+    from pipeline.data.cache import CacheManifest, CacheSpec, DatasetCache
+    from pipeline.data.hub_import import HubImportSummary
     from pipeline.data.series import SFDataConfig
     from pipeline.data.sir_transform import SIRConversionConfig
 
 data_app = typer.Typer(no_args_is_help=True,
                        help="COVID-19 data: San Francisco from DataSF, California counties from "
-                            "CDPH (data.chhs.ca.gov).")
+                            "CDPH (data.chhs.ca.gov), hospital admissions and ED visits of the "
+                            "US and every state from NHSN/NSSP (data.cdc.gov, or a forecast "
+                            "hub's target data).")
 app.add_typer(data_app, name="data")
 
 TrailingDays = typer.Option(14, "--trailing-days", min=0,
@@ -58,31 +61,49 @@ AcceptRevisions = typer.Option(
 
 @data_app.command("import")
 def import_command(
-    files: list[Path] = typer.Argument(..., exists=True, dir_okay=False,
-                                       help="DataSF CSV exports (rows.csv?accessType=DOWNLOAD) "
-                                            "and/or CDPH covid19cases_test.csv downloads "
-                                            "(told apart by their columns)."),
+    files: list[Path] = typer.Argument(..., exists=True,
+                                       help="DataSF CSV exports (rows.csv?accessType=DOWNLOAD), "
+                                            "CDPH covid19cases_test.csv downloads, a forecast "
+                                            "hub's time-series.parquet or hub folder, or a hub "
+                                            "target CSV (with --target and --as-of); told "
+                                            "apart by their columns."),
     if_empty: bool = typer.Option(False, "--if-empty",
                                   help="Import only datasets the cache does not hold yet or "
                                        "holds damaged (those are repaired)."),
     accept_revisions: bool = AcceptRevisions,
+    target: str | None = typer.Option(None, "--target", metavar="TARGET",
+                                      help="The hub target of a plain target CSV, e.g. "
+                                           "'wk inc covid hosp'."),
+    as_of: str | None = typer.Option(None, "--as-of", metavar="YYYY-MM-DD",
+                                     help="The vintage date of a target CSV (or of a time "
+                                          "series without an as_of column)."),
 ) -> None:
-    """Validate DataSF CSV exports and CDPH county files and put them into the cache
-    ($FLOWCAST_DATA_DIR or ./data). CDPH files are vintages: each is kept, the newest is live."""
+    """Validate downloaded data and put it into the cache ($FLOWCAST_DATA_DIR or ./data). CDPH
+    files and hub target data are vintages: each is kept, the newest is live."""
     from pipeline.data.cache import data_dir
     from pipeline.data.cdph_source import (is_cdph_export, peek_columns, store_cdph_exports,
                                            validate_cdph_exports)
     from pipeline.data.csv_import import import_csv_exports
-    cdph = [f for f in files if is_cdph_export(peek_columns(f))]
-    datasf = [f for f in files if f not in cdph]
+    from pipeline.data.hub_import import is_hub_time_series, is_target_csv
+    hub = [f for f in files if is_hub_time_series(f)]
+    dirs = [f for f in files if f.is_dir() and f not in hub]
+    if dirs:
+        _fail(ValueError(f"{dirs[0]} is a folder without a hub time-series.parquet (give the "
+                         f"files themselves)"))
+    targets = [f for f in files if f not in hub and is_target_csv(peek_columns(f))]
+    cdph = [f for f in files if f not in hub and is_cdph_export(peek_columns(f))]
+    datasf = [f for f in files if f not in (*hub, *targets, *cdph)]
     try:
         checked = validate_cdph_exports(cdph)  # every file is checked before any is stored
+        hub_summaries = _import_nhsn(hub, targets, target, as_of, if_empty, accept_revisions)
         summaries = import_csv_exports(datasf, if_empty=if_empty,
                                        accept_revisions=accept_revisions) if datasf else []
         cdph_summaries = store_cdph_exports(checked, if_empty=if_empty,
                                             accept_revisions=accept_revisions)
     except FlowcastError as exc:
         _fail(exc)
+    for line in (line for h in hub_summaries for line in h.lines()):
+        typer.echo(line)
     for c in cdph_summaries:
         typer.echo(f"{c.action} {c.path.name}: CDPH counties vintage of {c.as_of}, "
                    f"{c.first_date} … {c.as_of}, {c.counties} counties, {c.row_count} rows"
@@ -96,9 +117,23 @@ def import_command(
                    + (f" — {s.note}" if s.note else ""))
         for warning in s.warnings:
             typer.echo(f"  warning: {warning}")
-    for folder, used in (("datasf", datasf), ("chhs", cdph)):
+    for folder, used in (("datasf", datasf), ("chhs", cdph), ("nhsn", [*hub, *targets])):
         if used:
             typer.echo(f"cache: {data_dir().resolve() / folder}")
+
+
+def _import_nhsn(hub: list[Path], targets: list[Path], target: str | None, as_of: str | None,
+                 if_empty: bool, accept_revisions: bool) -> list[HubImportSummary]:
+    from pipeline.data.hub_import import import_hub_time_series, import_target_csv
+    if targets and (target is None or as_of is None):
+        raise ConfigError(f"{targets[0]} is a hub target CSV: give its target and vintage date "
+                          f"(--target 'wk inc covid hosp' --as-of YYYY-MM-DD)")
+    done = [import_hub_time_series(f, as_of=as_of, if_empty=if_empty,
+                                   accept_revisions=accept_revisions) for f in hub]
+    if targets and target is not None and as_of is not None:
+        done += [import_target_csv(f, target=target, as_of=as_of,
+                                   accept_revisions=accept_revisions) for f in targets]
+    return done
 
 
 @data_app.command("fetch")
@@ -113,9 +148,20 @@ def fetch_command(
         help="Socrata app token (sent as X-App-Token, only to the base URL's https host). "
              "Prefer the environment variable: a command line is visible to other users."),
     accept_revisions: bool = AcceptRevisions,
-    source: str = typer.Option("datasf", "--source", metavar="datasf|chhs",
+    source: str = typer.Option("datasf", "--source", metavar="datasf|chhs|nhsn",
                                help="datasf: San Francisco (cases, deaths, tests); chhs: CDPH's "
-                                    "California county file from data.chhs.ca.gov."),
+                                    "California county file from data.chhs.ca.gov; nhsn: weekly "
+                                    "hospital admissions (NHSN) and ED-visit shares (NSSP) of "
+                                    "the US and every state from data.cdc.gov."),
+    disease: str = typer.Option("covid", "--disease", metavar="covid|flu|rsv",
+                                help="--source nhsn: which disease's admissions and ED share."),
+    release: str = typer.Option("official", "--release", metavar="official|preliminary",
+                                help="--source nhsn: NHSN's official (Friday) or preliminary "
+                                     "(Wednesday) release."),
+    nhsn_base_url: str | None = typer.Option(
+        None, "--nhsn-base-url", metavar="URL",
+        help="data.cdc.gov or a mirror (default $FLOWCAST_NHSN_BASE_URL, else "
+             "https://data.cdc.gov); --source nhsn only."),
     chhs_base_url: str | None = typer.Option(
         None, "--chhs-base-url", metavar="URL",
         help="The CHHS portal or a mirror of it (default $FLOWCAST_CHHS_BASE_URL, else "
@@ -123,10 +169,13 @@ def fetch_command(
 ) -> None:
     """Fetch cases, deaths and tests from DataSF, or (--source chhs) the CDPH county file
     (falls back to the cache when offline)."""
-    if source not in ("datasf", "chhs"):
-        _fail(ValueError(f"--source must be datasf or chhs, got {source!r}"))
+    if source not in ("datasf", "chhs", "nhsn"):
+        _fail(ValueError(f"--source must be datasf, chhs or nhsn, got {source!r}"))
     if source == "chhs":
         _fetch_chhs(chhs_base_url, accept_revisions)
+        return
+    if source == "nhsn":
+        _fetch_nhsn(disease, release, nhsn_base_url, accept_revisions)
         return
     from pipeline.data.series import load_sf_series
     try:
@@ -159,6 +208,24 @@ def _fetch_chhs(base_url: str | None, accept_revisions: bool) -> None:
         typer.echo(f"  note: {note}")
 
 
+def _fetch_nhsn(disease: str, release: str, base_url: str | None,
+                accept_revisions: bool) -> None:
+    from pipeline.data.nhsn import NHSNClientConfig, NHSNConfig, load_nhsn
+    try:
+        loaded = load_nhsn(NHSNConfig(disease=disease, release=release,  # type: ignore[arg-type]
+                                      client=NHSNClientConfig(base_url=base_url),
+                                      accept_revisions=accept_revisions))
+    except FlowcastError as exc:
+        _fail(exc)
+    for target, p in loaded.provenance.items():
+        where = f"cache (fetched {p.stale_days:.0f} days ago)" if p.from_cache else "data.cdc.gov"
+        v = loaded[target]
+        typer.echo(f"{target} from {where}: vintage of {p.as_of}, {len(v.locations)} locations, "
+                   f"weeks {p.first_week} … {p.last_week}")
+        for note in p.notes:
+            typer.echo(f"  note: {note}")
+
+
 @data_app.command("status")
 def status_command() -> None:
     """What the cache holds and how old it is."""
@@ -168,10 +235,8 @@ def status_command() -> None:
     typer.echo(f"cache: {cache.root.resolve() / 'datasf'}")
     now = utc_now()
     for spec in DATASETS.values():
-        try:
-            manifest = cache.read_manifest(spec)
-        except FlowcastError as exc:
-            typer.echo(f"{spec.key} ({spec.dataset_id}): {exc}")
+        readable, manifest = _manifest(cache, spec, f"{spec.key} ({spec.dataset_id})")
+        if not readable:
             continue
         if manifest is None:
             typer.echo(f"{spec.key} ({spec.dataset_id}): not cached — `flowcast data fetch` or "
@@ -188,16 +253,25 @@ def status_command() -> None:
             typer.echo(f"  {len(held)} payload(s) held for review in "
                        f"{cache.directory(spec) / 'held'}")
     _status_chhs(cache, now)
+    _status_nhsn(cache, now)
+
+
+def _manifest(cache: DatasetCache, spec: CacheSpec, label: str
+              ) -> tuple[bool, CacheManifest | None]:
+    """(readable, the manifest or None when nothing is cached); a damaged one is said."""
+    try:
+        return True, cache.read_manifest(spec)
+    except FlowcastError as exc:
+        typer.echo(f"{label}: {exc}")
+        return False, None
 
 
 def _status_chhs(cache: DatasetCache, now: datetime) -> None:
     from pipeline.data.cdph_source import SPEC, vintages_dir
     label = f"{SPEC.key} ({SPEC.dataset_id})"
     typer.echo(f"cache: {cache.root.resolve() / SPEC.cache_folder}")
-    try:
-        manifest = cache.read_manifest(SPEC)
-    except FlowcastError as exc:
-        typer.echo(f"{label}: {exc}")
+    readable, manifest = _manifest(cache, SPEC, label)
+    if not readable:
         return
     if manifest is None:
         typer.echo(f"{label}: not cached — `flowcast data fetch --source chhs` or "
@@ -214,6 +288,30 @@ def _status_chhs(cache: DatasetCache, now: datetime) -> None:
     if held:
         typer.echo(f"  {len(held)} payload(s) held for review in "
                    f"{cache.directory(SPEC) / 'held'}")
+
+
+def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
+    from pipeline.data.nhsn_vintages import CACHE_FOLDER, TARGETS, held_count, vintages_folder
+    from pipeline.data.vintages import VintageArchive
+    typer.echo(f"cache: {cache.root.resolve() / CACHE_FOLDER}")
+    if not any(cache.has(spec) for spec in TARGETS.values()):
+        typer.echo("NHSN: not cached — `flowcast data fetch --source nhsn` or `flowcast data "
+                   "import <hub folder or time-series.parquet>`")
+    for target, spec in TARGETS.items():
+        readable, manifest = _manifest(cache, spec, target)
+        if manifest is None:
+            continue
+        dates = [str(d) for d, _ in VintageArchive(cache, spec).listing()]
+        typer.echo(f"{target}: {manifest.source_kind} {manifest.source}; live vintage of "
+                   f"{manifest.data_as_of}, weeks {manifest.first_date} … {manifest.last_date}; "
+                   f"fetched {manifest.fetched_at} ({manifest.age_days(now):.1f} days ago); "
+                   f"{len(dates)} vintage(s) kept"
+                   + (f" ({dates[0]} … {dates[-1]})" if dates else "")
+                   + f" in {vintages_folder(target, cache.root)}")
+        held = held_count(target, cache.root)
+        if held:
+            typer.echo(f"  {held} payload(s) held for review in "
+                       f"{cache.directory(spec) / 'held'}")
 
 
 @data_app.command("counties")

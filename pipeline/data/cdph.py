@@ -18,28 +18,38 @@ A county's series becomes an :class:`~pipeline.panels.history.EpiHistory` with t
 S/I/R conversion (:func:`pipeline.data.sir_transform.sir_counts`: a case is infectious for 7 days,
 then removed; deaths are removals), on the county's own population.
 
-Parsing is strict and every problem is a :class:`CDPHFormatError` naming the column, row and
-value: a missing column, an unparseable date, a fractional count or a negative one (allowed
-only in ``reported_cases``, where CDPH books corrections) on a dated row of a real county, a county with a gap or a duplicate day. Empty counts on the last day (CDPH leaves
+Parsing is in two steps. The file itself must be CDPH's (readable as CSV, the required columns,
+dated county rows): anything else is a :class:`CDPHFormatError` naming the problem, and the
+payload is refused. Every county's rows then pass the validation gate every source shares
+(:mod:`pipeline.data.gate`, :data:`CDPH_GATE`): counts finite, whole, not negative (except
+``reported_cases``, where CDPH books corrections), within a share of the county's 2020 Census
+population a day and a week and plausible against the county's own history, the county one of
+the 58, its reported population within 25 % of the census figure, its days readable, one row each,
+no gap, ending on the file's last day. A county that fails is **skipped** and named in
+:attr:`CDPHVintage.skipped`; the others are kept. Empty counts on the last day (CDPH leaves
 tests empty there) read as 0 for ``cases``/``deaths``/``reported_cases`` only on the vintage's
-last date, where they mean "nothing reported yet"; anywhere else they are an error.
+last date, where they mean "nothing reported yet".
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import io
+import json
 import os
 import zipfile
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.data.california import COUNTY_POPULATION_2020
 from pipeline.data.decoding import PayloadRejectedError, decode_boundary
+from pipeline.data.gate import (GateRules, Places, cases_bound, deaths_bound, gate)
+from pipeline.data.plausibility import DAILY
 from pipeline.data.sir_transform import DEFAULT_INFECTIOUS_PERIOD_DAYS, proportions, sir_counts
 from pipeline.errors import ValidationError
 from pipeline.io import atomic_write_bytes
@@ -48,10 +58,16 @@ COUNTY = "County"
 REQUIRED_COLUMNS: tuple[str, ...] = ("date", "area", "area_type", "population", "cases",
                                      "deaths", "reported_cases")
 COUNT_COLUMNS: tuple[str, ...] = ("cases", "deaths", "reported_cases")
-CORRECTED_BY_NEGATIVE_COUNTS: frozenset[str] = frozenset({"reported_cases"})
 NOT_COUNTIES: frozenset[str] = frozenset({"Unknown", "Out of state"})
 DATE_FORMATS: tuple[str, ...] = ("%Y-%m-%d", "%m/%d/%Y")
 CALIFORNIA_COUNTIES = 58
+CDPH_GATE = GateRules(
+    source="CDPH", places=Places("California county", COUNTY_POPULATION_2020, "2020 Census"),
+    # CDPH books corrections as negative counts on the report date (down to -5,064 in a day),
+    # never on episode or death dates
+    counts=(cases_bound("cases"), deaths_bound("deaths"),
+            cases_bound("reported_cases", negative_ok=True)),
+    step_days=1, jump=DAILY, population_column="population")
 
 
 class CDPHFormatError(ValidationError):
@@ -85,6 +101,7 @@ class CDPHVintage:
     frame: pd.DataFrame      # date, area, population, cases, deaths, reported_cases (counties)
     as_of: pd.Timestamp
     source: str
+    skipped: Mapping[str, str] = field(default_factory=dict)  # county -> why the gate dropped it
 
     @property
     def counties(self) -> tuple[str, ...]:
@@ -100,6 +117,9 @@ class CDPHVintage:
 
     def county(self, area: str) -> CountySeries:
         rows = self.frame[self.frame["area"] == area]
+        if rows.empty and area in self.skipped:
+            raise CDPHFormatError(f"{area} is skipped in the CDPH vintage of {self.as_of.date()} "
+                                  f"({self.source}): {self.skipped[area]}")
         if rows.empty:
             close = [c for c in self.counties if c.lower() == area.strip().lower()]
             hint = f"; did you mean {close[0]!r}?" if close else \
@@ -117,61 +137,19 @@ class CDPHVintage:
 # ------------------------------------------------------------------------------------ parsing
 
 
-def _parse_dates(values: pd.Series, source: str) -> pd.Series:
+def _parse_dates(values: pd.Series) -> pd.Series:
+    """The dates in the format most of them are in (the file has one); NaT where a date does not
+    parse (the gate skips its county, named)."""
     text = values.astype("string").str.strip()
-    for fmt in DATE_FORMATS:
-        parsed = pd.to_datetime(text, format=fmt, errors="coerce")
-        if parsed.notna().all():
-            return parsed.dt.normalize()
-    best = max((pd.to_datetime(text, format=f, errors="coerce") for f in DATE_FORMATS),
-               key=lambda p: int(p.notna().sum()))
-    bad = int(np.flatnonzero(best.isna().to_numpy())[0])
-    raise CDPHFormatError(f"{source}: date {text.iloc[bad]!r} on data row {bad + 1} is neither "
-                          "YYYY-MM-DD nor M/D/YYYY")
-
-
-def _parse_counts(frame: pd.DataFrame, column: str, last_date: pd.Timestamp,
-                  source: str) -> NDArray[np.int64]:
-    # CDPH books corrections as negative counts on the report date (down to -5,064 in a day),
-    # never on episode or death dates
-    may_be_negative = column in CORRECTED_BY_NEGATIVE_COUNTS
-    values = pd.to_numeric(frame[column], errors="coerce").to_numpy(np.float64)
-    raw = frame[column].astype("string")
-    unparseable = np.isnan(values) & raw.notna().to_numpy() & (raw.str.strip() != "").to_numpy()
-    missing = np.isnan(values) & ~unparseable
-    allowed_missing = (frame["date"] == last_date).to_numpy()
-    problems = [("not a number", unparseable), ("empty", missing & ~allowed_missing),
-                ("negative", (values < 0) & (not may_be_negative)), ("not a whole number",
-                                            np.isfinite(values) & (values != np.round(values)))]
-    for what, mask in problems:
-        if mask.any():
-            i = int(np.flatnonzero(mask)[0])
-            row = frame.iloc[i]
-            raise CDPHFormatError(f"{source}: {column} is {what} ({raw.iloc[i]!r}) for "
-                                  f"{row['area']} on {pd.Timestamp(row['date']).date()}")
-    return np.nan_to_num(values, nan=0.0).astype(np.int64)
-
-
-def _check_days(frame: pd.DataFrame, source: str) -> None:
-    """Each county: no duplicate day, no gap, the same last day as the vintage."""
-    last = frame["date"].max()
-    for area, dates in frame.groupby("area", sort=True)["date"]:
-        steps = np.diff(dates.to_numpy(dtype="datetime64[D]").astype(np.int64))
-        if (steps != 1).any():
-            k = int(np.flatnonzero(steps != 1)[0])
-            what = "a duplicate" if steps[k] == 0 else f"a gap of {int(steps[k]) - 1} days"
-            raise CDPHFormatError(f"{source}: {area} has {what} after "
-                                  f"{pd.Timestamp(dates.iloc[k]).date()}")
-        if dates.iloc[-1] != last:
-            raise CDPHFormatError(f"{source}: {area} ends on {pd.Timestamp(dates.iloc[-1]).date()}"
-                                  f", the file on {pd.Timestamp(last).date()}")
+    return max((pd.to_datetime(text, format=f, errors="coerce") for f in DATE_FORMATS),
+               key=lambda p: int(p.notna().sum())).dt.normalize()
 
 
 # Parsed vintages by the bytes' hash: a weekly run reads the same cached vintage in several steps
 # (reference counties, nowcast, county skill); parsing a 4 MB file takes most of a second.
 _PARSED: dict[str, CDPHVintage] = {}
 _PARSED_LIMIT = 16
-PARSED_FORMAT = "flowcast-cdph-parsed-1"
+PARSED_FORMAT = f"flowcast-cdph-parsed-2-{CDPH_GATE.fingerprint()}"
 
 
 def parse_cdph_csv(data: bytes, source: str, parsed_dir: Path | None = None) -> CDPHVintage:
@@ -199,6 +177,7 @@ def _write_parsed(path: Path, vintage: CDPHVintage) -> None:
              as_of=np.array(vintage.as_of.value), areas=areas, area_codes=codes,
              date=vintage.frame["date"].to_numpy("datetime64[ns]").astype(np.int64),
              population=vintage.frame["population"].to_numpy(np.int64),
+             skipped=np.array(json.dumps(dict(vintage.skipped))),
              **{c: vintage.frame[c].to_numpy(np.int64) for c in COUNT_COLUMNS})
     try:
         atomic_write_bytes(path, buffer.getvalue())
@@ -218,9 +197,10 @@ def _read_parsed(path: Path) -> CDPHVintage | None:
                                   "population": npz["population"],
                                   **{c: npz[c] for c in COUNT_COLUMNS}})
             as_of = pd.Timestamp(int(npz["as_of"]))
+            skipped = json.loads(str(npz["skipped"]))
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
-    return CDPHVintage(frame=frame, as_of=as_of, source=str(path))
+    return CDPHVintage(frame=frame, as_of=as_of, source=str(path), skipped=skipped)
 
 
 def _parse(data: bytes, source: str) -> CDPHVintage:
@@ -234,22 +214,25 @@ def _parse(data: bytes, source: str) -> CDPHVintage:
         raise CDPHFormatError(f"{source}: missing column(s) {missing}; columns present: "
                               f"{list(raw.columns)[:20]} (is this CDPH's covid19cases_test.csv?)")
     dated = raw[(raw["date"].str.strip() != "") & (raw["area_type"] == COUNTY)
-                & ~raw["area"].isin(list(NOT_COUNTIES))].copy()
+                & ~raw["area"].isin(list(NOT_COUNTIES))]
     if dated.empty:
         raise CDPHFormatError(f"{source}: no dated county rows")
-    dated["date"] = _parse_dates(dated["date"], source)
-    dated = dated.sort_values(["area", "date"], kind="stable").reset_index(drop=True)
-    last = dated["date"].max()
-    population = pd.to_numeric(dated["population"], errors="coerce")
-    if population.isna().any() or (population <= 0).any():
-        bad = dated.loc[population.isna() | (population <= 0), "area"].iloc[0]
-        raise CDPHFormatError(f"{source}: {bad} has no positive population")
-    frame = pd.DataFrame({"date": dated["date"], "area": dated["area"].astype(str),
-                          "population": population.round().astype(np.int64)})
-    for column in COUNT_COLUMNS:
-        frame[column] = _parse_counts(dated, column, last, source)
-    _check_days(frame, source)
-    return CDPHVintage(frame=frame, as_of=pd.Timestamp(last), source=source)
+    rows = pd.DataFrame({"place": dated["area"].str.strip(), "date": _parse_dates(dated["date"]),
+                         "population": dated["population"],
+                         **{c: dated[c] for c in COUNT_COLUMNS}})
+    last = rows["date"].max()
+    if pd.isna(last):
+        raise CDPHFormatError(f"{source}: no date is YYYY-MM-DD or M/D/YYYY")
+    on_last = (rows["date"] == last).to_numpy()
+    for column in COUNT_COLUMNS:   # nothing reported yet on the vintage's last day
+        empty = on_last & (rows[column].str.strip() == "").to_numpy()
+        rows.loc[empty, column] = "0"
+    gated = gate(rows, CDPH_GATE, source=source)
+    frame = gated.frame.rename(columns={"place": "area"})[
+        ["date", "area", "population", *COUNT_COLUMNS]]
+    frame["area"] = frame["area"].astype(object)
+    return CDPHVintage(frame=frame, as_of=pd.Timestamp(last), source=source,
+                       skipped=gated.skipped)
 
 
 def read_cdph_csv(path: str | os.PathLike[str]) -> CDPHVintage:

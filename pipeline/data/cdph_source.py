@@ -2,10 +2,11 @@
 
 Flow of one vintage (a download of ``covid19cases_test.csv``, live or imported)::
 
-    bytes -> parse_cdph_csv (strict, pipeline.data.cdph)
-          -> plausibility (pipeline.data.plausibility)
-          -> DatasetCache.store under the lock, whose check runs the revision policy against the
-             live copy -> manifest swapped; the bytes also kept in vintages/
+    bytes -> parse_cdph_csv (pipeline.data.cdph: the file must be CDPH's; every county through
+             the validation gate, pipeline.data.gate: a county that fails is skipped, named)
+          -> VintageArchive.commit (pipeline.data.vintages) under the dataset's lock: an older
+             vintage is archived (imports) or refused (live); else the revision policy against
+             the live copy -> manifest swapped; the bytes also kept in vintages/
 
 Cache layout (``<data dir>/chhs/covid-19-time-series-metrics-by-county-and-state/``; the
 transactional store of :mod:`pipeline.data.cache`)::
@@ -28,8 +29,10 @@ Measured on the six real vintages: weekly successors revise settled days by at m
 (none beyond the tolerance); the four-month step 2021-04-28 → 2021-09-06 revises one settled day
 beyond it (Los Angeles 2020-06-21, 1,043 → 1,573 cases), so it is held unless accepted.
 
-Plausibility (before any commit, a rejection, not a hold): every county's daily counts against its
-own previous 28 days and its population.
+The validation gate runs before any commit and on every read of a cached vintage: a county that
+fails it is skipped and named (``CDPHVintage.skipped``, and a note on the provenance), the other
+counties are used. A held cache lock (another run stuck mid-commit) falls back to the cache like
+an unreachable portal (:mod:`pipeline.data.fallback`).
 """
 from __future__ import annotations
 
@@ -37,8 +40,7 @@ import contextlib
 import csv
 import logging
 import os
-import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import date, datetime
 from pathlib import Path
@@ -47,21 +49,18 @@ import numpy as np
 import pandas as pd
 import requests
 
-from pipeline.data.cache import (CacheDamagedError, CachedPayload, CacheManifest, DatasetCache,
-                                 SourceKind, utc_now)
+from pipeline.data.cache import CachedPayload, CacheManifest, DatasetCache, SourceKind, utc_now
 from pipeline.data.cdph import COUNT_COLUMNS, CDPHFormatError, CDPHVintage, parse_cdph_csv
 from pipeline.data.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient, CHHSClientConfig,
-                                CHHSNetworkError, CKANResourceSpec)
-from pipeline.data.plausibility import PlausibilityRule, check_plausible as check_counts
+                                CKANResourceSpec)
+from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.revisions import RevisionRefusedError
+from pipeline.data.vintages import Committed, VintageArchive
 from pipeline.errors import DataSourceError, OfflineError, ValidationError
-from pipeline.io import atomic_write_bytes, sha256_bytes
 
 log = logging.getLogger(__name__)
 
-VINTAGES_DIR = "vintages"
 PARSED_DIR = "parsed"         # in vintages/: each parsed vintage, by its bytes' hash
-_VINTAGE_RE = re.compile(r"^(\d{4}-\d{2}-\d{2})-([0-9a-f]{16})\.csv$")
 SPEC: CKANResourceSpec = CDPH_COUNTIES
 _IMPORT_HINT = (f"import a downloaded covid19cases_test.csv ({SPEC.download_url()}) with "
                 f"`flowcast data import FILE`")
@@ -87,6 +86,7 @@ class CDPHConfig:
     data_dir: Path | None = None          # None -> $FLOWCAST_DATA_DIR or ./data
     accept_revisions: bool = False        # take a payload the revision policy would hold
     policy: CDPHRevisionPolicy = DEFAULT_POLICY
+    lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S  # then the fetched payload is dropped
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,7 @@ class CDPHProvenance:
     stale_days: float       # age of the cached copy when it was used; 0 for a live fetch
     final_url: str | None = None
     notes: tuple[str, ...] = ()
+    skipped: Mapping[str, str] = field(default_factory=dict)  # county -> why the gate dropped it
 
 
 @dataclass(frozen=True)
@@ -128,19 +129,11 @@ def is_cdph_export(columns: Sequence[str]) -> bool:
     return {"area", "area_type"} <= names
 
 
-def check_plausible(vintage: CDPHVintage) -> None:
-    """Every county's daily counts against its recent history and population
-    (:mod:`pipeline.data.plausibility`, the rule every source shares)."""
-    for area, rows in vintage.frame.groupby("area", sort=True):
-        rule = PlausibilityRule(population=int(rows["population"].iloc[0]))
-        check_counts(rows, COUNT_COLUMNS, rule, source=f"{vintage.source} ({area})")
-
-
 def validate_cdph_payload(data: bytes, source: str) -> CDPHVintage:
-    """Parse strictly and check plausibility; raises a named :class:`ValidationError`."""
-    vintage = parse_cdph_csv(data, source)
-    check_plausible(vintage)
-    return vintage
+    """Parse (the file must be CDPH's) and gate every county (:mod:`pipeline.data.cdph`); a
+    county that fails the gate is skipped, named; a file that is not CDPH's, or that no county
+    passes, raises a named :class:`ValidationError`."""
+    return parse_cdph_csv(data, source)
 
 
 # ---------------------------------------------------------------------------- revision policy
@@ -159,12 +152,19 @@ def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
         raise RevisionRefusedError(
             f"{key}: date range shrinks: new vintage starts {new_first.date()}, the cached copy "
             f"{old_first.date()}; cached copy kept")
-    dropped = sorted(set(cached.counties) - set(new.counties))
+    # a county the gate skipped in the new vintage is there, only not usable: not "dropped"
+    dropped = sorted(set(cached.counties) - set(new.counties) - set(new.skipped))
     if dropped:
         raise RevisionRefusedError(
             f"{key}: county dropped: {', '.join(dropped)} in the cached vintage of "
             f"{cached.as_of.date()} but not in the new one ({len(new.counties)} counties); "
             f"cached copy kept")
+    worse = sorted(set(cached.counties) & set(new.skipped))
+    if worse and new.as_of == cached.as_of:
+        raise RevisionRefusedError(
+            f"{key}: {worse[0]} passes the validation gate in the cached vintage of "
+            f"{cached.as_of.date()} but fails it in a new payload of the same date "
+            f"({new.skipped[worse[0]]}); cached copy kept")
     columns = list(policy.columns)
     common = cached.frame.merge(new.frame, on=["area", "date"], suffixes=("", "_new"))
     settled_until = cached.as_of - pd.Timedelta(days=policy.open_days)
@@ -200,11 +200,14 @@ def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | N
 
 def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
                    source_kind: SourceKind, source: str, final_url: str | None = None,
-                   accept_revisions: bool = False,
-                   policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> CacheManifest:
-    """Store an already validated vintage as the live copy (under the cache lock, after the
-    revision check against the live copy), and keep it in ``vintages/``. A vintage the policy
-    refuses is held for review (the error names where) and the cache is unchanged."""
+                   accept_revisions: bool = False, older: str = "refuse",
+                   policy: CDPHRevisionPolicy = DEFAULT_POLICY,
+                   lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S) -> Committed:
+    """Store an already validated vintage (:meth:`VintageArchive.commit`, under the cache lock):
+    live if the revision policy allows it against the live copy; older than the live one,
+    archived (``older="archive"``, imports) or refused (``"refuse"``, a live portal going
+    back). A vintage the policy refuses is held for review (the error names where) and the cache
+    is unchanged."""
     def check(live: CachedPayload | None) -> None:
         if live is None or accept_revisions:
             return
@@ -213,24 +216,23 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
             check_cdph_successor(vintage, cached, policy)
 
     frame = vintage.frame
-    try:
-        manifest = cache.store(
-            SPEC, payload, suffix="csv", source_kind=source_kind, source=source,
-            row_count=len(frame), first_date=str(frame["date"].min().date()),
-            last_date=str(vintage.as_of.date()), data_as_of=None, final_cumulative=None,
-            final_url=final_url, check=check)
-    except RevisionRefusedError as exc:
-        if not exc.hold:
-            raise
-        held = cache.hold(SPEC, payload, suffix="csv", reason=str(exc))
-        raise RevisionRefusedError(f"{exc} (payload held in {held}; after review accept it "
-                                   "with `flowcast data fetch --source chhs --accept-revisions` (or `flowcast data import --accept-revisions FILE`))", hold=True) from exc
-    archive_vintage(cache, vintage, payload)
-    return manifest
+    return archive(cache).commit(
+        payload, as_of=vintage.as_of.date(), suffix="csv",
+        older="archive" if older == "archive" and not accept_revisions else "refuse",
+        check=check, accept_hint="`flowcast data fetch --source chhs --accept-revisions` (or "
+                                 "`flowcast data import --accept-revisions FILE`)",
+        source_kind=source_kind, source=source, row_count=len(frame),
+        first_date=str(frame["date"].min().date()), last_date=str(vintage.as_of.date()),
+        data_as_of=None, final_cumulative=None, final_url=final_url,
+        lock_timeout_s=lock_timeout_s)
+
+
+def archive(cache: DatasetCache) -> VintageArchive:
+    return VintageArchive(cache, SPEC)
 
 
 def vintages_dir(cache: DatasetCache) -> Path:
-    return cache.directory(SPEC) / VINTAGES_DIR
+    return archive(cache).folder
 
 
 def parse_cached(cache: DatasetCache, data: bytes, source: str) -> CDPHVintage:
@@ -238,36 +240,33 @@ def parse_cached(cache: DatasetCache, data: bytes, source: str) -> CDPHVintage:
     return parse_cdph_csv(data, source, parsed_dir=vintages_dir(cache) / PARSED_DIR)
 
 
-def archive_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes) -> Path:
-    """Keep ``payload`` as ``vintages/<as-of>-<sha16>.csv`` (content-addressed, immutable: a
-    writer of the same bytes writes the same file, so no lock is needed)."""
-    digest = sha256_bytes(payload)
-    path = vintages_dir(cache) / f"{vintage.as_of.date()}-{digest[:16]}.csv"
-    if not (path.is_file() and sha256_bytes(path.read_bytes()) == digest):
-        atomic_write_bytes(path, payload)
-    return path
+def skipped_note(vintage: CDPHVintage) -> tuple[str, ...]:
+    """The provenance note naming the counties the gate skipped (none: no note)."""
+    if not vintage.skipped:
+        return ()
+    return (f"validation gate skipped {len(vintage.skipped)} county(ies) of the vintage of "
+            f"{vintage.as_of.date()}: " + "; ".join(vintage.skipped.values()),)
 
 
 # ---------------------------------------------------------------------------- loading
 
 
-def _provenance(manifest: CacheManifest, *, from_cache: bool, stale_days: float,
-                notes: tuple[str, ...]) -> CDPHProvenance:
+def _provenance(manifest: CacheManifest, vintage: CDPHVintage, *, from_cache: bool,
+                stale_days: float, notes: tuple[str, ...]) -> CDPHProvenance:
     return CDPHProvenance(
         dataset_key=manifest.dataset_key, dataset_id=manifest.dataset_id,
         source_kind=manifest.source_kind, source=manifest.source,
         fetched_at=manifest.fetched_at, sha256=manifest.sha256, row_count=manifest.row_count,
         first_date=manifest.first_date, last_date=manifest.last_date, from_cache=from_cache,
-        stale_days=stale_days, final_url=manifest.final_url, notes=notes)
+        stale_days=stale_days, final_url=manifest.final_url,
+        notes=notes + skipped_note(vintage), skipped=dict(vintage.skipped))
 
 
 def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad:
     cached = cache.load(SPEC)
     if cached is None:
-        reason = f" ({why})" if why else ""
-        raise OfflineError(f"no cached CDPH county data in {cache.directory(SPEC)}{reason}. "
-                           f"Fetch it with `flowcast data fetch --source chhs` when online, or "
-                           f"{_IMPORT_HINT}.")
+        raise no_cache_error("CDPH county data", cache.directory(SPEC), why,
+                             fetch="flowcast data fetch --source chhs", otherwise=_IMPORT_HINT)
     vintage = parse_cached(cache, cached.payload, str(cached.path))
     stale = cached.manifest.age_days(now)
     data_age = (now.date() - date.fromisoformat(cached.manifest.last_date[:10])).days
@@ -275,8 +274,8 @@ def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad
         f"using cache, fetched {stale:.0f} days ago (its last day, {cached.manifest.last_date}, "
         f"is {data_age} days before today)",)
     log.warning("CDPH counties: %s", "; ".join(notes))
-    return CDPHLoad(vintage, _provenance(cached.manifest, from_cache=True, stale_days=stale,
-                                         notes=notes))
+    return CDPHLoad(vintage, _provenance(cached.manifest, vintage, from_cache=True,
+                                         stale_days=stale, notes=notes))
 
 
 def _fetch_live(cache: DatasetCache, config: CDPHConfig, session: requests.Session | None,
@@ -287,13 +286,15 @@ def _fetch_live(cache: DatasetCache, config: CDPHConfig, session: requests.Sessi
     if vintage.as_of > pd.Timestamp(now.date()) + pd.Timedelta(days=1):
         raise ValidationError(f"{fetched.final_url}: last date {vintage.as_of.date()} is after "
                               f"today ({now.date()}); refused")
-    manifest = commit_vintage(cache, vintage, fetched.payload, source_kind="api", source=source,
-                              final_url=fetched.final_url,
-                              accept_revisions=config.accept_revisions, policy=config.policy)
+    committed = commit_vintage(cache, vintage, fetched.payload, source_kind="api",
+                               source=source, final_url=fetched.final_url,
+                               accept_revisions=config.accept_revisions, policy=config.policy,
+                               lock_timeout_s=config.lock_timeout_s)
+    assert committed.manifest is not None  # older="refuse": live or refused, never archived
     notes = (f"CKAN resource {fetched.resource.id or fetched.resource.name}, last modified "
              f"{fetched.resource.last_modified or 'unknown'}",)
-    return CDPHLoad(vintage, _provenance(manifest, from_cache=False, stale_days=0.0,
-                                         notes=notes))
+    return CDPHLoad(vintage, _provenance(committed.manifest, vintage, from_cache=False,
+                                         stale_days=0.0, notes=notes))
 
 
 def load_cdph(config: CDPHConfig | None = None, *, offline: bool = False,
@@ -310,17 +311,11 @@ def load_cdph(config: CDPHConfig | None = None, *, offline: bool = False,
     cache = DatasetCache.default(config.data_dir)
     if offline:
         return _from_cache(cache, now, why=None)
-    try:
-        return _fetch_live(cache, config, session, now)
-    except CHHSNetworkError as exc:
-        why = f"CHHS portal unreachable: {exc}"
-        if not cache.has(SPEC):
-            raise OfflineError(f"{why}; and no cached CDPH county data: {_IMPORT_HINT}") from exc
-    except DataSourceError as exc:  # a bad payload, 4xx, a refused redirect or revision
-        why = f"CDPH payload rejected, cache kept: {exc}"
-        if not cache.has(SPEC):
-            raise
-    return _from_cache(cache, now, why=why)
+    live = live_or_cache(lambda: _fetch_live(cache, config, session, now), source="CHHS portal",
+                         has_cache=lambda: cache.has(SPEC))
+    if live.value is not None:
+        return live.value
+    return _from_cache(cache, now, why=live.why)
 
 
 def load_cdph_vintage(config: CDPHConfig | None = None, *, offline: bool = False,
@@ -331,30 +326,20 @@ def load_cdph_vintage(config: CDPHConfig | None = None, *, offline: bool = False
 
 
 def cached_vintages(data_dir: str | os.PathLike[str] | None = None) -> list[CDPHVintage]:
-    """Every vintage the cache holds, oldest first (one per as-of date: the last written).
+    """Every vintage the cache holds, oldest first (one per as-of date: the last written), each
+    through the validation gate (its skipped counties named on it).
 
     Each file's sha256 must match the prefix in its name (a damaged file is a
-    :class:`CacheDamagedError`). A cache filled before ``vintages/`` existed still yields its
-    live copy."""
+    :class:`~pipeline.data.cache.CacheDamagedError`). A cache filled before ``vintages/``
+    existed still yields its live copy."""
     cache = DatasetCache.default(data_dir)
-    chosen: dict[str, tuple[Path, str]] = {}
-    folder = vintages_dir(cache)
-    files = sorted(folder.glob("*.csv"), key=lambda p: (p.name[:10], p.stat().st_mtime)) \
-        if folder.is_dir() else []
-    for path in files:
-        match = _VINTAGE_RE.match(path.name)
-        if match:
-            chosen[match.group(1)] = (path, match.group(2))
+    kept = archive(cache)
     vintages: list[CDPHVintage] = []
-    for as_of, (path, digest) in sorted(chosen.items()):
-        data = path.read_bytes()
-        if not sha256_bytes(data).startswith(digest):
-            raise CacheDamagedError(f"cached CDPH vintage {path} does not match the hash in its "
-                                    f"name (damaged); delete it or re-import that download")
-        vintage = parse_cached(cache, data, str(path))
-        if str(vintage.as_of.date()) != as_of:
-            raise CacheDamagedError(f"cached CDPH vintage {path} ends {vintage.as_of.date()}, "
-                                    f"not on the date in its name")
+    for as_of, path in kept.listing():
+        vintage = parse_cached(cache, kept.read(path), str(path))
+        if vintage.as_of.date() != as_of:
+            raise CDPHFormatError(f"cached CDPH vintage {path} ends {vintage.as_of.date()}, not "
+                                  f"on the date in its name")
         vintages.append(vintage)
     if not vintages:
         live = cache.load(SPEC)
@@ -435,24 +420,24 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
                 and _cached_vintage(held_before, cache) is not None)
     for path, vintage, data in ((c.path, c.vintage, c.payload)
                                 for c in sorted(checked, key=lambda c: c.vintage.as_of)):
-        live, damage = cache.load_or_damage(SPEC)
-        live_vintage = _cached_vintage(live, cache) if live is not None else None
         note, action = "", "imported"
         if skip_all:
             action, note = "skipped", "cache already holds CDPH county data (--if-empty)"
-        elif live_vintage is not None and vintage.as_of < live_vintage.as_of \
-                and not accept_revisions:
-            archive_vintage(cache, vintage, data)
-            action = "archived"
-            note = (f"older than the live vintage of {live_vintage.as_of.date()}: kept in "
-                    f"{vintages_dir(cache)}, live copy unchanged")
         else:
-            commit_vintage(cache, vintage, data, source_kind="csv-import",
-                           source=str(path.resolve()),
-                           accept_revisions=accept_revisions or damage is not None
-                           or live_vintage is None, policy=policy)
-            if damage:
+            damage = cache.load_or_damage(SPEC)[1]
+            # older than the live vintage -> archived, decided under the lock (concurrent
+            # importers of older and newer vintages both end where they belong)
+            committed = commit_vintage(cache, vintage, data, source_kind="csv-import",
+                                       source=str(path.resolve()), older="archive",
+                                       accept_revisions=accept_revisions, policy=policy)
+            if committed.action == "archived":
+                action = "archived"
+                note = (f"older than the live vintage of {committed.live_as_of}: kept in "
+                        f"{vintages_dir(cache)}, live copy unchanged")
+            elif damage:
                 note = f"repaired a damaged cache: {damage}"
+        if vintage.skipped:
+            note = "; ".join(filter(None, (note, *skipped_note(vintage))))
         frame = vintage.frame
         summaries.append(CDPHImportSummary(
             path=path, as_of=str(vintage.as_of.date()), first_date=str(frame["date"].min().date()),
@@ -462,6 +447,6 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
 
 __all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance",
            "CDPHRevisionPolicy", "CheckedExport", "cached_vintages", "check_cdph_successor",
-           "check_plausible", "commit_vintage", "import_cdph_exports", "is_cdph_export",
+           "commit_vintage", "import_cdph_exports", "is_cdph_export",
            "load_cdph", "load_cdph_vintage", "store_cdph_exports", "validate_cdph_exports",
            "validate_cdph_payload"]

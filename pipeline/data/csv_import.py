@@ -23,10 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.data.cache import DatasetCache
-from pipeline.data.datasf import DATASETS, SF_PLAUSIBILITY, DatasetSpec
+from pipeline.data.datasf import DATASETS, DatasetSpec, check_gate
 from pipeline.data.decoding import decode_boundary
 from pipeline.data.payloads import decode_cached, read_csv_bytes
-from pipeline.data.plausibility import check_plausible
 from pipeline.data.revisions import commit_validated
 from pipeline.data.validation import (GapPolicy, ValidatedFrame, find_column,
                                       column_match_count, validate_frame)
@@ -93,7 +92,7 @@ def validate_csv_export(path: str | os.PathLike[str], *,
     with decode_boundary("CSV export", str(path), len(data)):
         validated = validate_frame(raw, spec, source=str(path), gap_policy=gap_policy)
     # Here, not only at commit: every file passes every check before any is stored.
-    check_plausible(validated.frame, spec.count_columns, SF_PLAUSIBILITY, source=str(path))
+    check_gate(validated.frame, spec, source=str(path))
     return validated, data
 
 

@@ -31,9 +31,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.cache import CachedPayload, CommitCheck, DatasetCache, SourceKind
-from pipeline.data.datasf import SF_PLAUSIBILITY
+from pipeline.data.datasf import check_gate
 from pipeline.data.payloads import decode_cached
-from pipeline.data.plausibility import PlausibilityRule, check_plausible
+from pipeline.data.plausibility import DAILY, JumpRule
 from pipeline.data.validation import GapPolicy, ValidatedFrame, validate_frame
 from pipeline.errors import DataSourceError, ValidationError
 from pipeline.io import LOCK_TIMEOUT_S
@@ -123,7 +123,7 @@ def _check_revisions(new: ValidatedFrame, cached: ValidatedFrame, key: str,
 
 def successor_check(new: ValidatedFrame, *, gap_policy: GapPolicy,
                     policy: RevisionPolicy = DEFAULT_POLICY,
-                    plausibility: PlausibilityRule = SF_PLAUSIBILITY) -> CommitCheck:
+                    jump: JumpRule = DAILY) -> CommitCheck:
     """A :meth:`DatasetCache.store` check: refuse ``new`` unless it may replace the live copy.
 
     A live copy that no longer validates or is implausible (damaged, or stored by an older
@@ -136,8 +136,7 @@ def successor_check(new: ValidatedFrame, *, gap_policy: GapPolicy,
         try:
             cached = validate_frame(decode_cached(live), new.spec, source=str(live.path),
                                     gap_policy=gap_policy)
-            check_plausible(cached.frame, new.spec.count_columns, plausibility,
-                            source=str(live.path))
+            check_gate(cached.frame, new.spec, source=str(live.path), jump=jump)
         except DataSourceError as exc:
             log.warning("cached %s no longer validates (%s); replacing it", new.spec.key, exc)
             return
@@ -151,17 +150,16 @@ def commit_validated(cache: DatasetCache, validated: ValidatedFrame, payload: by
                      final_url: str | None = None, gap_policy: GapPolicy,
                      accept_revisions: bool = False,
                      policy: RevisionPolicy = DEFAULT_POLICY,
-                     plausibility: PlausibilityRule = SF_PLAUSIBILITY,
+                     jump: JumpRule = DAILY,
                      lock_timeout_s: float = LOCK_TIMEOUT_S) -> Any:
-    """Store a validated payload unless a count is implausible (refused, even with
+    """Store a validated payload unless it fails the validation gate (refused, even with
     ``accept_revisions``: no review makes 1e8 cases in a day true) or it may not replace the
     live copy (shrinks, goes back, breaks the revision policy: then it is held for review and
     the error says where)."""
     report = validated.report
-    check_plausible(validated.frame, validated.spec.count_columns, plausibility,
-                    source=report.source)
+    check_gate(validated.frame, validated.spec, source=report.source, jump=jump)
     check = None if accept_revisions else successor_check(
-        validated, gap_policy=gap_policy, policy=policy, plausibility=plausibility)
+        validated, gap_policy=gap_policy, policy=policy, jump=jump)
     try:
         return cache.store(
             validated.spec, payload, suffix=suffix, source_kind=source_kind, source=source,

@@ -23,6 +23,7 @@ construction; DataSF's own cumulative columns were compared in validation.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import date, datetime
 from pathlib import Path
@@ -34,23 +35,20 @@ import requests
 
 from pipeline.data.cache import CacheManifest, CachedPayload, DatasetCache, SourceKind, utc_now
 from pipeline.data.california import SAN_FRANCISCO
-from pipeline.data.datasf import (DATASETS, CASES, SF_PLAUSIBILITY, SF_POPULATION_2020_CENSUS,
-                                  ClientConfig, DataSFClient, DatasetSpec, NetworkError)
+from pipeline.data.datasf import (DATASETS, CASES, SF_POPULATION_2020_CENSUS,
+                                  ClientConfig, DataSFClient, DatasetSpec)
 from pipeline.data.decoding import decode_boundary
+from pipeline.data.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.payloads import decode_cached as _decode_payload
 from pipeline.data.payloads import rows_frame
-from pipeline.data.plausibility import PlausibilityRule
+from pipeline.data.plausibility import DAILY, JumpRule
 from pipeline.data.revisions import DEFAULT_POLICY, RevisionPolicy, commit_validated
 from pipeline.data.validation import GapPolicy, ValidatedFrame, validate_frame
-from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
-from pipeline.io import LockTimeoutError
+from pipeline.errors import ConfigError, OfflineError, ValidationError
 
 log = logging.getLogger(__name__)
 
 DEFAULT_TRAILING_DAYS = 14
-# A commit holds the cache lock for milliseconds; a lock held this long belongs to a stuck run,
-# so the fetched payload is dropped and the committed cache read (readers take no lock).
-DEFAULT_LOCK_TIMEOUT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -64,7 +62,7 @@ class SFDataConfig:
     data_dir: Path | None = None  # None -> $FLOWCAST_DATA_DIR or ./data
     accept_revisions: bool = False  # take a payload the revision policy would hold (reviewed)
     revision_policy: RevisionPolicy = DEFAULT_POLICY
-    plausibility: PlausibilityRule = SF_PLAUSIBILITY
+    jump: JumpRule = DAILY   # the gate's history rule (pipeline.data.plausibility)
     lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S
 
     def __post_init__(self) -> None:
@@ -93,6 +91,7 @@ class DatasetProvenance:
     stale_days: float       # age of the cached copy when it was used; 0 for a live fetch
     notes: tuple[str, ...] = ()
     final_url: str | None = None  # where DataSF answered from after redirects (API only)
+    skipped: Mapping[str, str] = field(default_factory=dict)  # place -> why the gate dropped it
 
 
 @dataclass(frozen=True)
@@ -163,7 +162,7 @@ def _fetch_live(spec: DatasetSpec, client: DataSFClient, cache: DatasetCache,
                                 source_kind="api", source=result.url,
                                 final_url=result.final_url, gap_policy=config.gap_policy,
                                 accept_revisions=config.accept_revisions,
-                                policy=config.revision_policy, plausibility=config.plausibility,
+                                policy=config.revision_policy, jump=config.jump,
                                 lock_timeout_s=config.lock_timeout_s)
     return validated, _provenance(manifest, from_cache=False, stale_days=0.0,
                                   notes=validated.report.warnings)
@@ -173,12 +172,10 @@ def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
                 now: datetime, why: str | None) -> tuple[ValidatedFrame, DatasetProvenance]:
     cached = cache.load(spec)
     if cached is None:
-        reason = f" ({why})" if why else ""
-        raise OfflineError(
-            f"no cached DataSF {spec.key} data ({spec.dataset_id}) in "
-            f"{cache.directory(spec)}{reason}. Fetch it with `flowcast data fetch` when online, "
-            f"or import a DataSF CSV export ({spec.export_url()}) with "
-            f"`flowcast data import FILE`.")
+        raise no_cache_error(f"DataSF {spec.key} data ({spec.dataset_id})", cache.directory(spec),
+                             why, fetch="flowcast data fetch",
+                             otherwise=f"import a DataSF CSV export ({spec.export_url()}) with "
+                                       f"`flowcast data import FILE`")
     validated = validate_frame(_decode_payload(cached), spec, source=str(cached.path),
                                gap_policy=gap_policy)
     stale = cached.manifest.age_days(now)
@@ -227,20 +224,12 @@ def _load_one(spec: DatasetSpec, config: SFDataConfig, *, offline: bool,
                f"{spec.resource_url(config.client.base_url)} was not retried for {spec.key}")
         return (*_from_cache(spec, cache, config.gap_policy, now, why=why), unreachable)
     client = DataSFClient(config.client, session=session)
-    try:
-        return (*_fetch_live(spec, client, cache, config, now), None)
-    except NetworkError as exc:
-        unreachable = why = f"DataSF unreachable: {exc}"
-    except DataSourceError as exc:  # includes ValidationError: bad payload, 4xx
-        why = f"DataSF payload rejected, cache kept: {exc}"
-        if not cache.has(spec):
-            raise
-    except LockTimeoutError as exc:
-        # Another run holds the writer lock (stuck): the committed copy is still readable.
-        why = f"DataSF payload fetched but not stored, cache kept: {exc}"
-        if not cache.has(spec):
-            raise
-    return (*_from_cache(spec, cache, config.gap_policy, now, why=why), unreachable)
+    live = live_or_cache(lambda: _fetch_live(spec, client, cache, config, now), source="DataSF",
+                         has_cache=lambda: cache.has(spec))
+    if live.value is not None:
+        return (*live.value, None)
+    return (*_from_cache(spec, cache, config.gap_policy, now, why=live.why),
+            live.why if live.unreachable else None)
 
 
 def trim_trailing_days(frame: pd.DataFrame, days: int) -> pd.DataFrame:
