@@ -42,15 +42,12 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def load_vintages(hub: Path, target: str, populations: dict[str, int]) -> list[Any]:
-    """Every vintage of ``target`` in the hub's time series as (as_of, panel), oldest first."""
-    from pipeline.data.hub_forecasts import read_target_data, target_data_vintages
-    from pipeline.panels.hub import vintage_panel
+def load_vintages(target: str) -> list[Any]:
+    """Every cached vintage of ``target`` as (as_of, panel), oldest first."""
+    from pipeline.data.nhsn_vintages import cached_weekly_vintages
+    from pipeline.panels.hub import panel_of
 
-    path = hub / "time-series.parquet"
-    return [(as_of, vintage_panel(read_target_data(path, target, as_of), target, populations,
-                                  as_of))
-            for as_of in target_data_vintages(path, target)]
+    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(target)]
 
 
 def leaderboards(ours: Any, teams: Any, target: str, exclusions: Any) -> dict[str, Any]:
@@ -87,8 +84,8 @@ def _value(row: dict[str, Any] | None) -> float | None:
     return None if row is None else float(row["relative_wis"])
 
 
-def run_target(target: str, args: argparse.Namespace, populations: dict[str, int],
-               climatology: list[Any], teams: Any, exclusions: Any) -> dict[str, Any]:
+def run_target(target: str, args: argparse.Namespace, climatology: list[Any], teams: Any,
+               exclusions: Any) -> dict[str, Any]:
     import dataclasses
 
     import numpy as np
@@ -104,7 +101,7 @@ def run_target(target: str, args: argparse.Namespace, populations: dict[str, int
     from pipeline.training.model_store import default_store_root
 
     started = time.perf_counter()
-    vintages = load_vintages(Path(args.hub), target, populations)
+    vintages = load_vintages(target)
     rounds = hub_rounds(vintages)
     latest = vintages[-1][1]
     members = build_hub_members(HubMembersConfig(), default_store_root(), vintages,
@@ -168,17 +165,16 @@ def run_target(target: str, args: argparse.Namespace, populations: dict[str, int
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
-    import pandas as pd
-
     from pipeline.data.hub_forecasts import read_excluded_locations, read_hub_forecasts, \
         quantile_table, read_target_data
+    from pipeline.data.hub_import import import_hub_time_series
     from pipeline.evaluation.hub_leaderboard import score_quantile_forecasts
     from pipeline.io import atomic_write_json
-    from pipeline.panels.hub import ED_COVID, HOSP_COVID, populations_from_table
+    from pipeline.panels.hub import ED_COVID, HOSP_COVID
 
     hub = Path(args.hub)
-    populations = populations_from_table(pd.read_csv(hub / "locations.csv", dtype=str))
-    climatology = load_vintages(hub, ED_COVID, populations)
+    import_hub_time_series(hub, if_empty=True)          # the hub's vintages into the cache
+    climatology = load_vintages(ED_COVID)
     exclusions = read_excluded_locations(hub / "excluded_locations.toml")
     out: dict[str, Any] = {}
     targets = {"hosp": [HOSP_COVID], "ed": [ED_COVID], "both": [HOSP_COVID, ED_COVID]}
@@ -186,7 +182,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         truth = read_target_data(hub / "time-series.parquet", target)
         teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
             hub / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
-        out[target] = run_target(target, args, populations, climatology, teams, exclusions)
+        out[target] = run_target(target, args, climatology, teams, exclusions)
         s = out[target]
         print(f"{target}: published pairwise relative WIS {s['pairwise_relative_wis']}, "
               f"coverage {s['coverage50']:.2f}/{s['coverage95']:.2f}")

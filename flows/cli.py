@@ -45,11 +45,22 @@ def forecast_command(
     output_dir: Annotated[Path, typer.Option(help="reports folder")] = Path("reports"),
     seed: Annotated[int, typer.Option(help="seed of every random step")] = 0,
     retrain: Annotated[bool, typer.Option("--retrain", help="ignore the cached model")] = False,
+    hub: Annotated[str | None, typer.Option(
+        metavar="DISEASE", help="make this week's round of the CDC COVID-19 Forecast Hub "
+                                "(covid; NHSN admissions and the NSSP ED share of the US, the "
+                                "states, DC and PR) instead of the San Francisco forecast")] = None,
+    hub_config: Annotated[Path | None, typer.Option(
+        help="the hub's hub-config folder (its tasks.json validates the round file); default: "
+             "$FLOWCAST_HUB_CONFIG or ../shared/data/nhsn/hub-config")] = None,
 ) -> None:
-    """Run the weekly San Francisco (or --county) forecast once and print where the report
-    went."""
+    """Run the weekly San Francisco (or --county) forecast once, or with --hub this week's hub
+    round, and print where the report went."""
     from pipeline.data.california import california_county
     from pipeline.errors import ConfigError, FlowcastError
+
+    if hub is not None:
+        _hub_round(hub, value(data_source), output_dir, seed, hub_config)
+        return
 
     try:  # a misspelt county fails here, before Prefect starts
         county = california_county(county) if county is not None else None
@@ -86,6 +97,47 @@ def forecast_command(
         typer.secho(f"warning: {'DataSF' if county is None else 'the CHHS portal (CDPH)'} "
                     "could not be reached; the forecast used cached data "
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
+
+
+def _hub_round(disease: str, data_source: str, output_dir: Path, seed: int,
+               hub_config: Path | None) -> None:
+    """``flowcast forecast --hub DISEASE``: the hub_forecast flow once."""
+    from pipeline.errors import FlowcastError
+
+    if disease not in ("covid", "flu", "rsv") or data_source not in ("live", "cache"):
+        typer.secho(f"error: --hub takes covid, flu or rsv (got {disease!r}) with "
+                    f"--data-source live or cache (got {data_source!r}); hub data are imported "
+                    "with `flowcast data import <hub folder>`", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2)
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("DO_NOT_TRACK", "1")
+    from flows.server_guard import start_temporary_server
+
+    start_temporary_server()
+    from flows.hub_forecast import hub_forecast
+    from flows.weekly_forecast import local_api
+
+    with local_api():
+        state = hub_forecast(disease=disease, data_source=data_source,
+                             output_dir=str(output_dir),
+                             hub_config=str(hub_config) if hub_config else None, seed=seed,
+                             return_state=True)
+    if not state.is_completed():
+        try:
+            state.result()
+        except FlowcastError as error:
+            typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+        except Exception as error:  # noqa: BLE001 - a failed run: one line, the log has the rest
+            typer.secho(f"error: the hub round failed ({type(error).__name__}: {error})",
+                        fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1)
+    result = state.result()
+    assert isinstance(result, dict)
+    typer.echo(f"hub round {result['reference_date']}: {result['model_output']}")
+    typer.echo(f"report: {result['output_dir']}")
+    if result["data_stale"]:
+        typer.secho("warning: data.cdc.gov could not be reached; the round used cached data",
+                    fg=typer.colors.YELLOW, err=True)
 
 
 def main() -> NoReturn:

@@ -28,7 +28,7 @@ from pipeline.errors import FlowcastError
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.evaluation.scoring import quantiles_from_samples, weighted_interval_score
 
-AverageScale = Literal["log", "linear"]
+AverageScale = Literal["log", "linear", "mixture"]
 WeightMethod = Literal["stacking", "inverse-wis", "equal"]
 _EPS_WIS = 1e-12
 
@@ -49,7 +49,9 @@ def vincentize(values: NDArray[np.float64], weights: NDArray[np.float64],
         return np.expm1(np.tensordot(w, np.log1p(np.maximum(values, 0.0)), axes=1))
     if scale == "linear":
         return np.tensordot(w, values, axes=1)
-    raise EnsembleError(f"average scale {scale!r}: use 'log' or 'linear'")
+    if scale == "mixture":
+        return weighted_mixture(values, w)
+    raise EnsembleError(f"average scale {scale!r}: use 'log', 'linear' or 'mixture'")
 
 
 def scored_wis(levels: NDArray[np.float64], q: NDArray[np.float64], y: NDArray[np.float64]
@@ -102,6 +104,28 @@ def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
 
 
 MIX_LEVELS = 200
+
+
+def weighted_mixture(values: NDArray[np.float64], weights: NDArray[np.float64],
+                     n_levels: int = MIX_LEVELS) -> NDArray[np.float64]:
+    """The mixture (linear pool: the weighted average of the CDFs) of ``values (M, ..., Q)``
+    at the hub levels of :data:`HUB_QUANTILE_LEVELS`' kind, from stratified draws of each
+    member's quantile function in proportion to its weight."""
+    q = values.shape[-1]
+    levels = _levels_of(q)
+    counts = np.round(np.asarray(weights) * n_levels).astype(int)
+    draws = [quantiles_at(levels, values[m], np.broadcast_to(
+        (np.arange(c) + 0.5) / c, values.shape[1:-1] + (c,))) for m, c in enumerate(counts) if c]
+    return quantiles_from_samples(np.concatenate(draws, axis=-1), levels)
+
+
+def _levels_of(n_levels: int) -> NDArray[np.float64]:
+    from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+
+    if n_levels != len(HUB_QUANTILE_LEVELS):
+        raise EnsembleError(f"a mixture is taken at the hub's {len(HUB_QUANTILE_LEVELS)} "
+                            f"levels, not {n_levels}")
+    return np.asarray(HUB_QUANTILE_LEVELS)
 
 
 def mix_quantiles(quantiles: NDArray[np.float64], levels: NDArray[np.float64],

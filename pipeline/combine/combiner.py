@@ -27,8 +27,9 @@ from numpy.typing import NDArray
 from pipeline.combine.average import (AverageScale, EnsembleError, WeightMethod, fit_weights,
                                       scored_wis, vincentize)
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
-from pipeline.combine.recalibration import (RECALIBRATION_METHODS, RecalibrationMethod,
-                                            calibrated_levels, fit_recalibration)
+from pipeline.combine.recalibration import (RECALIBRATION_METHODS, TRACKING, QuantileTracker,
+                                            RecalibrationMethod, calibrated_levels,
+                                            fit_recalibration)
 from pipeline.evaluation.regimes import N_REGIMES
 from pipeline.members.base import Member, MemberForecast, forecast_within_reach
 from pipeline.panels.panel import Cells
@@ -53,6 +54,7 @@ class CombineConfig:
     calibration_window_origins: int = 8
     shrinkage_pits: float = 50.0
     min_level: float = 1e-4
+    tracking_rate: float = 0.1          # η of the online calibration, log units per origin
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
     beyond_reach: BeyondReach = "missing"
@@ -64,14 +66,15 @@ class CombineConfig:
         if self.weights not in ("stacking", "inverse-wis", "equal"):
             raise EnsembleError(f"CombineConfig.weights={self.weights!r}: use stacking, "
                                 "inverse-wis or equal")
-        if self.scale not in ("log", "linear"):
-            raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log or linear")
+        if self.scale not in ("log", "linear", "mixture"):
+            raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log, linear or "
+                                "mixture")
         if self.calibration not in RECALIBRATION_METHODS:
             raise EnsembleError(f"CombineConfig.calibration={self.calibration!r}: use one of "
                                 f"{RECALIBRATION_METHODS}")
         if (self.window_origins < 1 or self.calibration_window_origins < 1
                 or not 0 < self.stacking_step <= 0.5 or self.shrinkage_origins < 0
-                or self.shrinkage_pits < 0):
+                or self.shrinkage_pits < 0 or self.tracking_rate < 0):
             raise EnsembleError(f"invalid CombineConfig {self}")
 
 
@@ -118,6 +121,10 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
         raise EnsembleError(f"member quantiles {values.shape[1:]}, baseline {baseline.shape}, "
                             f"{len(origins)} origins and {len(horizons)} horizons do not match")
     known = scored_before(origins, horizons)                               # (O, O, H)
+    tracking = config.calibration in TRACKING
+    trackers = [QuantileTracker(levels, config.tracking_rate,
+                                config.calibration == "tracking-regime") for _ in horizons]
+    counted = np.zeros((n_o, n_h), dtype=bool)
     uncal = np.empty(values.shape[1:])
     published = np.empty(values.shape[1:])
     weights = np.empty((n_o, n_h, len(names)))
@@ -137,6 +144,13 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
                                         shrinkage_origins=config.shrinkage_origins,
                                         stacking_step=config.stacking_step)
             uncal[:, j, k] = _average(values[:, :, j, k], weights[j, k], config)
+            if tracking:
+                for i in past[~counted[past, k]]:        # outcomes that became known by j
+                    trackers[k].update(published[:, i, k], wis_truth[:, i, k], regimes[:, i])
+                    counted[i, k] = True
+                calibration[j, k] = np.nan
+                published[:, j, k] = trackers[k].apply(uncal[:, j, k], regimes[:, j])
+                continue
             recent = past[-config.calibration_window_origins:]
             pits = (_pits(levels, uncal[:, recent, k], wis_truth[:, recent, k])
                     if config.calibration != "none" else np.empty(0))

@@ -113,7 +113,8 @@ def growth_regression_quantiles(weekly_cases: NDArray[np.float64],
     out = np.empty((n_c, len(origin_index), len(horizons), len(levels)))
     for k, h in enumerate(horizons):
         y = np.full((n_c, n_w), np.nan)
-        y[:, :n_w - h] = log_w[:, h:] - log_w[:, :n_w - h]
+        if n_w > h:                         # a series shorter than h weeks has no growth yet
+            y[:, :n_w - h] = log_w[:, h:] - log_w[:, :n_w - h]
         for o, j in enumerate(origin_index):
             rows = slice(0, max(0, j - h + 1))
             out[:, o, k] = _forecast(x[:, rows].reshape(-1, n_f), y[:, rows].ravel(),

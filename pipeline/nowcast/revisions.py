@@ -109,8 +109,8 @@ def nowcast_weeks(panel: Panel, earlier: Sequence[Panel], levels: NDArray[np.flo
         q = np.empty((config.lags, levels.size))
         for lag, end in enumerate(ends):
             reported = weeks_ending(history, end, 1)[0]
-            q[lag] = np.expm1(_g(np.array(reported)) + spread[lag][group]) if np.isfinite(
-                reported) else np.nan
+            q[lag] = (np.maximum(np.expm1(_g(np.array(reported)) + spread[lag][group]), 0.0)
+                      if np.isfinite(reported) else np.nan)
             index = len(history) - 1 - lag
             if index >= 0 and history.dates[index] == end and np.isfinite(q[lag, mid]):
                 values[index] = q[lag, mid]

@@ -691,7 +691,7 @@ CDC_HUB_MODEL_ID = "flowcast-nfhub"   # team flowcast; the model's name is to be
 
 
 @dataclass(frozen=True)
-class HubRound:
+class RoundFile:
     """What :func:`write_hub_round` wrote: the model-output file and its metadata file."""
 
     path: Path
@@ -798,7 +798,7 @@ def validate_model_metadata(metadata: Mapping[str, Any], model_id: str,
 
 def write_hub_round(frame: pd.DataFrame, *, hub_dir: str | os.PathLike[str], model_id: str,
                     tasks: Mapping[str, Any], metadata: Mapping[str, Any],
-                    metadata_schema: Mapping[str, Any] | None = None) -> HubRound:
+                    metadata_schema: Mapping[str, Any] | None = None) -> RoundFile:
     """Write one round of a hub: ``<hub_dir>/model-output/<model_id>/<reference_date>-
     <model_id>.csv`` from ``frame`` (long hubverse format, :data:`MODEL_OUTPUT_COLUMNS`, one
     reference date; sample ids unique per compound task, see :func:`compound_sample_ids`) and
@@ -825,5 +825,5 @@ def write_hub_round(frame: pd.DataFrame, *, hub_dir: str | os.PathLike[str], mod
     atomic_write_text(path, text)
     atomic_write_text(metadata_path, yaml.safe_dump(dict(metadata), sort_keys=False,
                                                     allow_unicode=True, width=100))
-    return HubRound(path=path, metadata_path=metadata_path, frame=typed,
+    return RoundFile(path=path, metadata_path=metadata_path, frame=typed,
                     reference_date=reference_date, sha256=sha256_bytes(text.encode("utf-8")))

@@ -25,20 +25,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
 
+from pipeline.data.hub_locations import POPULATION, US
+from pipeline.data.nhsn_vintages import ED_COVID, HOSP_COVID, WeeklyVintage
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.panel import Panel
 from pipeline.panels.targets import DAYS_PER_WEEK, SATURDAY, TargetError
 
-HOSP_COVID = "wk inc covid hosp"
-HOSP_FLU = "wk inc flu hosp"
-HOSP_RSV = "wk inc rsv hosp"
-ED_COVID = "wk inc covid prop ed visits"
+__all__ = ["ED_COVID", "HOSP_COVID", "US"]
 ED_VISITS_SCALE = 100_000          # the ED share as a rate per 100,000 visits
 HUB_HORIZONS: tuple[int, ...] = (-1, 0, 1, 2, 3)
 DUE_DAYS_BEFORE_REFERENCE = 3      # due Wednesday, named by the Saturday after
-US = "US"
 
 
 def is_share(target: str) -> bool:
@@ -95,6 +92,13 @@ def vintage_panel(frame: pd.DataFrame, target: str, populations: Mapping[str, in
                  as_of=pd.Timestamp(as_of))
 
 
+def panel_of(vintage: WeeklyVintage, populations: Mapping[str, int] = POPULATION) -> Panel:
+    """The panel of a cached hub vintage (:mod:`pipeline.data.nhsn_vintages`), the locations
+    its gate skipped named on it."""
+    return vintage_panel(vintage.frame, vintage.target, populations, vintage.as_of,
+                         skipped=vintage.skipped)
+
+
 def reference_date_for(as_of: pd.Timestamp) -> pd.Timestamp:
     """The round a vintage released on ``as_of`` serves: the first Saturday at least
     :data:`DUE_DAYS_BEFORE_REFERENCE` days after it (a Wednesday release serves that
@@ -139,13 +143,3 @@ def hub_rounds(vintages: Sequence[tuple[pd.Timestamp, Panel]]) -> list[HubRound]
     for as_of, panel in sorted(vintages, key=lambda v: v[0]):
         by_round[reference_date_for(as_of)] = (as_of, panel)
     return [HubRound(ref, as_of, panel) for ref, (as_of, panel) in sorted(by_round.items())]
-
-
-def populations_from_table(table: pd.DataFrame) -> dict[str, int]:
-    """``location`` → population from a hub ``locations.csv``-shaped table."""
-    if not {"location", "population"} <= set(table.columns):
-        raise TargetError("a locations table needs columns location and population")
-    values: NDArray[np.float64] = table["population"].to_numpy(np.float64)
-    if not np.isfinite(values).all() or (values <= 0).any():
-        raise TargetError("a locations table has a non-positive or missing population")
-    return {str(loc): int(pop) for loc, pop in zip(table["location"], values)}
