@@ -51,17 +51,21 @@ def design_variants() -> tuple[Any, ...]:
     origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
     weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
     from pipeline.backtest.backtest import Variant
-    from pipeline.combine.combiner import CombineConfig
+    from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
     members = ("hub-baseline", "growth-qr", "nf-growth", "nf-real")
     return (
-        Variant("linear average", CombineConfig(scale="linear")),
+        Variant("log average (published until 2026-11)", LOG_AVERAGE),
+        Variant("log-mixture, no recalibration", CombineConfig(calibration="none")),
+        Variant("linear average", CombineConfig(scale="linear", calibration="none")),
         Variant("skill weights (inverse WIS, last 12 origins)",
-                CombineConfig(weights="inverse-wis")),
+                CombineConfig(scale="log", calibration="none", weights="inverse-wis")),
         Variant("widen-only recalibration (the SF-only design)",
-                CombineConfig(calibration="widen-only", calibration_window_origins=52)),
+                CombineConfig(scale="log", calibration="widen-only",
+                              calibration_window_origins=52)),
         Variant("recalibration that may narrow (probit-normal with bias)",
-                CombineConfig(calibration="bias-scale", calibration_window_origins=52)),
+                CombineConfig(scale="log", calibration="bias-scale",
+                              calibration_window_origins=52)),
         Variant("the SF-only design: AutoETS + nf-growth, skill weights, linear, widen-only",
                 CombineConfig(weights="inverse-wis", scale="linear", calibration="widen-only",
                               calibration_window_origins=52), members=("autoets", "nf-growth")),

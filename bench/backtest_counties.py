@@ -46,19 +46,27 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
     from pipeline.backtest.backtest import Variant
-    from pipeline.combine.combiner import CombineConfig as PooledConfig
+    from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
     long = 1_000                       # every past scored origin
+    uncalibrated = CombineConfig(calibration="none")
     return (
-        Variant("v-linear-average", PooledConfig(scale="linear")),
-        Variant("v-stacking-12-origins", PooledConfig(weights="stacking", stacking_step=0.1)),
-        Variant("v-inverse-wis-all-origins", PooledConfig(weights="inverse-wis",
-                                                          window_origins=long)),
-        Variant("v-recal-widen-only", PooledConfig(calibration="widen-only",
-                                                   calibration_window_origins=52)),
-        Variant("v-recal-scale-all-origins", PooledConfig(calibration="scale",
-                                                          calibration_window_origins=long)),
-        Variant("v-recal-bias-scale-regime", PooledConfig(calibration="bias-scale-regime")),
+        Variant("v-log-average (published until 2026-11)", LOG_AVERAGE),
+        Variant("v-log-mixture, no recalibration", uncalibrated),
+        Variant("v-mixture (linear pool), no recalibration", CombineConfig(
+            scale="mixture", calibration="none")),
+        Variant("v-log-average + regime-aci", CombineConfig(scale="log")),
+        Variant("v-linear-average", CombineConfig(scale="linear", calibration="none")),
+        Variant("v-stacking-12-origins", CombineConfig(scale="log", calibration="none",
+                                                       weights="stacking", stacking_step=0.1)),
+        Variant("v-inverse-wis-all-origins", CombineConfig(
+            scale="log", calibration="none", weights="inverse-wis", window_origins=long)),
+        Variant("v-recal-widen-only", CombineConfig(scale="log", calibration="widen-only",
+                                                    calibration_window_origins=52)),
+        Variant("v-recal-scale-all-origins", CombineConfig(
+            scale="log", calibration="scale", calibration_window_origins=long)),
+        Variant("v-recal-bias-scale-regime", CombineConfig(scale="log",
+                                                           calibration="bias-scale-regime")),
         Variant("v-without-hub-baseline", members=("growth-qr", "nf-growth", "nf-real")),
         Variant("v-without-nf-real", members=("hub-baseline", "growth-qr", "nf-growth")),
         Variant("v-without-growth-qr", members=("hub-baseline", "nf-growth", "nf-real")),

@@ -276,7 +276,8 @@ def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
                 published, histories, completed, vintage.as_of, levels, seed,
                 seconds["published"], pool,
                 drop14_reachable=Ensemble(published.members,
-                                          CombineConfig(beyond_reach="reachable-members"))),
+                                          CombineConfig(beyond_reach="reachable-members",
+                                                        calibration="none"))),
             "autoets": vintage_forecasts(autoets, histories, completed, vintage.as_of, levels,
                                          seed, seconds["autoets"], pool, partial_week=True)}
         for county in counties:

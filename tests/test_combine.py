@@ -1,6 +1,8 @@
 """Quantile functions, PIT, recalibration, weights, the combiner and the published sample paths."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.stats import norm
@@ -8,7 +10,8 @@ from scipy.stats import norm
 import pandas as pd
 
 from pipeline.combine.average import fit_weights, mix_quantiles, scored_wis, vincentize
-from pipeline.combine.combiner import CombineConfig, Ensemble, combine, scored_before
+from pipeline.combine.combiner import (LOG_AVERAGE, CombineConfig, Ensemble, combine,
+                                       scored_before)
 from pipeline.combine.paths import count_invalid, sample_paths
 from pipeline.combine.recalibration import calibrated_levels, fit_recalibration
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
@@ -138,16 +141,16 @@ def test_combiner_learns_only_from_the_past_and_averages_in_logs():
     changed = combine(members, baseline, later, regimes, levels, (1, 2), origins, config)
     np.testing.assert_array_equal(full.published[:, :7], changed.published[:, :7])
     assert not np.array_equal(full.published[:, 7:], changed.published[:, 7:])
-    equal = combine(members, baseline, truth, regimes, levels, (1, 2), origins)
+    equal = combine(members, baseline, truth, regimes, levels, (1, 2), origins, LOG_AVERAGE)
     np.testing.assert_allclose(equal.published, np.expm1(
         0.5 * np.log1p(members["a"]) + 0.5 * np.log1p(members["b"])), rtol=1e-12)
     # a member missing in a cell: no published forecast there, unless the others are asked for
     gap = dict(members, b=members["b"].copy())
     gap["b"][0, 3] = np.nan
-    missing = combine(gap, baseline, truth, regimes, levels, (1, 2), origins)
+    missing = combine(gap, baseline, truth, regimes, levels, (1, 2), origins, LOG_AVERAGE)
     assert np.isnan(missing.published[0, 3]).all() and np.isfinite(missing.published[1]).all()
     reach = combine(gap, baseline, truth, regimes, levels, (1, 2), origins,
-                    CombineConfig(beyond_reach="reachable-members"))
+                    dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members"))
     np.testing.assert_allclose(reach.published[0, 3], members["a"][0, 3], rtol=1e-12)
 
 

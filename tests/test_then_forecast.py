@@ -18,7 +18,7 @@ from scipy import stats
 
 from pipeline.data.cdph import read_cdph_csv
 from pipeline.combine.average import mix_quantiles
-from pipeline.combine.combiner import CombineConfig, Ensemble
+from pipeline.combine.combiner import LOG_AVERAGE, Ensemble
 from pipeline.members.base import MemberForecast
 from pipeline.members.flow_finetune import REFIT_EPOCH, latest_refit_date, refit_dates
 from pipeline.members.growth_regression import PooledGrowthMember
@@ -121,7 +121,7 @@ def test_published_is_the_log_average_of_its_members_within_their_reach(pool):
     histories = [pool[p].up_to(origin) for p in places]
     horizons = (1, 2, 3, 4, 5, 6)
     baseline = HubBaseline(HubBaselineConfig(n_samples=2_000))
-    ensemble = Ensemble((PooledGrowthMember(), baseline, LogNormalFlow()))
+    ensemble = Ensemble((PooledGrowthMember(), baseline, LogNormalFlow()), LOG_AVERAGE)
     assert ensemble.member_names == ("growth-qr", "hub-baseline", "flow")
     members = forecast_cells(ensemble, histories, places, horizons, LEVELS, SEED, Panel(pool))
     got = ensemble.combine(members)
@@ -131,7 +131,8 @@ def test_published_is_the_log_average_of_its_members_within_their_reach(pool):
                       + np.log1p(flow)) / 3)
     np.testing.assert_allclose(got[:, :4], three, rtol=1e-9)
     assert np.isnan(got[:, 4:]).all()
-    wider = Ensemble(ensemble.members, CombineConfig(beyond_reach="reachable-members"))
+    wider = Ensemble(ensemble.members, dataclasses.replace(LOG_AVERAGE,
+                                                           beyond_reach="reachable-members"))
     two = np.expm1((np.log1p(by_hand["growth"][:, 4:]) + np.log1p(by_hand["hub"][:, 4:])) / 2)
     np.testing.assert_allclose(wider.combine(members)[:, 4:], two, rtol=1e-9)
     np.testing.assert_allclose(wider.combine(members)[:, :4], got[:, :4], rtol=1e-12)
@@ -155,7 +156,7 @@ def test_completions_are_mixed_per_member_then_averaged(pool):
     completed = {p: _completed(pool[p].up_to(data_date), 12, i)
                  for i, p in enumerate(("Fresno", "Sacramento"))}
     ensemble = Ensemble((PooledGrowthMember(), HubBaseline(HubBaselineConfig(n_samples=2_000)),
-                         LogNormalFlow()))
+                         LogNormalFlow()), LOG_AVERAGE)
     panel = Panel(pool)
     got = nowcast_then_forecast_places(completed, data_date, ensemble, LEVELS, SEED, panel=panel)
     weeks = hub_weeks(data_date)

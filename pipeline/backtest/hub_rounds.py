@@ -53,8 +53,8 @@ class HubBacktestConfig:
     horizons: tuple[int, ...] = HUB_HORIZONS
     levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
     seed: int = 0
-    combine: CombineConfig = field(
-        default_factory=lambda: CombineConfig(beyond_reach="reachable-members"))
+    combine: CombineConfig = field(default_factory=lambda: CombineConfig(
+        beyond_reach="reachable-members", outer_interval=0.95))
     variants: tuple[Variant, ...] = ()
     nowcast: RevisionNowcastConfig = field(default_factory=RevisionNowcastConfig)
     reconcile: bool = True

@@ -1,10 +1,12 @@
 """Averaging the members' quantiles, and the weights of the average.
 
-**Quantile averaging** (Vincentization, :func:`vincentize`): the published τ-quantile is
+**Quantile averaging** (Vincentization, :func:`vincentize`): the τ-quantile is
 Σ_m w_m q_m(τ), on the scale of log(1 + q) by default — the weighted geometric mean of the
 members' quantiles (of counts + 1). Epidemic counts grow multiplicatively, so a member
 forecasting growth and one forecasting a plateau average to a damped growth *rate*, where the
-linear average is pulled to the larger member's scale.
+linear average is pulled to the larger member's scale. ``"mixture"``: the linear pool (the
+average of the members' CDFs), wider where the members disagree — at the turns;
+``"log-mixture"``: the log-scale midpoint of the two, level by level.
 
 **Weights** per horizon from the scores known at the origin (:func:`fit_weights`):
 ``"equal"`` (published); ``"inverse-wis"`` — ∝ 1 / (each member's geometric mean over places of
@@ -28,7 +30,7 @@ from pipeline.errors import FlowcastError
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.evaluation.scoring import quantiles_from_samples, weighted_interval_score
 
-AverageScale = Literal["log", "linear", "mixture"]
+AverageScale = Literal["log", "linear", "mixture", "log-mixture"]
 WeightMethod = Literal["stacking", "inverse-wis", "equal"]
 _EPS_WIS = 1e-12
 
@@ -51,7 +53,11 @@ def vincentize(values: NDArray[np.float64], weights: NDArray[np.float64],
         return np.tensordot(w, values, axes=1)
     if scale == "mixture":
         return weighted_mixture(values, w)
-    raise EnsembleError(f"average scale {scale!r}: use 'log', 'linear' or 'mixture'")
+    if scale == "log-mixture":
+        return np.expm1(0.5 * np.log1p(vincentize(values, w, "log"))
+                        + 0.5 * np.log1p(weighted_mixture(values, w)))
+    raise EnsembleError(f"average scale {scale!r}: use 'log', 'linear', 'mixture' or "
+                        "'log-mixture'")
 
 
 def scored_wis(levels: NDArray[np.float64], q: NDArray[np.float64], y: NDArray[np.float64]

@@ -6,13 +6,19 @@ origin t and horizon h only the scores of forecasts whose target week had ended 
 (origin o with o + 7h ≤ t), in every place of the panel: the weights and the recalibration are
 learnt from those, nothing later. A single series is a panel of one place.
 
-**Published** (``CombineConfig()``): the equal-weight average of the members' log(1 + quantile)
-— the geometric mean of their quantiles — with no recalibration. Designed on California's
-counties (``bench/results/backtest_counties.json``): every choice that learns from recent scores
-made it worse there, and they are kept as the variants every backtest reports beside it:
-weights (:mod:`pipeline.combine.average`: ``inverse-wis``, ``stacking``), the linear average,
-and recalibration from past PITs (:mod:`pipeline.combine.recalibration`). The I of a daily
-source is the count over N: the published I and count are one forecast.
+**Published** (``CombineConfig()``): equal weights; the level-wise log-scale midpoint of the
+members' quantile average (the geometric mean of their quantiles) and their linear pool (the
+average of their CDFs: wider where the members disagree, at the turns); then the online
+calibration of the intervals' widths per phase of the epidemic (``"regime-aci"``,
+:class:`~pipeline.combine.recalibration.IntervalTracker`), which leaves the median alone.
+Designed on California's counties and checked on San Francisco and the hub's rounds
+(``bench/results/calibration.json``): the average alone (log scale, no recalibration: the
+published rule until 2026-11) held its intervals on average but not at the turns; every weight
+learnt from recent scores and every recalibration from a window of past PITs made it worse.
+They are kept as the variants every backtest reports beside it: weights
+(:mod:`pipeline.combine.average`: ``inverse-wis``, ``stacking``), the log and linear averages,
+the mixture, and the window recalibrations (:mod:`pipeline.combine.recalibration`). The I of a
+daily source is the count over N: the published I and count are one forecast.
 """
 from __future__ import annotations
 
@@ -27,7 +33,7 @@ from numpy.typing import NDArray
 from pipeline.combine.average import (AverageScale, EnsembleError, WeightMethod, fit_weights,
                                       scored_wis, vincentize)
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
-from pipeline.combine.recalibration import (RECALIBRATION_METHODS, TRACKING, QuantileTracker,
+from pipeline.combine.recalibration import (RECALIBRATION_METHODS, IntervalTracker,
                                             RecalibrationMethod, calibrated_levels,
                                             fit_recalibration)
 from pipeline.evaluation.regimes import N_REGIMES
@@ -46,15 +52,16 @@ class CombineConfig:
     """How the members are combined (module docstring)."""
 
     weights: WeightMethod = "equal"
-    scale: AverageScale = "log"
+    scale: AverageScale = "log-mixture"
     window_origins: int = 12
     stacking_step: float = 0.05
     shrinkage_origins: float = 2.0
-    calibration: RecalibrationMethod = "none"
+    calibration: RecalibrationMethod = "regime-aci"
     calibration_window_origins: int = 8
     shrinkage_pits: float = 50.0
     min_level: float = 1e-4
-    tracking_rate: float = 0.1          # η of the online calibration, log units per origin
+    tracking_rate: float = 0.15         # η of the online calibration ("regime-aci")
+    outer_interval: float = 0.9         # the outer interval it holds (the hub's: 0.95)
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
     beyond_reach: BeyondReach = "missing"
@@ -66,9 +73,9 @@ class CombineConfig:
         if self.weights not in ("stacking", "inverse-wis", "equal"):
             raise EnsembleError(f"CombineConfig.weights={self.weights!r}: use stacking, "
                                 "inverse-wis or equal")
-        if self.scale not in ("log", "linear", "mixture"):
-            raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log, linear or "
-                                "mixture")
+        if self.scale not in ("log", "linear", "mixture", "log-mixture"):
+            raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log, linear, "
+                                "mixture or log-mixture")
         if self.calibration not in RECALIBRATION_METHODS:
             raise EnsembleError(f"CombineConfig.calibration={self.calibration!r}: use one of "
                                 f"{RECALIBRATION_METHODS}")
@@ -76,6 +83,10 @@ class CombineConfig:
                 or not 0 < self.stacking_step <= 0.5 or self.shrinkage_origins < 0
                 or self.shrinkage_pits < 0 or self.tracking_rate < 0):
             raise EnsembleError(f"invalid CombineConfig {self}")
+
+
+# The published rule until 2026-11: the log-scale average alone (scored beside the published).
+LOG_AVERAGE = CombineConfig(scale="log", calibration="none")
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,9 +132,8 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
         raise EnsembleError(f"member quantiles {values.shape[1:]}, baseline {baseline.shape}, "
                             f"{len(origins)} origins and {len(horizons)} horizons do not match")
     known = scored_before(origins, horizons)                               # (O, O, H)
-    tracking = config.calibration in TRACKING
-    trackers = [QuantileTracker(levels, config.tracking_rate,
-                                config.calibration == "tracking-regime") for _ in horizons]
+    tracker = (IntervalTracker(levels, config.tracking_rate, config.outer_interval)
+               if config.calibration == "regime-aci" else None)
     counted = np.zeros((n_o, n_h), dtype=bool)
     uncal = np.empty(values.shape[1:])
     published = np.empty(values.shape[1:])
@@ -135,6 +145,12 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
         if truth_at is not None:
             wis_truth = truth_at(j)
             baseline_wis = scored_wis(levels, baseline, wis_truth)
+        if tracker is not None:                  # the outcomes that became known by origin j
+            new = known[j] & ~counted
+            counted |= new
+            i, k = np.nonzero(new)
+            tracker.update(published[:, i, k].reshape(-1, len(levels)),
+                           wis_truth[:, i, k].reshape(-1), regimes[:, i].reshape(-1))
         for k in range(n_h):
             past = np.flatnonzero(known[j, :, k])
             fit = past[-config.window_origins:]
@@ -144,12 +160,9 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
                                         shrinkage_origins=config.shrinkage_origins,
                                         stacking_step=config.stacking_step)
             uncal[:, j, k] = _average(values[:, :, j, k], weights[j, k], config)
-            if tracking:
-                for i in past[~counted[past, k]]:        # outcomes that became known by j
-                    trackers[k].update(published[:, i, k], wis_truth[:, i, k], regimes[:, i])
-                    counted[i, k] = True
+            if tracker is not None:
                 calibration[j, k] = np.nan
-                published[:, j, k] = trackers[k].apply(uncal[:, j, k], regimes[:, j])
+                published[:, j, k] = tracker.apply(uncal[:, j, k], regimes[:, j])
                 continue
             recent = past[-config.calibration_window_origins:]
             pits = (_pits(levels, uncal[:, recent, k], wis_truth[:, recent, k])
@@ -199,14 +212,15 @@ def _average(values: NDArray[np.float64], weights: NDArray[np.float64], config: 
 
 @dataclass(frozen=True, eq=False)
 class Ensemble:
-    """The published rule at one time, where no past score is known (a hub round's cells, a
-    nowcast's completions): the members' equal-weight average on ``config.scale``, a member
+    """The average at one time, where no past score is known (a nowcast's completions): the
+    members' equal-weight average on ``config.scale``, with no calibration (it learns from past
+    scores: :func:`combine`), a member
     beyond its reach left out per ``config.beyond_reach``. Its members' quantiles are exposed
     (:meth:`member_quantiles`) beside the combination (:meth:`combine`), so that a nowcast's
     completions are mixed per member before the members are averaged."""
 
     members: tuple[Member, ...]
-    config: CombineConfig = CombineConfig()
+    config: CombineConfig = CombineConfig(calibration="none")
     name: str = PUBLISHED
 
     def __post_init__(self) -> None:

@@ -19,6 +19,8 @@ from pipeline.combine.average import EnsembleError
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.panels.history import History
 
+ROUNDING = 1e-12
+
 
 def path_levels(n_paths: int, horizons: int, ranks_from: NDArray[np.float64] | None
                 ) -> NDArray[np.float64]:
@@ -81,12 +83,14 @@ def count_invalid(paths: NDArray[np.float64], start: NDArray[np.float64],
                   rates: NDArray[np.float64] | None = None) -> InvalidCounts:
     """Invalid values in ``paths (n, H, 3)`` starting from the observed ``start (3,)`` S, I, R:
     negative fractions, S increases, R decreases (each step, the first from the start), and
-    negative rates in ``rates (n, ...)`` when given."""
+    negative rates in ``rates (n, ...)`` when given. A change of a share smaller than
+    :data:`ROUNDING` is rounding (R_h = 1 − S_h − I_h moves by exactly I_{h−1}, which is 0 in a
+    week without cases), not a decrease."""
     full = np.concatenate([np.broadcast_to(start, (paths.shape[0], 1, 3)), paths], axis=1)
     return InvalidCounts(
         negative_fractions=int((paths < 0).sum()),
-        s_increases=int((np.diff(full[..., 0], axis=1) > 0).sum()),
-        r_decreases=int((np.diff(full[..., 2], axis=1) < 0).sum()),
+        s_increases=int((np.diff(full[..., 0], axis=1) > ROUNDING).sum()),
+        r_decreases=int((np.diff(full[..., 2], axis=1) < -ROUNDING).sum()),
         negative_rates=int((rates < 0).sum()) if rates is not None else 0)
 
 

@@ -15,8 +15,9 @@ the last ``window`` scored origins:
 
 On the cross-county backtest every one of them was worse than none: a window learnt in one
 phase of a wave fails in the next (``bench/results/backtest_counties.json``, variants). The
-online rule (:class:`QuantileTracker`, ``"tracking"`` and ``"tracking-regime"``) instead moves
-every level a little after each origin's outcomes, so it follows the phase it is in.
+online rule (:class:`IntervalTracker`, ``"regime-aci"``) instead moves the intervals' widths a
+little after each origin's outcomes, per phase of the epidemic, so it follows the phase it is
+in, and leaves the median alone.
 """
 from __future__ import annotations
 
@@ -27,14 +28,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr, ndtri
 
+from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.evaluation.regimes import N_REGIMES
 
 RecalibrationMethod = Literal["scale-regime", "scale", "bias-scale-regime", "bias-scale",
-                              "widen-only", "tracking", "tracking-regime", "none"]
+                              "widen-only", "regime-aci", "none"]
 RECALIBRATION_METHODS: tuple[str, ...] = ("scale-regime", "scale", "bias-scale-regime",
-                                          "bias-scale", "widen-only", "tracking",
-                                          "tracking-regime", "none")
-TRACKING: tuple[str, ...] = ("tracking", "tracking-regime")
+                                          "bias-scale", "widen-only", "regime-aci", "none")
 
 
 def fit_bias_scale(probits: NDArray[np.float64], shrinkage: float, with_bias: bool
@@ -83,57 +83,59 @@ def calibrated_levels(levels: NDArray[np.float64], mu_sigma: NDArray[np.float64]
     return np.clip(ndtr(z), min_level, 1.0 - min_level)
 
 
-# --------------------------------------------------------------- online: quantile tracking
+# ------------------------------------------------- online: interval widths by adaptive conformal
 
 
 @dataclass
-class QuantileTracker:
-    """Online calibration that reacts within a week or two: conformal quantile tracking
-    (Angelopoulos, Candès & Tibshirani 2023, "Conformal PID control", its P term) of the width
-    of each side of the forecast, per horizon and, with ``by_regime``, per phase of the epidemic.
+class IntervalTracker:
+    """Online calibration that reacts within a week or two (``"regime-aci"``): adaptive
+    conformal inference (Gibbs & Candès 2021; the P term of conformal PID control, Angelopoulos,
+    Candès & Tibshirani 2023) of the width of the inner (50 %) and outer (90 %, or 95 %)
+    intervals, per phase of the epidemic (falling, flat, rising), pooled over places and
+    horizons.
 
-    The median is left as the average has it (shifting it chased the last weeks' errors and cost
-    skill); each side's distance from the median on log(1 + q) is scaled by e^φ. When the
-    outcomes of an origin's forecasts become known (their target week has ended), each side's φ
-    moves by its miss rate over the places of the panel (of the same regime):
-    φ_up ← φ_up + η · mean over the upper levels τ of (share of outcomes above q_τ − (1 − τ)),
-    φ_low likewise below. Too many outcomes above the 95 % quantile widen the upper side at the
-    next origin; calm weeks bring it back. η in log units per origin; |φ| ≤ ``cap``."""
+    State: a log stretch φ[regime, end]. After each origin, the N forecasts whose target week
+    ended by then and were not yet counted (every place and horizon) move it:
+    φ[r, e] += η Σ_{cells of regime r} (1{outcome outside interval e} − α_e) / N. A forecast
+    of a place in regime r is published with each level τ read at Φ(e^{f(τ)} Φ⁻¹(τ)) of the
+    average's quantile function, f = φ[r, inner] within the inner interval, φ[r, outer] beyond
+    the outer one, linear in |Φ⁻¹(τ)| between: the median is never moved (moving it chased the
+    last weeks' errors), the intervals widen where they missed and narrow where they held.
+    |φ| ≤ ``cap``. No constant of the rule was fitted to a panel; η is the one setting."""
 
     levels: NDArray[np.float64]
     rate: float
-    by_regime: bool
-    cap: float = 1.5
+    outer: float
+    cap: float = 1.0
 
     def __post_init__(self) -> None:
-        self.scales = np.zeros((N_REGIMES if self.by_regime else 1, 2))     # (low, up) φ
-        self._mid = int(np.argmin(np.abs(self.levels - 0.5)))
+        self.stretch = np.zeros((N_REGIMES, 2))
+        cover = np.array([0.5, self.outer])
+        self._alpha = 1.0 - cover
+        self._low = np.array([int(np.argmin(np.abs(self.levels - (0.5 - c / 2)))) for c in cover])
+        self._up = np.array([int(np.argmin(np.abs(self.levels - (0.5 + c / 2)))) for c in cover])
+        z_end = ndtri(0.5 + cover / 2)
+        self._z = ndtri(self.levels)
+        self._outer_weight = np.clip((np.abs(self._z) - z_end[0]) / (z_end[1] - z_end[0]), 0, 1)
 
     def update(self, published: NDArray[np.float64], truth: NDArray[np.float64],
                regimes: NDArray[np.intp]) -> None:
-        """One origin's outcomes: published quantiles ``(C, Q)``, truth ``(C,)`` (NaN: not
-        observed), each place's regime ``(C,)``."""
+        """The newly known forecasts of one origin: published quantiles ``(N, Q)``, truth
+        ``(N,)`` (NaN: not observed), the regime at each forecast's origin ``(N,)``."""
         seen = np.isfinite(truth) & np.isfinite(published).all(axis=-1)
         if not seen.any():
             return
         y, q = truth[seen, None], published[seen]
-        low, up = self.levels < 0.5, self.levels > 0.5
-        below = (y < q[:, low]).astype(np.float64) - self.levels[low]            # (n, L)
-        above = (y > q[:, up]).astype(np.float64) - (1.0 - self.levels[up])
-        groups = regimes[seen] if self.by_regime else np.zeros(int(seen.sum()), dtype=np.intp)
-        for group in np.unique(groups):
-            rows = groups == group
-            step = np.array([below[rows].mean(), above[rows].mean()])
-            self.scales[group] = np.clip(self.scales[group] + self.rate * step,
-                                         -self.cap, self.cap)
+        missed = (y < q[:, self._low]) | (y > q[:, self._up])                   # (n, 2)
+        steps = np.zeros((N_REGIMES, 2))
+        np.add.at(steps, regimes[seen], missed - self._alpha)
+        self.stretch = np.clip(self.stretch + self.rate * steps / int(seen.sum()),
+                               -self.cap, self.cap)
 
     def apply(self, quantiles: NDArray[np.float64], regimes: NDArray[np.intp]
               ) -> NDArray[np.float64]:
-        """Quantiles ``(C, Q)`` with each side scaled by its regime's e^φ, kept ordered."""
-        rows = regimes if self.by_regime else np.zeros(len(quantiles), dtype=np.intp)
-        g = np.log1p(np.maximum(quantiles, 0.0))
-        median = g[:, self._mid:self._mid + 1]
-        side = np.where(self.levels < 0.5, 0, 1)                                 # (Q,)
-        stretch = np.exp(self.scales[rows][:, side])                             # (C, Q)
-        shifted = np.expm1(median + stretch * (g - median))
-        return np.maximum.accumulate(np.maximum(shifted, 0.0), axis=-1)
+        """Quantiles ``(C, Q)`` read at each place's regime's stretched levels."""
+        phi = self.stretch[regimes]                                              # (C, 2)
+        f = (1.0 - self._outer_weight) * phi[:, :1] + self._outer_weight * phi[:, 1:]
+        out = quantiles_at(self.levels, quantiles, ndtr(np.exp(f) * self._z))
+        return np.maximum.accumulate(np.maximum(out, 0.0), axis=-1)

@@ -1,0 +1,188 @@
+"""The hub's rounds in the engine: the revision nowcast against a known revision ratio, the
+weekly flow (valid paths, only the past, a cell's own draws), the seasonal member against hand
+-computed growth, top-down reconciliation, and a few real NHSN rounds end to end (read from
+``../shared/data/nhsn`` in place, imported as the product imports them): real-time rounds,
+hub horizons, the latest vintage as truth, and the round's file valid for the hub and read
+back with hubdata."""
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
+from pipeline.combine.combiner import PUBLISHED
+from pipeline.combine.reconcile import median_gap, top_down
+from pipeline.data.hub_import import import_hub_time_series
+from pipeline.data.nhsn_vintages import cached_weekly_vintages
+from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
+from pipeline.members.weekly_flow import WeeklyFlowConfig, WeeklyFlowMember
+from pipeline.members.flow import train_growth_model
+from pipeline.nowcast.revisions import RevisionNowcastConfig, nowcast_weeks
+from pipeline.outputs.hubverse import (CDC_HUB_MODEL_ID, compound_sample_ids,
+                                       load_model_metadata, load_tasks_config, write_hub_round)
+from pipeline.panels.history import WeeklyHistory
+from pipeline.panels.hub import HOSP_COVID, hub_rounds, panel_of, reference_date_for
+from pipeline.panels.panel import Cells, Panel
+from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+from tests.forecasting_helpers import forecast_one
+
+REPO = Path(__file__).resolve().parents[1]
+NHSN = REPO.parent / "shared" / "data" / "nhsn"
+LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
+TINY_FLOW = WeeklyFlowConfig(n_trajectories=150, iterations=40, batch_size=256,
+                             hidden_features=16, flow_layers=2, flow_hidden=16)
+
+
+def _weekly(values, start: str = "2024-11-09", population: int = 1_000_000,
+            target: str = HOSP_COVID) -> WeeklyHistory:
+    dates = pd.date_range(start, periods=len(values), freq="7D")
+    return WeeklyHistory(dates, np.asarray(values, dtype=float), population, target)
+
+
+def test_revision_nowcast_learns_the_ratio_of_earlier_vintages():
+    """Every vintage reports its newest week at 80 % of the value the next vintage holds: the
+    nowcast's median of a new vintage's newest week is the reported value / 0.8 (on log(1+x)),
+    and a week already revised (lag 1) is left as it is."""
+    final = 1000.0 + 50.0 * np.arange(20)
+    vintages = []
+    for end in range(6, 20):
+        values = final[:end].copy()
+        values[-1] *= 0.8
+        vintages.append(Panel({p: _weekly(values * (1 + k)) for k, p in enumerate(("01", "02"))},
+                              as_of=pd.Timestamp("2024-11-13") + pd.Timedelta(weeks=end)))
+    now = nowcast_weeks(vintages[-1], vintages[:-1], LEVELS, RevisionNowcastConfig(lags=2))
+    reported = vintages[-1].histories["01"].cases[-1]
+    expected = np.expm1(np.log1p(reported) + np.log1p(final[18]) - np.log1p(0.8 * final[18]))
+    assert now.quantiles["01"][0, 11] == pytest.approx(expected, rel=2e-3)
+    assert now.quantiles["01"][1, 11] == pytest.approx(final[17], rel=1e-9)     # lag 1: final
+    # the corrected panel holds the median in place of the reported newest week
+    corrected = now.panel.histories["01"].cases
+    assert corrected[-1] == pytest.approx(now.quantiles["01"][0, 11])
+    np.testing.assert_allclose(corrected[:-1], vintages[-1].histories["01"].cases[:-1], rtol=1e-12)
+    # with no earlier vintage there is nothing to learn from: the weeks stay as reported
+    alone = nowcast_weeks(vintages[0], [], LEVELS)
+    assert alone.quantiles["01"][0, 11] == pytest.approx(vintages[0].histories["01"].cases[-1])
+
+
+def test_reference_dates_of_releases():
+    assert reference_date_for(pd.Timestamp("2024-11-20")) == pd.Timestamp("2024-11-23")  # Wed
+    assert reference_date_for(pd.Timestamp("2024-12-26")) == pd.Timestamp("2024-12-28")  # Thu
+    assert reference_date_for(pd.Timestamp("2025-01-03")) == pd.Timestamp("2025-01-11")  # Fri
+
+
+@pytest.fixture(scope="module")
+def flow() -> WeeklyFlowMember:
+    estimator, _ = train_growth_model(TINY_FLOW)
+    return WeeklyFlowMember(estimator, TINY_FLOW, n_samples=200)
+
+
+def test_weekly_flow_forecasts_are_valid_and_see_only_the_past(flow: WeeklyFlowMember):
+    rng = np.random.default_rng(0)
+    history = _weekly(rng.poisson(np.linspace(200, 900, 30)))
+    origin = history.dates[19]
+    a = forecast_one(flow, history.up_to(origin), (1, 2, 3, 4, 5), seed=4)
+    altered = dataclasses.replace(history, cases=np.where(np.arange(30) > 19,
+                                                          history.cases * 10, history.cases))
+    b = forecast_one(flow, altered.up_to(origin), (1, 2, 3, 4, 5), seed=4)
+    q = a.values[HOSP_COVID]
+    assert q.shape == (5, 23) and (q >= 0).all() and (np.diff(q, axis=1) >= 0).all()
+    np.testing.assert_array_equal(q, b.values[HOSP_COVID])
+    # a two-week series (the hub's first round) is forecast from its masked context
+    short = forecast_one(flow, history.up_to(history.dates[1]), (1,), seed=4)
+    assert np.isfinite(short.values[HOSP_COVID]).all()
+    # a cell's draws are its own: in a batch with another cell, the same numbers
+    alone = flow.sample_paths([history.up_to(origin)], [4])
+    both = flow.sample_paths([history.up_to(history.dates[10]), history.up_to(origin)], [9, 4])
+    np.testing.assert_allclose(both[1], alone[0], rtol=1e-5)
+    # a rate (the ED share per 100,000 visits) leaves S at 1: shares below 100 %
+    rate = dataclasses.replace(history.up_to(origin), population=100_000, depletes=False,
+                               cases=history.up_to(origin).cases * 10.0)
+    paths = flow.sample_paths([rate], [1])[0]
+    assert (paths[..., 1] > 0).all() and (paths[..., 1] < 1).all()
+
+
+def test_seasonal_growth_is_the_pooled_past_growth_at_this_time_of_year():
+    """A climatology that doubles from ISO week 40 to 41 and is flat otherwise, two seasons
+    back: at an origin in week 40 the one-step growth quantiles are log 2 (pooled over two
+    places × the ±0-week band of two earlier years)."""
+    dates = pd.date_range("2022-10-01", "2025-10-04", freq="7D")
+    weeks = np.asarray(dates.isocalendar().week)
+    level = np.cumsum(np.where(weeks == 41, np.log(2.0), 0.0))
+    values = np.expm1(np.log1p(100.0) + level)
+    panel = Panel({p: WeeklyHistory(dates, values * (k + 1), 100_000, "x") for k, p in
+                   enumerate(("a", "b"))})
+    origin = dates[np.flatnonzero(weeks == 40)[-1]]
+    growth = seasonal_growth(panel, origin, (1,), LEVELS, SeasonalConfig(band=0))
+    assert growth[0, 11] == pytest.approx(np.log1p(200.0) - np.log1p(100.0), rel=1e-2)
+    member = SeasonalGrowthMember(((pd.Timestamp("2025-10-08"), panel),), SeasonalConfig(band=0))
+    own = _weekly([50.0, 60.0], start=str((origin - pd.Timedelta(weeks=1)).date()))
+    early = Panel({"x": own}, as_of=pd.Timestamp("2025-10-01"))
+    later = dataclasses.replace(early, as_of=pd.Timestamp("2025-10-09"))
+    cells = Cells.of([own, own], [0, 0], ["x", "x"], [early, later])
+    made = member.forecast(cells, (1,), LEVELS).count
+    assert np.isnan(made[0]).all()              # no climatology released by the first's date
+    assert made[1, 0, 11] == pytest.approx(np.expm1(np.log1p(60.0) + growth[0, 11]))
+
+
+def test_top_down_makes_the_states_medians_sum_to_the_national_one():
+    rng = np.random.default_rng(2)
+    places = ("US", "01", "02", "06")
+    q = np.sort(rng.gamma(3.0, 100.0, size=(4, 3, 2, 23)), axis=-1)
+    q[0] *= 3.0
+    out = top_down(q, places, "US", LEVELS)
+    np.testing.assert_allclose(out[1:, ..., 11].sum(axis=0), out[0, ..., 11], rtol=1e-12)
+    np.testing.assert_array_equal(out[0], q[0])
+    assert (np.diff(out, axis=-1) >= 0).all()
+    np.testing.assert_allclose(median_gap(out, places, "US", LEVELS), 0.0, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def real_vintages(tmp_path_factory) -> list:
+    if not (NHSN / "time-series.parquet").exists():
+        pytest.fail(f"the hub's target data are expected at {NHSN} (../shared beside the repo)")
+    root = tmp_path_factory.mktemp("nhsn-data")
+    import_hub_time_series(NHSN, root)
+    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(HOSP_COVID, root)]
+
+
+def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
+    """The first eight admissions rounds of the hub's data, forecast by the hub baseline from
+    each round's own vintage: origins, horizons, the nowcast week, the latest vintage as truth,
+    and the newest round's file valid against the hub's tasks.json, read back by hubdata."""
+    import hubdata
+
+    assert len(real_vintages) == 44
+    rounds = hub_rounds(real_vintages[:8])
+    assert [str(r.reference.date()) for r in rounds[:2]] == ["2024-11-23", "2024-11-30"]
+    assert rounds[0].origin == pd.Timestamp("2024-11-16") and rounds[0].lag_weeks == 1
+    latest = real_vintages[-1][1]
+    result = run_hub_rounds(rounds, latest, [HubBaseline(HubBaselineConfig(n_samples=2000))],
+                            HubBacktestConfig())
+    assert len(result.places) == 53 and result.horizons == (-1, 0, 1, 2, 3)
+    pa = result.places.index("42")
+    # Pennsylvania's week ending 2024-11-16 as the latest vintage holds it is the truth of
+    # the first round's horizon -1 (reported 6,124 in the round's own vintage, then revised)
+    assert rounds[0].panel.histories["42"].cases[-1] == 6124.0
+    assert result.truth[pa, 0, 0] == latest.histories["42"].cases[1]
+    assert result.truth[pa, 0, 0] != 6124.0
+    # the published forecast at horizon -1 is the nowcast of the reported week
+    np.testing.assert_array_equal(result.forecasts[PUBLISHED][:, 0, 0],
+                                  np.stack([result.nowcasts[0].quantiles[p][0]
+                                            for p in result.places]))
+    assert np.isfinite(result.forecasts[PUBLISHED][:, :, 1:]).all()
+    frame = compound_sample_ids(result.round_frame(len(rounds) - 1))
+    root = tmp_path / "hub"
+    shutil.copytree(NHSN / "hub-config", root / "hub-config")
+    written = write_hub_round(frame, hub_dir=root, model_id=CDC_HUB_MODEL_ID,
+                              tasks=load_tasks_config(NHSN / "hub-config" / "tasks.json"),
+                              metadata=load_model_metadata(REPO / "model-metadata"
+                                                           / f"{CDC_HUB_MODEL_ID}.yml"))
+    back = hubdata.connect_hub(root).get_dataset().to_table().to_pandas()
+    assert len(back) == 53 * 5 * (23 + 200) and set(back.location) == set(result.places)
+    assert written.reference_date == rounds[-1].reference.date()
