@@ -1,6 +1,8 @@
 # Two entry points do all set-up on a fresh machine:
 #   make forecast   -> the weekly San Francisco forecast (offline-capable defaults)
 #   make test       -> the test suite
+# and `make hub` (= make forecast FORECAST_ARGS="--hub covid"): this week's CDC COVID-19
+# Forecast Hub round.
 # Both create or refresh .venv (torch==2.13.0 CPU wheel first) and the system packages.
 PYTHON ?= python3
 VENV   := .venv
@@ -9,7 +11,7 @@ STAMP  := $(VENV)/.flowcast-installed
 # torch's OpenMP threads spin-wait by default, which stalls 2-thread ops on a busy 2-core box.
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: forecast test variants venv sysdeps bench clean-venv
+.PHONY: forecast hub test variants venv sysdeps bench clean-venv
 
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -37,6 +39,10 @@ ARCHIVE_FILES = -name 'COVID-19_Cases_Over_Time.csv' -o -name 'COVID-19_Deaths_O
 # --if-empty imports them only into a cache without CDPH data.
 CDPH_ARCHIVE ?= ../shared/data/cdph
 
+# The CDC COVID-19 Forecast Hub's data (every NHSN/NSSP vintage of its time series): imported
+# into an empty cache so that a hub round runs offline (live, the run fetches data.cdc.gov).
+NHSN_ARCHIVE ?= ../shared/data/nhsn
+
 forecast: venv sysdeps
 	@if [ -d "$(ARCHIVE)" ]; then \
 	  $(VENV)/bin/flowcast data import --if-empty \
@@ -44,9 +50,14 @@ forecast: venv sysdeps
 	@if [ -d "$(CDPH_ARCHIVE)" ]; then \
 	  $(VENV)/bin/flowcast data import --if-empty --accept-revisions \
 	    $$(find "$(CDPH_ARCHIVE)" -name covid19cases_test.csv | sort); fi
+	@if [ -f "$(NHSN_ARCHIVE)/time-series.parquet" ]; then \
+	  $(VENV)/bin/flowcast data import --if-empty "$(NHSN_ARCHIVE)/time-series.parquet"; fi
 	PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 \
 	  FLOWCAST_CDPH_ARCHIVE=$${FLOWCAST_CDPH_ARCHIVE:-$(CDPH_ARCHIVE)} \
 	  $(VENV)/bin/flowcast forecast $(FORECAST_ARGS)
+
+hub:
+	$(MAKE) forecast FORECAST_ARGS="--hub covid $(FORECAST_ARGS)"
 
 # The type check first (pyright over pipeline/ and flows/, settings in pyproject.toml): zero errors.
 test: venv sysdeps

@@ -12,6 +12,11 @@ hub baseline, growth-qr, the flows — and others), and the published design wit
 member's climatology taken from a later vintage for the rounds before the ED share was released
 (``*-pseudo``: not real time, reported for what it would have been).
 
+``seconds``: ``backtest`` (this design backtest of admissions: members built, every round and
+variant), and from the command line in a fresh data folder ``scratch`` (import, training, every
+round, publish), ``round`` (the next run, models and past rounds stored) and
+``round_without_memo``.
+
     python -m bench.nhsn                  # both targets, every round
     python -m bench.nhsn --target hosp    # admissions only
 """
@@ -39,15 +44,39 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--out", default=None, help="output JSON path")
     p.add_argument("--files", default=None, help="write every round's hub file under DIR")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-timing", action="store_true",
+                   help="skip the command-line runs that time a round (seconds.round, scratch)")
     return p.parse_args(argv)
 
 
-def load_vintages(target: str) -> list[Any]:
-    """Every cached vintage of ``target`` as (as_of, panel), oldest first."""
-    from pipeline.data.nhsn_vintages import cached_weekly_vintages
-    from pipeline.panels.hub import panel_of
+def timed_rounds(hub: Path) -> dict[str, float]:
+    """``flowcast forecast --hub covid`` offline in a fresh data folder, as a new user runs it:
+    ``scratch`` (import of the hub's data, the weekly flow trained, every round forecast, the
+    round published), then ``round`` (the next week's run: models and past rounds' forecasts
+    stored) and ``round_without_memo`` (models stored, every round re-forecast)."""
+    import shutil
+    import subprocess
+    import tempfile
 
-    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(target)]
+    flowcast = str(Path(sys.executable).with_name("flowcast"))
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="flowcast-hub-") as tmp:
+        env = {**os.environ, "FLOWCAST_DATA_DIR": f"{tmp}/data",
+               "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
+        forecast = [flowcast, "forecast", "--hub", "covid", "--data-source", "cache",
+                    "--output-dir", f"{tmp}/reports"]
+        for name, commands in (
+                ("scratch", [[flowcast, "data", "import", str(hub / "time-series.parquet")],
+                             forecast]),
+                ("round", [forecast]), ("round_without_memo", [forecast])):
+            if name == "round_without_memo":
+                shutil.rmtree(f"{tmp}/data/forecast-memo")
+            started = time.perf_counter()
+            for command in commands:
+                subprocess.run(command, env=env, check=True, stdout=subprocess.DEVNULL)
+            out[name] = round(time.perf_counter() - started, 1)
+            print(f"hub round from the command line, {name}: {out[name]} s", flush=True)
+    return out
 
 
 def leaderboards(ours: Any, teams: Any, target: str, exclusions: Any) -> dict[str, Any]:
@@ -94,7 +123,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
-    from pipeline.combine.combiner import PUBLISHED, CombineConfig
+    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, CombineConfig
+    from pipeline.forecast.hub_round import load_vintages
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
     from pipeline.panels.hub import hub_rounds
@@ -119,6 +149,10 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
         Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
         Variant("v-nf-real+seasonal", reach, ("nf-real", "seasonal")),
+        Variant("v-log-average (the rule published until 2026-11)",
+                dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")),
+        Variant("v-log-mixture, no online calibration",
+                dataclasses.replace(reach, calibration="none")),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 ("nf-weekly", "seasonal-pseudo")),
@@ -158,7 +192,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "reconciliation": None if gap is None else {
             "median_abs_log_gap_before": float(np.nanmedian(np.abs(gap))),
             "p90_abs_log_gap_before": float(np.nanquantile(np.abs(gap), 0.9))},
-        "seconds": {"members": round(t_members, 1), "backtest": round(t_backtest, 1),
+        "seconds": {"members": round(t_members, 1), "backtest_rounds": round(t_backtest, 1),
                     "parts": {k: round(v, 1) for k, v in result.seconds.items()}},
     }
 
@@ -169,6 +203,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         quantile_table, read_target_data
     from pipeline.data.hub_import import import_hub_time_series
     from pipeline.evaluation.hub_leaderboard import score_quantile_forecasts
+    from pipeline.forecast.hub_round import load_vintages
     from pipeline.io import atomic_write_json
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
 
@@ -189,6 +224,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for name, m in s["members_and_variants"].items():
             print(f"  {name:60s} all {m['all']}  " + " ".join(
                 f"{k}={v:.3f}" for k, v in m.items() if k.startswith("h") and v is not None))
+    timing = {} if args.no_timing else timed_rounds(hub)
+    if HOSP_COVID in out:
+        out[HOSP_COVID]["seconds"] |= timing | {"backtest": round(out[HOSP_COVID]["seconds"][
+            "members"] + out[HOSP_COVID]["seconds"]["backtest_rounds"], 1)}
     result = {**out.get(HOSP_COVID, {}),
               "ed_visits": out.get(ED_COVID),
               "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",

@@ -59,7 +59,7 @@ def forecast_command(
     from pipeline.errors import ConfigError, FlowcastError
 
     if hub is not None:
-        _hub_round(hub, value(data_source), output_dir, seed, hub_config)
+        _hub_round(hub, value(data_source), value(preset), output_dir, seed, hub_config)
         return
 
     try:  # a misspelt county fails here, before Prefect starts
@@ -99,15 +99,17 @@ def forecast_command(
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
 
 
-def _hub_round(disease: str, data_source: str, output_dir: Path, seed: int,
+def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, seed: int,
                hub_config: Path | None) -> None:
     """``flowcast forecast --hub DISEASE``: the hub_forecast flow once."""
     from pipeline.errors import FlowcastError
 
-    if disease not in ("covid", "flu", "rsv") or data_source not in ("live", "cache"):
+    if (disease not in ("covid", "flu", "rsv") or data_source not in ("live", "cache")
+            or preset not in ("default", "tiny")):
         typer.secho(f"error: --hub takes covid, flu or rsv (got {disease!r}) with "
-                    f"--data-source live or cache (got {data_source!r}); hub data are imported "
-                    "with `flowcast data import <hub folder>`", fg=typer.colors.RED, err=True)
+                    f"--data-source live or cache (got {data_source!r}) and --preset default "
+                    f"or tiny (got {preset!r}); hub data are imported with `flowcast data "
+                    "import <hub folder>`", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
@@ -121,7 +123,7 @@ def _hub_round(disease: str, data_source: str, output_dir: Path, seed: int,
         state = hub_forecast(disease=disease, data_source=data_source,
                              output_dir=str(output_dir),
                              hub_config=str(hub_config) if hub_config else None, seed=seed,
-                             return_state=True)
+                             preset=preset, return_state=True)
     if not state.is_completed():
         try:
             state.result()

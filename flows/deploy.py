@@ -1,77 +1,116 @@
-"""Serve the ``weekly_forecast/sf-weekly`` deployment: Mondays 06:00 America/Los_Angeles.
+"""Serve the deployments: ``weekly_forecast/sf-weekly`` (Mondays 06:00 America/Los_Angeles)
+and ``hub_forecast/hub-covid-weekly`` (the hub round, Wednesdays 15:00 America/New_York).
 
-Two ways to run the deployment, with the same schedule, parameters and tags:
+Two ways to run the deployments, with the same schedules, parameters and tags:
 
-* ``serve`` (this module): one long-running process registers the deployment and runs its flow
-  runs itself; nothing else to set up.
-* a work pool (``prefect.yaml`` at the repository root): ``prefect deploy`` registers it for the
+* ``serve`` (this module): one long-running process registers the deployments and runs their
+  flow runs itself; nothing else to set up.
+* a work pool (``prefect.yaml`` at the repository root): ``prefect deploy --all`` registers them for the
   process work pool ``flowcast-process`` and a ``prefect worker`` (kept alive by
   ``deploy/flowcast-worker.service``) runs the flow runs; see docs/orchestration.md.
 
     PREFECT_API_URL=http://127.0.0.1:4200/api python -m flows.deploy [--preset default] ...
     prefect deployment run 'weekly_forecast/sf-weekly' [--param preset=tiny] --watch
+    prefect deployment run 'hub_forecast/hub-covid-weekly' --watch
 
-``serve`` registers (or updates) the deployment with the server at ``PREFECT_API_URL`` and then
-runs its scheduled and manually triggered runs in subprocesses of this process until it gets
+``serve`` registers (or updates) the deployments with the server at ``PREFECT_API_URL`` and then
+runs their scheduled and manually triggered runs in subprocesses of this process until it gets
 SIGINT/SIGTERM. We pass ``pause_on_shutdown=False``: Prefect's default pauses the deployment's
 schedule when ``serve`` stops, so a restart of this process (a deploy, a reboot) would silently
 stop the weekly runs until someone un-paused them.
 
-The schedule is written with an explicit IANA timezone so 06:00 stays 06:00 local time across
+The schedules are written with an explicit IANA timezone so 06:00 stays 06:00 local time across
 daylight-saving changes (a plain cron string would be read in UTC).
 """
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 
+from prefect import serve as serve_deployments
 from prefect.schedules import Cron, Schedule
 
+from flows.hub_forecast import hub_forecast
 from flows.weekly_forecast import FORECAST_PRESETS_CHOICES, weekly_forecast
 
-DEPLOYMENT_NAME = "sf-weekly"
-FLOW_NAME = "weekly_forecast"
-FULL_NAME = f"{FLOW_NAME}/{DEPLOYMENT_NAME}"
-CRON = "0 6 * * 1"  # Mondays 06:00
-TIMEZONE = "America/Los_Angeles"
-TAGS = ("flowcast", "san-francisco", "weekly")
 WORK_POOL = "flowcast-process"  # prefect.yaml's process work pool
 
 
-def weekly_schedule() -> Schedule:
-    return Cron(CRON, timezone=TIMEZONE)
+@dataclass(frozen=True)
+class DeploymentSpec:
+    """One scheduled deployment, as prefect.yaml and ``serve`` both register it."""
 
+    name: str
+    flow_name: str
+    entrypoint: str
+    cron: str
+    timezone: str
+    tags: tuple[str, ...]
+    description: str
+
+    @property
+    def full_name(self) -> str:
+        return f"{self.flow_name}/{self.name}"
+
+    def schedule(self) -> Schedule:
+        return Cron(self.cron, timezone=self.timezone)
+
+
+SF_WEEKLY = DeploymentSpec(
+    name="sf-weekly", flow_name="weekly_forecast",
+    entrypoint="flows/weekly_forecast.py:weekly_forecast",
+    cron="0 6 * * 1", timezone="America/Los_Angeles",      # Mondays 06:00
+    tags=("flowcast", "san-francisco", "weekly"),
+    description="Weekly San Francisco SIR forecast with conditional normalizing flows.")
+# The hub's rounds are due Wednesdays 23:59 US Eastern; NHSN's preliminary release comes out
+# on Wednesdays, so the round runs that afternoon with a margin of hours for a retry.
+HUB_COVID_WEEKLY = DeploymentSpec(
+    name="hub-covid-weekly", flow_name="hub_forecast",
+    entrypoint="flows/hub_forecast.py:hub_forecast",
+    cron="0 15 * * 3", timezone="America/New_York",        # Wednesdays 15:00
+    tags=("flowcast", "forecast-hub", "covid", "weekly"),
+    description="This week's CDC COVID-19 Forecast Hub round: NHSN admissions and the ED "
+                "share for the US and every state.")
+DEPLOYMENTS = (SF_WEEKLY, HUB_COVID_WEEKLY)
 
 def deployment_parameters(args: argparse.Namespace) -> dict[str, object]:
-    """The default parameters stored on the deployment (a triggered run may override any)."""
+    """The sf-weekly deployment's stored parameters (a triggered run may override any)."""
     params: dict[str, object] = {"preset": args.preset, "data_source": args.data_source,
-                              "output_dir": args.output_dir, "seed": args.seed}
+                                 "output_dir": args.output_dir, "seed": args.seed}
     if args.encoder:
         params["encoder"] = args.encoder
     return params
 
 
-def serve(parameters: dict[str, object], *, limit: int = 1) -> None:
-    """Register the deployment and run it until stopped (``limit`` concurrent runs: weekly
+def hub_parameters(args: argparse.Namespace) -> dict[str, object]:
+    """The hub-covid-weekly deployment's stored parameters."""
+    return {"disease": "covid", "data_source": args.data_source,
+            "output_dir": args.output_dir, "seed": args.seed}
+
+
+def serve(args: argparse.Namespace) -> None:
+    """Register the chosen deployments and run them until stopped (``--limit`` concurrent runs:
     runs share one model cache and one output folder, so they should not overlap)."""
-    weekly_forecast.serve(
-        name=DEPLOYMENT_NAME,
-        schedules=[weekly_schedule()],
-        parameters=parameters,
-        pause_on_shutdown=False,
-        limit=limit,
-        tags=list(TAGS),
-        description="Weekly San Francisco SIR forecast with conditional normalizing flows.",
-    )
+    flows = {SF_WEEKLY.name: (weekly_forecast, deployment_parameters(args)),
+             HUB_COVID_WEEKLY.name: (hub_forecast, hub_parameters(args))}
+    chosen = [spec for spec in DEPLOYMENTS if spec.name in args.deployments]
+    serve_deployments(*[flows[spec.name][0].to_deployment(
+        name=spec.name, schedules=[spec.schedule()], parameters=flows[spec.name][1],
+        tags=list(spec.tags), description=spec.description) for spec in chosen],
+        pause_on_shutdown=False, limit=args.limit)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m flows.deploy", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--deployments", nargs="+", default=[d.name for d in DEPLOYMENTS],
+                        choices=[d.name for d in DEPLOYMENTS], help="which to serve (all)")
     parser.add_argument("--preset", default="default", choices=FORECAST_PRESETS_CHOICES)
     parser.add_argument("--encoder", default=None, help="override the preset's context encoder")
     parser.add_argument("--data-source", default="live", choices=["live", "cache"],
-                        help="live: fetch DataSF (cache fallback); cache: offline")
+                        help="live: fetch DataSF / data.cdc.gov (cache fallback); cache: "
+                             "offline")
     parser.add_argument("--output-dir", default="reports")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--limit", type=int, default=1, help="concurrent runs of this server")
@@ -79,8 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    serve(deployment_parameters(args), limit=args.limit)
+    serve(build_parser().parse_args(argv))
     return 0
 
 

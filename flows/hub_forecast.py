@@ -21,7 +21,7 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
 from pipeline.forecast.hub_publish import publish_hub_round
-from pipeline.forecast.hub_round import HubRunConfig, run_hub_round
+from pipeline.forecast.hub_round import HubRunConfig, hub_members_preset, run_hub_round
 from pipeline.progress import LogProgress
 
 FLOW_NAME = "hub_forecast"
@@ -31,7 +31,8 @@ FLOW_NAME = "hub_forecast"
 def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                  data_source: Literal["live", "cache"] = "live",
                  output_dir: str = "reports", hub_config: str | None = None,
-                 seed: int = 0) -> dict[str, object]:
+                 seed: int = 0, preset: Literal["default", "tiny"] = "default"
+                 ) -> dict[str, object]:
     """This week's round of the hub for ``disease`` (module docstring) into
     ``<output_dir>/hub-<disease>/<reference date>/``.
 
@@ -44,17 +45,20 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
         hub_config: The hub's hub-config folder (its tasks.json validates the file). Empty:
             $FLOWCAST_HUB_CONFIG or ../shared/data/nhsn/hub-config beside the checkout.
         seed: Seed of every random step.
+        preset: default: the product's members; tiny: a small flow and few draws, a
+            seconds-long smoke run.
     """
     logger = get_run_logger()
     config = HubRunConfig(disease=disease, data_source=data_source, output_dir=output_dir,
-                          hub_config=hub_config, seed=seed)
+                          hub_config=hub_config, seed=seed,
+                          members=hub_members_preset(preset))
     config = dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
     run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False,
                retries=1, retry_delay_seconds=30)(run_hub_round)(
         config, LogProgress(logger, "rounds", 2000))
     published = task(name="publish-round", cache_policy=NO_CACHE, persist_result=False)(
         publish_hub_round)(run)
-    stale = "; ".join(n for p in run.provenance.values() for n in p.notes)
+    stale = "; ".join(f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes)
     create_markdown_artifact(
         f"Hub round {published.reference_date} ({disease}): `{published.model_output}`"
         + (f"\n\nMade from cached data: {stale}" if run.stale else ""),
@@ -75,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", default="reports")
     parser.add_argument("--hub-config", default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--preset", default="default", choices=["default", "tiny"])
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     with local_api():

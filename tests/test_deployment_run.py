@@ -1,8 +1,8 @@
 """Integration: a real Prefect server on 127.0.0.1, the served deployment, `prefect deployment run`.
 
 Starts `prefect server start` (temporary PREFECT_HOME, free port), serves
-`weekly_forecast/sf-weekly` from flows/deploy.py, triggers it with the CLI (`--watch`, bounded),
-then checks the run COMPLETED, its report exists, and the deployment carries the Monday 06:00
+`weekly_forecast/sf-weekly` and `hub_forecast/hub-covid-weekly` from flows/deploy.py, triggers
+the first with the CLI (`--watch`, bounded), then checks the run COMPLETED, its report exists, and the deployment carries the Monday 06:00
 America/Los_Angeles cron schedule and is not paused. Every process started here is stopped (its
 whole process group) in a `finally`.
 """
@@ -118,6 +118,13 @@ def test_serve_and_run_deployment(tmp_path, datasf_dir):
         assert schedule["cron"] == "0 6 * * 1"
         assert schedule["timezone"] == "America/Los_Angeles"
         assert deployment["paused"] is False
+        # the hub round's deployment is served beside it, on the hub's Wednesday
+        (hub,) = api_post(api, "/deployments/filter",
+                          {"deployments": {"name": {"any_": ["hub-covid-weekly"]}}})
+        hub_schedule = hub["schedules"][0]["schedule"]
+        assert (hub_schedule["cron"], hub_schedule["timezone"]) == ("0 15 * * 3",
+                                                                    "America/New_York")
+        assert hub["paused"] is False and hub["parameters"]["disease"] == "covid"
 
         run = subprocess.run([PREFECT, "deployment", "run", "weekly_forecast/sf-weekly",
                               "--param", "seed=3", "--watch", "--watch-timeout", "150"],

@@ -168,9 +168,14 @@ def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) ->
     results = []
     for _ in range(2):
         memo = ForecastMemo.load(tmp_path / "memo.npz")
-        results.append(run_backtest(data, [memo.wrap(m) for m in members], origins, config))
+        results.append(run_backtest(data, [memo.wrap(m, config.n_paths) for m in members],
+                                    origins, config))
         memo.save()
     assert memo.misses == 0 and memo.hits == len(plain.origins) * len(members)
+    # only the 50 paths the backtest uses are kept of the flow's 100
+    kept = {f.paths.shape for f in ForecastMemo.load(tmp_path / "memo.npz")._stored.values()
+            if f.paths is not None}
+    assert kept == {(50, 4, 3)}
     for result in results:
         for target, made in plain.forecasts.items():
             for name, values in made.items():

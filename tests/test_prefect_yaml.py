@@ -1,4 +1,4 @@
-"""prefect.yaml and flows/deploy.py describe the same deployment; the flow documents its
+"""prefect.yaml and flows/deploy.py describe the same deployments; the flow documents its
 parameters for the UI form; the systemd units point at the right commands."""
 from __future__ import annotations
 
@@ -10,29 +10,41 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_prefect_yaml_matches_the_served_deployment():
+def test_prefect_yaml_matches_the_served_deployments():
     from flows import deploy
 
     config = yaml.safe_load((REPO / "prefect.yaml").read_text())
-    (deployment,) = config["deployments"]
     assert config["prefect-version"] == "3.8.8"
-    assert deployment["name"] == deploy.DEPLOYMENT_NAME
-    assert deployment["entrypoint"] == "flows/weekly_forecast.py:weekly_forecast"
-    (schedule,) = deployment["schedules"]
-    assert (schedule["cron"], schedule["timezone"]) == (deploy.CRON, deploy.TIMEZONE)
-    assert deployment["tags"] == list(deploy.TAGS)
-    assert deployment["concurrency_limit"] == 1
-    assert deployment["work_pool"]["name"] == deploy.WORK_POOL
+    by_name = {d["name"]: d for d in config["deployments"]}
+    assert sorted(by_name) == sorted(spec.name for spec in deploy.DEPLOYMENTS)
     args = deploy.build_parser().parse_args([])
-    assert deployment["parameters"] == deploy.deployment_parameters(args)
+    parameters = {deploy.SF_WEEKLY.name: deploy.deployment_parameters(args),
+                  deploy.HUB_COVID_WEEKLY.name: deploy.hub_parameters(args)}
+    for spec in deploy.DEPLOYMENTS:
+        deployment = by_name[spec.name]
+        assert deployment["entrypoint"] == spec.entrypoint
+        (schedule,) = deployment["schedules"]
+        assert (schedule["cron"], schedule["timezone"]) == (spec.cron, spec.timezone)
+        assert deployment["tags"] == list(spec.tags)
+        assert deployment["description"] == spec.description
+        assert deployment["concurrency_limit"] == 1
+        assert deployment["work_pool"]["name"] == deploy.WORK_POOL
+        assert deployment["parameters"] == parameters[spec.name]
+    assert (deploy.SF_WEEKLY.cron, deploy.SF_WEEKLY.timezone) == ("0 6 * * 1",
+                                                                  "America/Los_Angeles")
+    # the hub's rounds are due Wednesdays: the run comes the same afternoon, US Eastern
+    assert (deploy.HUB_COVID_WEEKLY.cron, deploy.HUB_COVID_WEEKLY.timezone) == (
+        "0 15 * * 3", "America/New_York")
 
 
 def test_flow_parameters_are_documented():
+    from flows.hub_forecast import hub_forecast
     from flows.weekly_forecast import weekly_forecast
 
-    doc = weekly_forecast.fn.__doc__ or ""
-    for name in inspect.signature(weekly_forecast.fn).parameters:
-        assert f"\n        {name}: " in doc, name
+    for flow in (weekly_forecast, hub_forecast):
+        doc = flow.fn.__doc__ or ""
+        for name in inspect.signature(flow.fn).parameters:
+            assert f"\n        {name}: " in doc, (flow.name, name)
 
 
 def test_systemd_units():

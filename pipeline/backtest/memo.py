@@ -84,8 +84,12 @@ class ForecastMemo:
                             error)
         return memo
 
-    def wrap(self, member: Member) -> MemoizedMember:
-        return MemoizedMember(member, self, fingerprint(code_fingerprint(), member))
+    def wrap(self, member: Member, paths_kept: int | None = None) -> MemoizedMember:
+        """``member`` through this memo; ``paths_kept``: how many of its sample paths the caller
+        uses (the backtest's ``n_paths``), the only ones kept, hit or miss (a member's 1,000
+        paths per cell would make the file hundreds of MB)."""
+        return MemoizedMember(member, self, fingerprint(code_fingerprint(), member, paths_kept),
+                              paths_kept)
 
     def lookup(self, key: str) -> CellForecast | None:
         found = self._used.get(key) or self._stored.get(key)
@@ -122,6 +126,7 @@ class MemoizedMember:
     member: Member
     memo: ForecastMemo
     member_key: str
+    paths_kept: int | None = None
 
     @property
     def name(self) -> str:
@@ -156,9 +161,10 @@ class MemoizedMember:
         if missing:
             made = self.member.forecast(cells.subset(missing), horizons, levels)
             share = made.extra.get(SHARE)
+            paths = None if made.paths is None else made.paths[:, :self.paths_kept]
             for i, b in enumerate(missing):
                 found[b] = CellForecast(made.count[i], None if share is None else share[i],
-                                        None if made.paths is None else made.paths[i])
+                                        None if paths is None else np.array(paths[i]))
                 self.memo.record(keys[b], found[b])
         ordered = [found[b] for b in range(len(keys))]
         shares = [f.share for f in ordered if f.share is not None]

@@ -133,8 +133,8 @@ def track_record(panel: Panel, place: str, config: TrackRecordConfig, store_root
     scored: list[Member] = [AutoETSMember(),
                             *(references() if callable(references) else references)]
     if memo is not None:
-        members = [memo.wrap(m) for m in members]
-        scored = [memo.wrap(scored[0]), *scored[1:]]
+        members = [memo.wrap(m, config.n_paths) for m in members]
+        scored = [memo.wrap(scored[0], config.n_paths), *scored[1:]]
     if nowcast is not None:
         start = mixture_from or nowcast.completed.first_nowcast_day
         members = [CompletionMixture(m, nowcast.completed, start, mixed_completions)

@@ -88,7 +88,7 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
         atomic_write_text(staging / "track_record_scores.csv",
                           scores.to_csv(index=False, float_format="%.6g"))
         atomic_write_json(staging / "summary.json", summary(run))
-        notes = [n for p in run.provenance.values() for n in p.notes]
+        notes = [f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes]
         vintage = "; ".join(f"{p.target}: as of {p.as_of} ({p.source_kind}"
                             f"{', cache' if p.from_cache else ''})"
                             for p in run.provenance.values())

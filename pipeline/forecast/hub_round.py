@@ -32,7 +32,9 @@ from pipeline.data.cache import data_dir
 from pipeline.data.nhsn import NHSNConfig, NHSNProvenance, load_nhsn
 from pipeline.data.nhsn_vintages import cached_weekly_vintages, disease_targets
 from pipeline.errors import ConfigError, OfflineError
+from pipeline.members.flow_finetune import FineTuneConfig
 from pipeline.members.published import HubMembersConfig, build_hub_members
+from pipeline.members.weekly_flow import WeeklyFlowConfig
 from pipeline.outputs.hubverse import CDC_HUB_MODEL_ID
 from pipeline.panels.hub import hub_rounds, is_share, panel_of
 from pipeline.panels.panel import Panel
@@ -44,6 +46,23 @@ HUB_CONFIG_ENV = "FLOWCAST_HUB_CONFIG"
 DEFAULT_HUB_CONFIG = Path(__file__).resolve().parents[3] / "shared" / "data" / "nhsn" / \
     "hub-config"
 Disease = Literal["covid", "flu", "rsv"]
+HubPreset = Literal["default", "tiny"]
+HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
+    "default": HubMembersConfig(),
+    # Seconds, for tests and smoke runs: a small flow, a short refit, fewer draws.
+    "tiny": HubMembersConfig(
+        flow=WeeklyFlowConfig(n_trajectories=150, iterations=40, batch_size=256,
+                              hidden_features=16, flow_layers=2, flow_hidden=16),
+        finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
+                                batch_size=128),
+        flow_samples=200, baseline_samples=2000),
+}
+
+
+def hub_members_preset(preset: str) -> HubMembersConfig:
+    if preset not in HUB_MEMBER_PRESETS:
+        raise ConfigError(f"hub preset {preset!r}: use one of {sorted(HUB_MEMBER_PRESETS)}")
+    return HUB_MEMBER_PRESETS[preset]
 
 
 @dataclass(frozen=True)
@@ -95,7 +114,10 @@ class HubRun:
 
     @property
     def stale(self) -> bool:
-        return any(p.from_cache for p in self.provenance.values())
+        """A live run that fell back to the cache (data.cdc.gov unreachable); a run from the
+        cache by choice is not stale."""
+        return self.config.data_source == "live" and any(
+            p.from_cache for p in self.provenance.values())
 
     def skipped(self) -> dict[str, dict[str, str]]:
         """Per target, the locations left out of this round and why."""
@@ -129,9 +151,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     targets = disease_targets(config.disease)
     loaded = load_nhsn(NHSNConfig(disease=config.disease),
                        offline=config.data_source == "cache")
-    for provenance in loaded.provenance.values():
-        for note in provenance.notes:
-            log.warning("%s: %s", provenance.target, note)
+    for provenance in loaded.provenance.values():     # its notes: pipeline.data.nhsn logs them
         if provenance.skipped:
             log.warning("%s: locations left out: %s", provenance.target,
                         "; ".join(f"{p} ({why})" for p, why in provenance.skipped.items()))
@@ -152,8 +172,9 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         memo = ForecastMemo.load(memo_path(config, target))
         results[target] = run_hub_rounds(
             hub_rounds(target_vintages), target_vintages[-1][1],
-            [memo.wrap(m) for m in members.published], config.rounds,
-            references=[memo.wrap(m) for m in members.references], progress=progress)
+            [memo.wrap(m, config.rounds.n_samples) for m in members.published], config.rounds,
+            references=[memo.wrap(m, config.rounds.n_samples) for m in members.references],
+            progress=progress)
         _save(memo)
         seconds[target] = time.perf_counter() - started
     return HubRun(config, results, dict(loaded.provenance), model_key, reused, seconds)

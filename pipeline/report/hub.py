@@ -126,9 +126,13 @@ def track_record_table(result: HubRoundsResult) -> pd.DataFrame:
         for k, h in enumerate(result.horizons):
             if base is not None:
                 both = np.isfinite(s.wis[:, :, k]) & np.isfinite(base[:, :, k])
-                row[f"{h:+d} wk"] = float(s.wis[:, :, k][both].sum() / base[:, :, k][both].sum())
-        row["50% covered"] = float(np.nanmean(s.covered[0.5]))
-        row["95% covered"] = float(np.nanmean(s.covered[0.95]))
+                # a horizon none of whose weeks has ended yet has no score (NaN, not 0/0)
+                row[f"{h:+d} wk"] = (float(s.wis[:, :, k][both].sum()
+                                           / base[:, :, k][both].sum())
+                                     if both.any() else float("nan"))
+        seen = np.isfinite(s.wis)
+        row["50% covered"] = float(s.covered[0.5][seen].mean()) if seen.any() else float("nan")
+        row["95% covered"] = float(s.covered[0.95][seen].mean()) if seen.any() else float("nan")
         row["scored"] = float(np.isfinite(s.wis).sum())
         rows[name] = row
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("forecaster")
