@@ -57,6 +57,8 @@ def design_variants() -> tuple[Any, ...]:
     return (
         Variant("log average (published until 2026-11)", LOG_AVERAGE),
         Variant("log-mixture, no recalibration", CombineConfig(calibration="none")),
+        Variant("regime-aci eta=0.05", CombineConfig(tracking_rate=0.05)),
+        Variant("regime-aci eta=0.3", CombineConfig(tracking_rate=0.3)),
         Variant("linear average", CombineConfig(scale="linear", calibration="none")),
         Variant("skill weights (inverse WIS, last 12 origins)",
                 CombineConfig(scale="log", calibration="none", weights="inverse-wis")),

@@ -56,6 +56,9 @@ def design_variants() -> tuple[Any, ...]:
         Variant("v-mixture (linear pool), no recalibration", CombineConfig(
             scale="mixture", calibration="none")),
         Variant("v-log-average + regime-aci", CombineConfig(scale="log")),
+        # the online calibration's one setting, η, a third and twice the published 0.15
+        Variant("v-regime-aci eta=0.05", CombineConfig(tracking_rate=0.05)),
+        Variant("v-regime-aci eta=0.3", CombineConfig(tracking_rate=0.3)),
         Variant("v-linear-average", CombineConfig(scale="linear", calibration="none")),
         Variant("v-stacking-12-origins", CombineConfig(scale="log", calibration="none",
                                                        weights="stacking", stacking_step=0.1)),

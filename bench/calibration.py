@@ -149,7 +149,8 @@ def report_checks(models: Any, recent: Any, sir: Any, config: Any,
     observed = sir.values[:, 1]
     alerts = [checks.rollout_overshoot(
         f"{direction} {every}-day rollout",
-        np.nanquantile(result.samples[..., 1].numpy(), 0.5, axis=0), observed)
+        np.nanquantile(result.samples[..., 1].numpy(), 0.5, axis=0), observed,
+        dates=sir.dates, anchors=result.anchors, direction=direction)
         for (direction, every), result in rolled.items()]
     smc = seeded_smc(models, recent.history, sir, config)
     alerts.append(checks.ess_collapse(smc.result.ess[0].numpy(), config.smc.particles,

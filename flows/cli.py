@@ -9,7 +9,7 @@ import os
 import sys
 from pathlib import Path
 from enum import Enum
-from typing import TYPE_CHECKING, Annotated, NoReturn, TypeAlias
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn, TypeAlias
 
 import typer
 
@@ -56,7 +56,7 @@ def forecast_command(
     """Run the weekly San Francisco (or --county) forecast once, or with --hub this week's hub
     round, and print where the report went."""
     from pipeline.data.california import california_county
-    from pipeline.errors import ConfigError, FlowcastError
+    from pipeline.errors import ConfigError
 
     if hub is not None:
         _hub_round(hub, value(data_source), value(preset), output_dir, seed, hub_config)
@@ -81,17 +81,7 @@ def forecast_command(
                                 import_from=[str(p) for p in import_from] if import_from else None,
                                 output_dir=str(output_dir), seed=seed, retrain=retrain,
                                 county=county, return_state=True)
-    if not state.is_completed():
-        try:
-            state.result()
-        except FlowcastError as error:
-            typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
-        except Exception as error:  # noqa: BLE001 - a failed run: one line, the log has the rest
-            typer.secho(f"error: the forecast run failed ({type(error).__name__}: {error})",
-                        fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=1)
-    result = state.result()
-    assert isinstance(result, dict)  # the flow's outcome (a stale run's Completed state holds it)
+    result = _outcome(state, "the forecast run")
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:
         typer.secho(f"warning: {'DataSF' if county is None else 'the CHHS portal (CDPH)'} "
@@ -99,11 +89,28 @@ def forecast_command(
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
 
 
+def _outcome(state: Any, what: str) -> dict[str, Any]:
+    """The flow run's result; a failed run: one line naming the problem (the log has the
+    rest), exit 1."""
+    from pipeline.errors import FlowcastError
+
+    if not state.is_completed():
+        try:
+            state.result()
+        except FlowcastError as error:
+            typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+        except Exception as error:  # noqa: BLE001 - a failed run: one line, the log has the rest
+            typer.secho(f"error: {what} failed ({type(error).__name__}: {error})",
+                        fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1)
+    result = state.result()
+    assert isinstance(result, dict)  # the flow's outcome (a stale run's Completed state holds it)
+    return result
+
+
 def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, seed: int,
                hub_config: Path | None) -> None:
     """``flowcast forecast --hub DISEASE``: the hub_forecast flow once."""
-    from pipeline.errors import FlowcastError
-
     if (disease not in ("covid", "flu", "rsv") or data_source not in ("live", "cache")
             or preset not in ("default", "tiny")):
         typer.secho(f"error: --hub takes covid, flu or rsv (got {disease!r}) with "
@@ -124,17 +131,7 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
                              output_dir=str(output_dir),
                              hub_config=str(hub_config) if hub_config else None, seed=seed,
                              preset=preset, return_state=True)
-    if not state.is_completed():
-        try:
-            state.result()
-        except FlowcastError as error:
-            typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
-        except Exception as error:  # noqa: BLE001 - a failed run: one line, the log has the rest
-            typer.secho(f"error: the hub round failed ({type(error).__name__}: {error})",
-                        fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=1)
-    result = state.result()
-    assert isinstance(result, dict)
+    result = _outcome(state, "the hub round")
     typer.echo(f"hub round {result['reference_date']}: {result['model_output']}")
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:

@@ -149,6 +149,7 @@ def test_a_poisoned_county_cell_stops_neither_san_franciscos_nor_a_countys_forec
     from pipeline.forecast.config import resolve_config
     from pipeline.forecast.run import run_forecast
     from pipeline.forecast.sources import load_reference_histories, load_series
+    from pipeline.report.weekly import backtest_section
 
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.delenv("FLOWCAST_CDPH_ARCHIVE", raising=False)
@@ -173,6 +174,10 @@ def test_a_poisoned_county_cell_stops_neither_san_franciscos_nor_a_countys_forec
     sf_results = run_forecast(sf)
     assert sf_results.reference_date == "2022-03-02"
     assert all(np.isfinite(v).all() for v in sf_results.weekly.latest.values.values())
+    # the report names the county left out of the pooled members' data, and why
+    assert dict(sf_results.weekly.result.panel.skipped) == {"Marin": why}
+    [alert] = backtest_section(sf_results).alerts
+    assert "left 1 place(s) out" in alert and why in alert
 
     county = resolve_config("tiny", output_dir=str(tmp_path / "reports"),
                             data=dataclasses.replace(base.data, kind="cache",

@@ -456,8 +456,22 @@ def test_checks_say_trouble_in_words():
     assert checks.prior_not_updated("β", np.zeros(28), np.ones(28), None, dates) is None
     observed = np.array([0.001, 0.026, 0.01])
     over = checks.rollout_overshoot("forward 28-day rollout", [0.002, 0.3, np.nan], observed)
-    assert over.startswith("The forward 28-day rollout diverges: its median I reaches 0.3, 12×")
+    assert over.startswith("The forward 28-day rollout overshoots: its median I reaches 0.3, "
+                           "11.5× the highest I observed (0.026). Chained estimates compound")
     assert checks.rollout_overshoot("x", [0.002, 0.05, np.nan], observed) is None
+    # where: a segment started before the observed peak and overshooting after it
+    days = pd.date_range("2021-12-20", periods=6)
+    rising = np.array([0.01, 0.02, 0.03, 0.02, 0.015, 0.01])
+    past = checks.rollout_overshoot("forward 28-day rollout",
+                                    [0.01, 0.02, 0.04, 0.05, 0.06, 0.07], rising,
+                                    dates=days, anchors=(0, 3), direction="forward")
+    assert ("reaches 0.07 on 2021-12-25 (its segment starts on 2021-12-23; I peaked on "
+            "2021-12-22), 2.3×") in past and "past a turn" not in past
+    inside = checks.rollout_overshoot("forward 28-day rollout",
+                                      [0.01, 0.02, 0.04, 0.07, 0.06, 0.05], rising,
+                                      dates=days, anchors=(0, 4), direction="forward")
+    assert "segment starts on 2021-12-20; I peaked on 2021-12-22" in inside
+    assert "follows the rise it started from past a turn" in inside
 
 
 def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.members.base import Member, MemberForecast
+from pipeline.members.base import Member, MemberForecast, MemberWrapper
 from pipeline.panels.panel import Cells, Panel
 from pipeline.panels.targets import SHARE, TargetError
 from pipeline.fingerprint import code_fingerprint, fingerprint
@@ -119,22 +119,13 @@ class ForecastMemo:
 
 
 @dataclass(frozen=True, eq=False)
-class MemoizedMember:
+class MemoizedMember(MemberWrapper):
     """``member`` whose cells' forecasts go through ``memo``; ``member_key`` fingerprints the
     member and the code."""
 
-    member: Member
     memo: ForecastMemo
     member_key: str
     paths_kept: int | None = None
-
-    @property
-    def name(self) -> str:
-        return self.member.name
-
-    @property
-    def max_horizon(self) -> int | None:
-        return getattr(self.member, "max_horizon", None)
 
     def keys(self, cells: Cells, horizons: tuple[int, ...], levels: NDArray[np.float64]
              ) -> list[str]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from dataclasses import dataclass
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -182,25 +183,42 @@ def sf_history(series: SFSeries, sir: SIRSeries) -> EpiHistory:
 SETTLED_DAYS = 14
 
 
-def load_reference_histories(min_population: int = REFERENCE_MIN_POPULATION,
-                             drop_days: int = SETTLED_DAYS) -> dict[str, EpiHistory]:
+@dataclass(frozen=True)
+class ReferencePlaces:
+    """The counties the pooled members learn from (by name), and those the validation gate
+    left out of the vintage, with why."""
+
+    histories: dict[str, EpiHistory]
+    skipped: dict[str, str]
+
+
+def load_reference_places(min_population: int = REFERENCE_MIN_POPULATION,
+                          drop_days: int = SETTLED_DAYS) -> ReferencePlaces:
     """California's counties with at least ``min_population`` people, by name, from the latest
     cached CDPH vintage without its last ``drop_days`` days, still being reported (the
     cross-county backtest cuts the same days): the places the published forecast's pooled
     members learn from. Empty, with a warning, when the cache holds no CDPH data (the members
-    then learn from the forecast's own series alone)."""
+    then learn from the forecast's own series alone). A county the gate skipped is left out and
+    named (the run's log and report say so)."""
     try:
         vintage = load_cdph_vintage(offline=True)
     except OfflineError as exc:
         log.warning("no CDPH county data in the cache (%s): the pooled members learn from the "
                     "San Francisco series alone; `flowcast data import` the CDPH files", exc)
-        return {}
+        return ReferencePlaces({}, {})
     last = vintage.as_of - pd.Timedelta(days=drop_days)
     if vintage.skipped:  # failed the validation gate: not in vintage.counties, so not pooled
         log.warning("the pooled members leave out %d county(ies) the validation gate skipped: "
                     "%s", len(vintage.skipped), "; ".join(vintage.skipped.values()))
-    return {c: history_from_county(vintage.county(c)).up_to(last)
-            for c in vintage.counties_with_population(min_population)}
+    return ReferencePlaces({c: history_from_county(vintage.county(c)).up_to(last)
+                            for c in vintage.counties_with_population(min_population)},
+                           dict(vintage.skipped))
+
+
+def load_reference_histories(min_population: int = REFERENCE_MIN_POPULATION,
+                             drop_days: int = SETTLED_DAYS) -> dict[str, EpiHistory]:
+    """:func:`load_reference_places`' histories."""
+    return load_reference_places(min_population, drop_days).histories
 
 
 def load_sf_history(source: DataSourceConfig, drop_days: int = SETTLED_DAYS) -> EpiHistory:

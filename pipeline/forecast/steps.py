@@ -50,7 +50,7 @@ from pipeline.errors import ModelMissingError
 from pipeline.evaluation.scoring import CENTRAL_LEVELS
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.nowcasting import RecentDays, mixture_start
-from pipeline.forecast.sources import load_reference_histories
+from pipeline.forecast.sources import load_reference_places
 from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, SIRArrays,
                                        SMCRun, TrainedModels)
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
@@ -303,7 +303,9 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
 
     start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
     memo = ForecastMemo.load(forecast_memo_path(place))
-    panel = place_panel(place, history, load_reference_histories())
+    reference_places = load_reference_places()
+    panel = place_panel(place, history, reference_places.histories,
+                        reference_places.skipped)
     result = track_record(panel, place, record, default_store_root(), progress,
                           references=references, nowcast=nowcast, mixture_from=start,
                           mixed_completions=config.nowcast.completions, memo=memo)

@@ -78,6 +78,22 @@ class LimitedReach(Protocol):
     def max_horizon(self) -> int | None: ...
 
 
+@dataclass(frozen=True, eq=False)
+class MemberWrapper:
+    """A member wrapped by another (the memo, the completion mixture): the wrapper keeps its
+    name and reach."""
+
+    member: Member
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    @property
+    def max_horizon(self) -> int | None:
+        return getattr(self.member, "max_horizon", None)
+
+
 def reach(member: object, horizons: tuple[int, ...]) -> tuple[int, ...]:
     """The horizons ``member`` can forecast."""
     limit = member.max_horizon if isinstance(member, LimitedReach) else None

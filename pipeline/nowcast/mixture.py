@@ -19,7 +19,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.combine.average import mix_quantiles
-from pipeline.members.base import Member, MemberForecast
+from pipeline.members.base import MemberForecast, MemberWrapper
 from pipeline.nowcast.completions import (CompletedHistories, Nowcast, complete_histories,
                                           day_index, week_sums)
 from pipeline.nowcast.hub_weeks import HubWeeks
@@ -66,25 +66,16 @@ def median_history(history: EpiHistory, nowcast: Nowcast) -> EpiHistory:
 
 
 @dataclass(frozen=True, eq=False)
-class CompletionMixture:
+class CompletionMixture(MemberWrapper):
     """A weekly member that, at origins from ``active_from`` on (where the data are still being
     reported), forecasts every completion and publishes their mixture; earlier origins (final
     data) are forecast as they are. At the round's own origin the mixture's current week is
     floored at the cases already reported for its days in the data (:func:`floor_current_week`).
     Sample paths: an equal share of each completion's."""
 
-    member: Member
     completed: CompletedHistories
     active_from: pd.Timestamp
     n_mixed: int = 32                  # the first completions are forecast
-
-    @property
-    def name(self) -> str:
-        return self.member.name
-
-    @property
-    def max_horizon(self) -> int | None:
-        return getattr(self.member, "max_horizon", None)
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:

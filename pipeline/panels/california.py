@@ -41,6 +41,8 @@ def county_panel(vintage: CDPHVintage, counties: Sequence[str],
                  name="california-counties")
 
 
-def place_panel(place: str, history: History, references: Mapping[str, History]) -> Panel:
-    """``place``'s own series, pooled with California's counties (``references``)."""
-    return Panel({place: history}, dict(references), name=place)
+def place_panel(place: str, history: History, references: Mapping[str, History],
+                skipped: Mapping[str, str] | None = None) -> Panel:
+    """``place``'s own series, pooled with California's counties (``references``; ``skipped``:
+    those the validation gate left out, with why)."""
+    return Panel({place: history}, dict(references), dict(skipped or {}), name=place)

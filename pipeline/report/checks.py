@@ -95,18 +95,35 @@ def ess_collapse(ess: ArrayLike, n_particles: int, dates: pd.DatetimeIndex,
 # ----------------------------------------------------------------------------- rollouts
 
 def rollout_overshoot(label: str, median_i: ArrayLike, observed_i: ArrayLike,
-                      factor: float = ROLLOUT_OVERSHOOT) -> str | None:
-    """When a rollout's median I exceeds ``factor`` times the highest I ever observed: chained
-    estimates compounded their errors, so the rollout says nothing about the epidemic there."""
+                      factor: float = ROLLOUT_OVERSHOOT, *,
+                      dates: pd.DatetimeIndex | None = None, anchors: Sequence[int] = (),
+                      direction: str = "forward") -> str | None:
+    """When a rollout's median I exceeds ``factor`` times the highest I ever observed. With the
+    ``dates`` of the series and the rolling ``anchors`` (each segment's first predicted index),
+    it says where: a segment whose start came before the observed peak and whose overshoot came
+    after it extrapolated the rise past a turn it could not see; otherwise its chained
+    estimates compounded their errors."""
     median = np.asarray(median_i, dtype=np.float64)
-    peak = float(np.nanmax(np.asarray(observed_i, dtype=np.float64)))
+    observed = np.asarray(observed_i, dtype=np.float64)
+    peak = float(np.nanmax(observed))
     top = float(np.nanmax(median)) if np.isfinite(median).any() else float("nan")
     if not (peak > 0 and top > factor * peak):
         return None
-    return (f"The {label} diverges: its median I reaches {top:.3g}, {top / peak:.0f}× the "
-            f"highest I observed ({peak:.3g}). Chained estimates compound their errors over "
-            "the window; this is the paper's reconstruction method shown for reference, not "
-            "the published forecast (section 1).")
+    where, why = "", ("Chained estimates compound their errors over the window")
+    if dates is not None and anchors:
+        at, peak_at = int(np.nanargmax(median)), int(np.nanargmax(observed))
+        start = (max(a for a in anchors if a <= at) if direction == "forward"
+                 else min(a for a in anchors if a >= at))
+        where = (f" on {dates[at].date()} (its segment starts on {dates[start].date()}; "
+                 f"I peaked on {dates[peak_at].date()})")
+        if min(start, at) <= peak_at <= max(start, at):
+            why = ("The observed peak lies inside that segment: the rollout follows the "
+                   f"{'rise' if direction == 'forward' else 'fall'} it started from past a turn "
+                   "its starting window could not see")
+    return (f"The {label} overshoots: its median I reaches {top:.3g}{where}, "
+            f"{top / peak:.1f}× the highest I observed ({peak:.3g}). {why}; this is the "
+            "paper's reconstruction method shown for reference, not the published forecast "
+            "(section 1).")
 
 
 # ----------------------------------------------------------------------------- β, γ

@@ -273,7 +273,17 @@ def backtest_section(results: ForecastResults) -> Section:
              "PIT histograms of the published forecast (all horizons; and of the ensemble "
              "before recalibration, when there is one): flat at 1 = calibrated; a U shape = "
              "intervals too narrow, a hump = too wide, a slope = biased.",
-             "PIT histograms per target")], new_page=False)
+             "PIT histograms per target")], new_page=False, alerts=_skipped_places(weekly))
+
+
+def _skipped_places(weekly: TrackRecord) -> list[str]:
+    """The places the validation gate left out of the pooled members' data, named."""
+    skipped = weekly.result.panel.skipped
+    if not skipped:
+        return []
+    return [f"The validation gate left {len(skipped)} place(s) out of the data the pooled "
+            f"members learn from, and this forecast was made without them: "
+            f"{'; '.join(f'{p}: {why}' for p, why in sorted(skipped.items()))}."]
 
 
 # ----------------------------------------------------------------------------- diagnostics
@@ -355,9 +365,11 @@ def rollout_section(results: ModelOutputs) -> Section:
         q = _path_quantiles(as_numpy(roll.samples)[..., idx])                      # (5, T, 3)
         png = figures.rollout_figure(dates, _observed_at(sir, dates), q,
                                      window_days=int(every), direction=direction)
+        series_dates = pd.DatetimeIndex(pd.to_datetime(sir["date"]))
         alert = checks.rollout_overshoot(f"{direction} {every}-day rollout",
                                          q[LEVELS.index(0.5), :, STATES.index("I")],
-                                         sir["I"].to_numpy())
+                                         sir["I"].to_numpy(), dates=series_dates,
+                                         anchors=roll.anchors, direction=direction)
         if alert:
             alerts.append(alert)
         items.append(_fig(png, f"{direction.capitalize()} rollout re-anchored on observations "
