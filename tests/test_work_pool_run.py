@@ -1,11 +1,11 @@
 """Integration: prefect.yaml deployed to a process work pool, run by a real worker.
 
 Starts `prefect server start` on 127.0.0.1 (temporary PREFECT_HOME, free port), creates the
-`flowcast-process` work pool, runs `prefect deploy` from prefect.yaml, starts `prefect worker`,
-triggers `prefect deployment run` (tiny preset, offline cache, `--watch`, bounded) and checks the
-run's markdown summary artifact. DataSF points at a closed local port, so the run falls back to
-the cache: it must finish as "Completed (stale data)", carry the `stale-data` tag and say so in
-the artifact. Every process started here is stopped (its whole process group) in a `finally`.
+`flowcast-process` work pool, runs `prefect deploy --all` from prefect.yaml (both deployments),
+starts `prefect worker`, triggers `prefect deployment run` of sf-weekly (tiny preset, offline
+cache, `--watch`, bounded) and checks the run's markdown summary artifact. DataSF points at a
+closed local port, so the run falls back to the cache: it must finish as "Completed (stale
+data)", carry the `stale-data` tag and say so in the artifact. Every process started here is stopped (its whole process group) in a `finally`.
 """
 from __future__ import annotations
 
@@ -62,13 +62,19 @@ def test_prefect_yaml_deploy_worker_run_and_stale_artifact(tmp_path, datasf_dir)
 
         pool = _cli(["work-pool", "create", POOL, "--type", "process"], env, 60)
         assert pool.returncode == 0, pool.stdout + pool.stderr
-        deploy = _cli(["--no-prompt", "deploy", "--name", "sf-weekly"], env, 90)
+        deploy = _cli(["--no-prompt", "deploy", "--all"], env, 120)
         assert deploy.returncode == 0, deploy.stdout[-3000:] + deploy.stderr[-3000:]
         assert (REPO / "prefect.yaml").read_bytes() == yaml_before  # deploy did not rewrite it
         deployments = api_post(api, "/deployments/filter",
                                {"deployments": {"name": {"any_": ["sf-weekly"]}}})
         assert len(deployments) == 1
         deployment = deployments[0]
+        (hub,) = api_post(api, "/deployments/filter",
+                          {"deployments": {"name": {"any_": ["hub-covid-weekly"]}}})
+        assert hub["entrypoint"] == "flows/hub_forecast.py:hub_forecast"
+        assert hub["work_pool_name"] == POOL
+        assert (hub["schedules"][0]["schedule"]["cron"],
+                hub["schedules"][0]["schedule"]["timezone"]) == ("0 15 * * 3", "America/New_York")
         assert deployment["work_pool_name"] == POOL
         assert deployment["entrypoint"] == "flows/weekly_forecast.py:weekly_forecast"
         schedule = deployment["schedules"][0]["schedule"]

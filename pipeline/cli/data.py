@@ -167,8 +167,9 @@ def fetch_command(
         help="The CHHS portal or a mirror of it (default $FLOWCAST_CHHS_BASE_URL, else "
              "https://data.chhs.ca.gov); --source chhs only."),
 ) -> None:
-    """Fetch cases, deaths and tests from DataSF, or (--source chhs) the CDPH county file
-    (falls back to the cache when offline)."""
+    """Fetch cases, deaths and tests from DataSF, (--source chhs) the CDPH county file, or
+    (--source nhsn) NHSN admissions and the NSSP ED share (falls back to the cache when
+    offline)."""
     if source not in ("datasf", "chhs", "nhsn"):
         _fail(ValueError(f"--source must be datasf, chhs or nhsn, got {source!r}"))
     if source == "chhs":
