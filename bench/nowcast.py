@@ -469,12 +469,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                              record, default_store_root(), args.seed)
     result["forecasts"]["forecasters"] = {
         "published": "the weekly run's published forecast (pipeline.combine.combiner.Ensemble of "
-                     "pipeline.members.published.build_members): equal-weight log "
-                     "average of hub-baseline, growth-qr (pooled over the vintage's counties "
+                     "pipeline.members.published.build_members): equal-weight log-"
+                     "mixture of hub-baseline, growth-qr (pooled over the vintage's counties "
                      "less their last 14 days, each county's own left out), nf-growth and "
                      "nf-real (fine-tuned on the vintage's county windows at the latest refit "
                      "date <= the origin); each member mixed over the completions, then "
-                     "averaged; no recalibration. drop14 beyond the flows' 4 weeks: missing; "
+                     "averaged; no online calibration (nothing scored yet at one vintage). drop14 beyond the flows' 4 weeks: missing; "
                      "drop14_reachable_members: there the log average of hub-baseline and "
                      "growth-qr (a different forecaster)",
         "autoets": "autoets (pipeline.members.autoets) on every method"}
