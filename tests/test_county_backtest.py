@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.data.cdph import CDPHVintage, read_cdph_csv
+from pipeline.data.california.cdph import CDPHVintage, read_cdph_csv
 from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.writers import write_backtest
 from pipeline.combine.average import vincentize

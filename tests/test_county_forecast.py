@@ -21,9 +21,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.data.california import (COUNTIES, COUNTY_FIPS, california_county, county_fips,
-                                      county_slug)
-from pipeline.data.cdph import read_cdph_csv
+from pipeline.data.california.counties import (COUNTIES, COUNTY_FIPS, california_county,
+                                               county_fips, county_slug)
+from pipeline.data.california.cdph import read_cdph_csv
 from pipeline.errors import ConfigError
 from pipeline.forecast.config import DataSourceConfig, resolve_config
 from pipeline.forecast.run import StepRunner
@@ -103,7 +103,7 @@ def county_run(tmp_path_factory):
     missing = [str(p) for p in VINTAGES if not p.is_file()]
     if missing:
         pytest.fail(f"real CDPH vintages expected at {missing}")
-    from pipeline.data.cdph_source import cached_vintages
+    from pipeline.data.california.cdph_source import cached_vintages
     from pipeline.forecast.publish import output_root, write_tables
     from pipeline.forecast.run import run_forecast
     from pipeline.forecast.sources import load_series, series_to_sir

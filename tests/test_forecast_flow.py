@@ -15,7 +15,7 @@ import pytest
 import requests
 import responses
 
-from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
+from pipeline.data.sf.sir_transform import SF_POPULATION_2020_CENSUS
 
 
 pytestmark = pytest.mark.slow

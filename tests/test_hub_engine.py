@@ -17,8 +17,8 @@ import pytest
 from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.combine.reconcile import median_gap, top_down
-from pipeline.data.hub_import import import_hub_time_series
-from pipeline.data.nhsn_vintages import cached_weekly_vintages
+from pipeline.data.hub.target_import import import_hub_time_series
+from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
 from pipeline.members.weekly_flow import WeeklyFlowConfig, WeeklyFlowMember

@@ -11,10 +11,10 @@ import pandas as pd
 import pytest
 from scipy import optimize, stats
 
-from pipeline.data.cdph import CDPHVintage
-from pipeline.data.delays import (DelayModelConfig, fit_delay_model, load_delay_model,
-                                  save_delay_model)
-from pipeline.data.vintage_pairs import VintagePairError, revision_pairs
+from pipeline.data.california.cdph import CDPHVintage
+from pipeline.data.california.delays import (DelayModelConfig, fit_delay_model, load_delay_model,
+                                             save_delay_model)
+from pipeline.data.california.vintage_pairs import VintagePairError, revision_pairs
 from pipeline.backtest.result import QuantileForecast
 from pipeline.combine.average import mix_quantiles
 from pipeline.members.base import MemberForecast

@@ -466,8 +466,8 @@ def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):
     import requests
     import responses
 
-    from pipeline.data.datasf import DATASETS, ClientConfig
-    from pipeline.data.series import SFDataConfig, load_sf_series
+    from pipeline.data.sf.datasf import DATASETS, ClientConfig
+    from pipeline.data.sf.series import SFDataConfig, load_sf_series
     from pipeline.forecast.sources import import_exports, staleness_notes
 
     import_exports([str(datasf_dir)])

@@ -16,7 +16,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy import stats
 
-from pipeline.data.cdph import read_cdph_csv
+from pipeline.data.california.cdph import read_cdph_csv
 from pipeline.combine.average import mix_quantiles
 from pipeline.combine.combiner import LOG_AVERAGE, Ensemble
 from pipeline.members.base import MemberForecast

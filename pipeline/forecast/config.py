@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
 
-from pipeline.data.california import SAN_FRANCISCO, california_county
-from pipeline.data.delays import DelayModelConfig
+from pipeline.data.california.counties import SAN_FRANCISCO, california_county
+from pipeline.data.california.delays import DelayModelConfig
 from pipeline.backtest.track_record import TrackRecordConfig
 from pipeline.members.flow import GrowthModelConfig
 from pipeline.members.flow_finetune import FineTuneConfig

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.data.california import county_fips, county_slug
+from pipeline.data.california.counties import county_fips, county_slug
 from pipeline.backtest.track_record import TrackRecord
 from pipeline.backtest.writers import hub_frame
 from pipeline.combine.combiner import PUBLISHED

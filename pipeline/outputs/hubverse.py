@@ -2,7 +2,7 @@
 
 For a hub of California's counties whose config is ``hub-config/`` (the 2024+ COVID-19 Forecast
 Hub conventions; ``location`` is the county's FIPS code, San Francisco ``06075`` by default,
-:mod:`pipeline.data.california`):
+:mod:`pipeline.data.california.counties`):
 ``model-output/<team>-<model>/<reference_date>-<team>-<model>.csv`` with the columns
 ``reference_date, target, horizon, location, target_end_date, output_type, output_type_id,
 value``, validated by :func:`validate_model_output` against ``hub-config/tasks.json``.
@@ -61,7 +61,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.data.california import COUNTY_FIPS, SAN_FRANCISCO
+from pipeline.data.california.counties import COUNTY_FIPS, SAN_FRANCISCO
 from pipeline.errors import FlowcastError
 from pipeline.backtest.result import QuantileForecast
 from pipeline.panels.targets import HUB_QUANTILE_LEVELS, format_level
