@@ -49,7 +49,8 @@ def test_fips_codes_follow_the_alphabetical_odd_number_rule():
     codes = [COUNTY_FIPS[c] for c in sorted(COUNTIES)]
     assert len(COUNTIES) == 58 and len(set(codes)) == 58
     assert codes == [f"06{n:03d}" for n in range(1, 116, 2)]
-    from pipeline.outputs.hubverse import SF_COUNTY_FIPS, load_tasks_config
+    from pipeline.outputs.hubverse import SF_COUNTY_FIPS
+    from pipeline.outputs.hubverse_validation import load_tasks_config
 
     assert SF_COUNTY_FIPS == "06075"
     task = load_tasks_config(REPO / "hub-config" / "tasks.json")["rounds"][0]["model_tasks"][0]
@@ -167,7 +168,7 @@ def test_county_nowcast_uses_its_own_delay_effect(county_run):
 
 @pytest.mark.slow
 def test_county_run_writes_its_own_hub_file_and_report(county_run):
-    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
     from pipeline.outputs.run_folders import render_index_html
     from pipeline.report.weekly import forecast_report_content
 
@@ -251,7 +252,7 @@ def test_cli_flow_run_for_a_county_from_the_imported_cdph_files(county_run, pref
     from prefect.artifacts import Artifact
 
     from flows.cli import app
-    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
 
     root, _, _, results, folder = county_run
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(root / "data"))

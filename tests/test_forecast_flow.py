@@ -93,7 +93,7 @@ def test_outputs_exist_with_real_numbers(good_run):
                                           "nf-smc", "ensemble-uncalibrated"}
 
     # the hubverse file of the same forecast, valid under hub-config/tasks.json
-    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
 
     tasks = load_tasks_config(Path(__file__).resolve().parents[1] / "hub-config" / "tasks.json")
     submission = out / "model-output" / "flowcast-nfens" / f"{ROUND}-flowcast-nfens.csv"

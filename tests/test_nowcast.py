@@ -25,7 +25,8 @@ from pipeline.nowcast.mixture import CompletionMixture, floor_current_week, medi
 from pipeline.panels.history import EpiHistory
 from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 from tests.forecasting_helpers import forecast_one
-from pipeline.outputs.hubverse import NowcastWeek, load_tasks_config, write_model_output
+from pipeline.outputs.hubverse import NowcastWeek, write_model_output
+from pipeline.outputs.hubverse_validation import load_tasks_config
 
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
 MAX_LAG = 21

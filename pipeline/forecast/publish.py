@@ -21,8 +21,9 @@ from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import ForecastResults
 from pipeline.forecast.steps import published_skill
 from pipeline.io import atomic_write_json, atomic_write_text
-from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission,
-                                       SubmissionConfig, load_tasks_config, write_model_output)
+from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission, SubmissionConfig,
+                                       write_model_output)
+from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 from pipeline.report.render import start_report
 from pipeline.report.weekly import (FORKED_DIAGNOSTICS, forecast_report_content,

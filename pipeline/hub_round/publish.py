@@ -24,8 +24,9 @@ from pipeline.data.core.cache import utc_now
 from pipeline.errors import ConfigError
 from pipeline.hub_round.run import HubRun
 from pipeline.io import atomic_write_json, atomic_write_text
-from pipeline.outputs.hubverse import (compound_sample_ids, load_model_metadata,
-                                       load_tasks_config, write_hub_round)
+from pipeline.outputs.hubverse_round import (compound_sample_ids, load_model_metadata,
+                                             write_hub_round)
+from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 from pipeline.report.hub import hub_report_content, track_record_table
 from pipeline.report.render import write_report

@@ -32,10 +32,10 @@ from pipeline.data.core.cache import data_dir
 from pipeline.data.hub.nhsn import NHSNConfig, NHSNProvenance, load_nhsn
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targets
 from pipeline.errors import ConfigError, OfflineError
-from pipeline.members.flow_finetune import FineTuneConfig
+from pipeline.members.nf.finetune import FineTuneConfig
 from pipeline.members.published import HubMembersConfig, build_hub_members
-from pipeline.members.weekly_flow import WeeklyFlowConfig
-from pipeline.outputs.hubverse import CDC_HUB_MODEL_ID
+from pipeline.members.nf.weekly import WeeklyFlowConfig
+from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
 from pipeline.panels.hub import hub_rounds, is_share, panel_of
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter, SilentProgress

@@ -1,6 +1,6 @@
 """The flow member fine-tuned on real series known by the origin (``nf-real``).
 
-The flow member (:mod:`pipeline.members.flow`) learns growth only from the synthetic
+The flow member (:mod:`pipeline.members.nf.growth`) learns growth only from the synthetic
 multi-wave prior. Real epidemics have habits the prior does not: how long a wave keeps growing,
 how plateaus hold, how fast a decline flattens. This member starts from the same trained flow
 and, at every refit date r (every ``refit_every_weeks`` weeks), is fine-tuned on the real
@@ -11,7 +11,7 @@ situations the real data have not shown yet). A forecast at origin o uses the mo
 latest refit date ≤ o: nothing after the origin enters it.
 
 Windows: the same scale-free contexts and valid-by-construction targets as the synthetic ones
-(:func:`pipeline.members.flow.context_features`, :func:`~.growth_targets`), one per day of
+(:func:`pipeline.members.nf.model.context_features`, :func:`~.growth_targets`), one per day of
 each place, in the synthetic model's standardization (the fine-tuned flow is the same model).
 Validation: a seeded fifth of the places, for the best-state choice of the trainer.
 """
@@ -32,7 +32,8 @@ import torch
 from numpy.typing import NDArray
 
 from pipeline.members.base import Member, MemberForecast
-from pipeline.members.flow import CHECKPOINT_NAME, FlowModelConfig, RealWindows, SyntheticWindows
+from pipeline.members.nf.model import (CHECKPOINT_NAME, FlowModelConfig, RealWindows,
+                                       SyntheticWindows)
 from pipeline.panels.history import History
 from pipeline.panels.panel import Cells
 from pipeline.panels.targets import DAYS_PER_WEEK

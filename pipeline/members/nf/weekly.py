@@ -2,7 +2,7 @@
 (NHSN hospital admissions, the NSSP ED share as a rate), trained on the multi-wave prior seen
 through an admissions layer.
 
-The daily flow member (:mod:`pipeline.members.flow`) reads 42 days of reported cases. A hub
+The daily flow member (:mod:`pipeline.members.nf.growth`) reads 42 days of reported cases. A hub
 source reports one number a week, so this member reads the last K weeks; everything else is the
 same model: the forward estimate of the paper with the target times moved past the last
 observation, valid by construction.
@@ -22,7 +22,7 @@ log(A_{t−k} + ½) − log(A_t + ½), the latest level log(A_t + ½)/10 and the
 share of the training windows keeps only the last 2…K rows (the rest masked), so the model
 serves the hub's first rounds, whose series are a few weeks long. Target:
 z_h = logit f_h − logit f_0 with f_h = (A_h + ½) / (N S_{h−1}), S the share not yet counted;
-decoding gives 0 < A_h < N S_{h−1} (:func:`~pipeline.members.flow.decode_paths`).
+decoding gives 0 < A_h < N S_{h−1} (:func:`~pipeline.members.nf.model.decode_paths`).
 """
 from __future__ import annotations
 
@@ -40,8 +40,8 @@ from numpy.typing import NDArray
 import pipeline
 from pipeline.errors import ConfigError
 from pipeline.members.base import MemberForecast, quantiles_of_samples
-from pipeline.members.flow import (HALF_CASE, LEVEL_SCALE, RealWindows, cell_noise,
-                                   decode_paths, single_thread)
+from pipeline.members.nf.model import (HALF_CASE, LEVEL_SCALE, RealWindows, cell_noise,
+                                       decode_paths, single_thread)
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig
 from pipeline.models.estimator import (ConditionalEstimator, EstimatorConfig,
                                        make_estimator_config)
