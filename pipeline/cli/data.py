@@ -380,8 +380,8 @@ def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output
                                                "sir-multi uses 0.01."),
                  seed: int = typer.Option(0, "--seed")) -> None:
     """Figures: the SF S/I/R series, and SF beside the sir-multi prior (+ measured overlap)."""
-    from pipeline.data.sf.plots import (PriorEnsembleConfig, compare_with_prior, plot_sir_series,
-                                        plot_sir_vs_prior)
+    from pipeline.report.data_figures import (PriorEnsembleConfig, compare_with_prior,
+                                              plot_sir_series, plot_sir_vs_prior)
     from pipeline.data.sf.series import load_sf_series
     from pipeline.data.sf.sir_transform import to_sir
     from pipeline.io import atomic_write_json

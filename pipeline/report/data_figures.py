@@ -1,4 +1,5 @@
-"""Figures of the SF S/I/R series, and the SF series beside the synthetic SIR prior ensemble.
+"""Figures of the data: the SF S/I/R series, and the SF series beside the synthetic SIR prior
+ensemble (``flowcast data plot``).
 
 The comparison answers: does the real series lie inside what the flow is trained on? The prior
 ensemble is the paper's ``sir-multi`` (beta ~ U[0.02, 0.04], gamma ~ U[0.005, 0.025], S0 = 0.99,
