@@ -116,8 +116,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     from pipeline import forecast as fc
     from pipeline.backtest.track_record import track_record
-    from pipeline.data.cdph import find_vintage_files
-    from pipeline.data.cdph_source import import_cdph_exports
+    from pipeline.data.california.cdph import find_vintage_files
+    from pipeline.data.california.cdph_source import import_cdph_exports
     from pipeline.forecast.sources import (SF_COUNTY, import_exports,
                                            load_reference_histories, load_sf_history)
     from pipeline.io import atomic_write_json

@@ -96,7 +96,7 @@ def by_year(result: Any, forecasters: list[str]) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
-    from pipeline.data.cdph import find_vintage_files, read_cdph_csv, read_vintages
+    from pipeline.data.california.cdph import find_vintage_files, read_cdph_csv, read_vintages
     from pipeline.forecast import resolve_config
     from pipeline.forecast.county_skill import county_backtest
     from pipeline.io import atomic_write_json

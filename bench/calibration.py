@@ -63,7 +63,7 @@ def panel_summary(summary: dict[str, Any], key: str) -> dict[str, Any]:
 def counties(config: Any) -> tuple[dict[str, Any], float]:
     from pipeline.backtest.backtest import Variant
     from pipeline.combine.combiner import LOG_AVERAGE
-    from pipeline.data.cdph import find_vintage_files, read_vintages
+    from pipeline.data.california.cdph import find_vintage_files, read_vintages
     from pipeline.forecast.county_skill import county_backtest
     from pipeline.training.model_store import default_store_root
 
@@ -102,10 +102,10 @@ def nhsn() -> dict[str, Any]:
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED
-    from pipeline.data.hub_import import import_hub_time_series
+    from pipeline.data.hub.target_import import import_hub_time_series
     from pipeline.evaluation.regimes import REGIME_NAMES
     from pipeline.evaluation.summary import score_cells
-    from pipeline.forecast.hub_round import load_vintages
+    from pipeline.hub_round.run import load_vintages
     from pipeline.members.hub_baseline import HUB_BASELINE
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.panels.hub import ED_COVID, HOSP_COVID, hub_rounds
@@ -209,8 +209,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     from pipeline import forecast as fc
-    from pipeline.data.cdph import find_vintage_files
-    from pipeline.data.cdph_source import import_cdph_exports
+    from pipeline.data.california.cdph import find_vintage_files
+    from pipeline.data.california.cdph_source import import_cdph_exports
     from pipeline.forecast.sources import import_exports
     from pipeline.io import atomic_write_json
 

@@ -55,8 +55,8 @@ def _import_data(datasf: str, cdph: str, env: dict[str, str]) -> None:
     subprocess.run([sys.executable, "-c", code, datasf], env=env, cwd=ROOT, check=True,
                    stdout=subprocess.DEVNULL)
     if Path(cdph).is_dir():     # as `make forecast` imports them (reviewed revisions accepted)
-        code = ("import sys; from pipeline.data.cdph import find_vintage_files; "
-                "from pipeline.data.cdph_source import import_cdph_exports; "
+        code = ("import sys; from pipeline.data.california.cdph import find_vintage_files; "
+                "from pipeline.data.california.cdph_source import import_cdph_exports; "
                 "import_cdph_exports(find_vintage_files(sys.argv[1]), if_empty=True, "
                 "accept_revisions=True)")
         subprocess.run([sys.executable, "-c", code, cdph], env=env, cwd=ROOT, check=True,

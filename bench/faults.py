@@ -25,7 +25,7 @@ a directory for ``smc filter``, ``data sir`` and ``simulate`` and an existing fi
 ``data plot``, and ``final_url`` in ``data sir``'s provenance file.
 
 For each case the cache is first filled by a good fetch; then the fault is served and
-:func:`pipeline.data.series.load_dataset` must (a) still return the cached data, (b) say why in a
+:func:`pipeline.data.sf.series.load_dataset` must (a) still return the cached data, (b) say why in a
 note that names the problem, (c) leave every cache file byte-identical and (d) leave no request
 thread running. "bytes of good cache lost" sums the sizes of cache files that changed or vanished
 (must be 0).
@@ -55,7 +55,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import pandas as pd
 
-from pipeline.data.datasf import CASES, ClientConfig
+from pipeline.data.sf.datasf import CASES, ClientConfig
 from pipeline.io import atomic_write_json
 
 RESULT_PATH = Path(__file__).parent / "results" / "faults.json"
@@ -79,8 +79,8 @@ EXPORTS = {"cases": "AndrewCorry__data_wrangling_1/COVID-19_Cases_Over_Time.csv"
 def api_rows(key: str = "cases", datasf_dir: Path = DATASF) -> Rows:
     """A real export as DataSF API rows: snake_case names, string values, ISO timestamps,
     sorted by date (what ``/resource/<id>.json?$order=<date field> ASC`` returns)."""
-    from pipeline.data.datasf import DATASETS
-    from pipeline.data.validation import find_column
+    from pipeline.data.sf.datasf import DATASETS
+    from pipeline.data.sf.validation import find_column
 
     spec = DATASETS[key]
     raw = pd.read_csv(datasf_dir / EXPORTS[key], dtype=str, keep_default_na=False)
@@ -384,7 +384,7 @@ def run_cases(scratch: Path, cases: Sequence[Callable[[Path], CaseResult]]) -> l
 
 
 def live_request_threads() -> list[threading.Thread]:
-    from pipeline.data.transport import REQUEST_THREAD_NAME
+    from pipeline.data.core.transport import REQUEST_THREAD_NAME
 
     return [t for t in threading.enumerate() if t.name == REQUEST_THREAD_NAME and t.is_alive()]
 
@@ -597,7 +597,7 @@ class CaseResult:
 
 def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
     """Good fetch, then the fault; the loader must fall back to the untouched cache."""
-    from pipeline.data.series import SFDataConfig, load_dataset
+    from pipeline.data.sf.series import SFDataConfig, load_dataset
 
     with FakeDataSF() as server, FakeDataSF() as other:
         other.serve_rows(rows)
@@ -635,8 +635,8 @@ def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
 
 def fill_cache_from_api(data_dir: Path) -> None:
     """All three datasets fetched from a fake DataSF (so manifests carry a final_url)."""
-    from pipeline.data.datasf import DATASETS
-    from pipeline.data.series import SFDataConfig, load_sf_series
+    from pipeline.data.sf.datasf import DATASETS
+    from pipeline.data.sf.series import SFDataConfig, load_sf_series
 
     by_id = {spec.dataset_id: api_rows(key) for key, spec in DATASETS.items()}
     with FakeDataSF() as server:

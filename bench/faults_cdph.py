@@ -12,7 +12,7 @@ refused connection, a server dripping bytes past the deadline, a redirect to ano
 download URL on another host. Everything goes through the real ``requests`` stack.
 
 For each case the cache is first filled by a good fetch; then the fault is served and
-:func:`pipeline.data.cdph_source.load_cdph` must (a) return the cached vintage, (b) say why in a
+:func:`pipeline.data.california.cdph_source.load_cdph` must (a) return the cached vintage, (b) say why in a
 note naming the problem, (c) leave every cache file byte-identical (``held/`` may gain the refused
 payload) and (d) never contact the other host. "bytes of good cache lost" sums the sizes of
 cache files that changed or vanished (must be 0).
@@ -42,8 +42,8 @@ import pandas as pd
 from bench.faults import (CaseResult, FakeDataSF, gzip_bomb, load_timed, race, race_case,
                           run_cases, Responder, bytes_lost, cache_bytes, leftovers,
                           header_drip, redirect, status, trickle)
-from pipeline.data.cdph_source import SPEC, CDPHConfig
-from pipeline.data.chhs import CHHSClientConfig
+from pipeline.data.california.cdph_source import SPEC, CDPHConfig
+from pipeline.data.california.chhs import CHHSClientConfig
 from pipeline.io import atomic_write_json
 
 if TYPE_CHECKING:
@@ -246,7 +246,7 @@ def faults() -> list[Fault]:
               package=lambda s, o: body(b"<html><body>502 Bad Gateway</body></html>",
                                         "text/html")),
         # issue 22's decode faults, on the CKAN answer: every decode failure is one named
-        # rejection (pipeline.data.decoding), never a traceback
+        # rejection (pipeline.data.core.decoding), never a traceback
         Fault("deeply-nested-package-json", "nested too deeply to decode (RecursionError",
               package=lambda s, o: body(b"[" * 200_000, "application/json")),
         Fault("huge-integer-package-json", "ValueError: Exceeds the limit (4300 digits)",
@@ -332,7 +332,7 @@ def client_config(base_url: str, **overrides: float) -> CHHSClientConfig:
 
 
 def held_files(data_dir: Path) -> list[Path]:
-    from pipeline.data.cache import DatasetCache
+    from pipeline.data.core.cache import DatasetCache
     held = DatasetCache(data_dir).directory(SPEC) / "held"
     return sorted(p for p in held.glob("payload-*") if not p.name.endswith(".reason.json")) \
         if held.is_dir() else []
@@ -342,7 +342,7 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
     """Good fetch, then the fault; the loader must fall back to the untouched cache (or, for a
     ``skipped`` case, take the new payload with that county skipped and named, every file of the
     good cache still on disk unchanged: only the manifest moves to the new payload)."""
-    from pipeline.data.cdph_source import load_cdph
+    from pipeline.data.california.cdph_source import load_cdph
 
     with FakeCKAN() as portal, FakeCKAN() as other:
         load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
@@ -379,7 +379,7 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
 
 
 def _import_one(path: Path, data_dir: Path) -> str:
-    from pipeline.data.cdph_source import import_cdph_exports
+    from pipeline.data.california.cdph_source import import_cdph_exports
     return import_cdph_exports([path], data_dir)[0].action
 
 
@@ -388,8 +388,8 @@ def run_concurrent_imports(data_dir: Path, trials: int = 3) -> CaseResult:
     ``trials`` times on fresh caches: the newer must end live, both archived by their own dates;
     before the decision moved under the lock, the older one failed with "last date moves
     backwards" in 3 of 3 trials of the issue-32 probe."""
-    from pipeline.data.cache import DatasetCache
-    from pipeline.data.cdph_source import cached_vintages
+    from pipeline.data.core.cache import DatasetCache
+    from pipeline.data.california.cdph_source import cached_vintages
 
     def trial(k: int) -> str | None:
         cache = data_dir / f"trial-{k}"

@@ -10,7 +10,7 @@ rows per state name with ``county`` = "All", percentages, plus sub-state rows. T
 in turn, through the real ``requests`` stack: the transport's (HTTP 4xx/5xx, Retry-After,
 truncated and damaged bodies, drips, a gzip bomb, redirects, refused connections, a server
 ignoring ``$offset``), the payload's (missing fields, shrinking, revisions), and issue 32's
-poisoned cells, ramps and made-up places. :func:`pipeline.data.nhsn.load_nhsn` must fall back to
+poisoned cells, ramps and made-up places. :func:`pipeline.data.hub.nhsn.load_nhsn` must fall back to
 the cached vintage with a note naming the problem and leave every cache file byte-identical (or,
 for a ``skipped`` case, take the new payload with that place skipped and named), with no request
 thread or socket left. Also the concurrent import of an older and a newer vintage (issue 32,
@@ -37,8 +37,8 @@ from bench.faults import (CaseResult, FakeDataSF, Responder, bad_gzip, bytes_los
                           html_body, ignores_offset, leftovers, load_timed, race,
                           race_case, raw_body, redirect, run_cases, status, trickle,
                           truncated_json)
-from pipeline.data.nhsn import (ED_COVID, HOSP_COVID, NHSNClientConfig, NHSNConfig, load_nhsn)
-from pipeline.data.nhsn_vintages import TARGETS
+from pipeline.data.hub.nhsn import ED_COVID, HOSP_COVID, NHSNClientConfig, NHSNConfig, load_nhsn
+from pipeline.data.hub.nhsn_vintages import TARGETS
 
 if TYPE_CHECKING:
     from bench.faults import _Handler
@@ -65,7 +65,7 @@ def _iso(day: object) -> str:
 
 @functools.cache
 def _hrd_rows(as_of: str) -> tuple[tuple[tuple[str, str], ...], ...]:
-    from pipeline.data.hub_locations import BY_LOCATION
+    from pipeline.data.hub.locations import BY_LOCATION
     v = hub_vintage(HOSP_COVID, as_of)
     rows = [{"weekendingdate": _iso(d), "jurisdiction": BY_LOCATION[loc].jurisdiction,
              "totalconfc19newadm": f"{obs:.0f}"}
@@ -85,7 +85,7 @@ def hrd_rows(as_of: str = GOOD_AS_OF) -> Rows:
 
 @functools.cache
 def _nssp_rows(as_of: str) -> tuple[tuple[tuple[str, str], ...], ...]:
-    from pipeline.data.hub_locations import BY_LOCATION
+    from pipeline.data.hub.locations import BY_LOCATION
     v = hub_vintage(ED_COVID, as_of)
     name = {loc: ("United States" if loc == "US" else BY_LOCATION[loc].name)
             for loc in v["location"].unique()}
@@ -192,7 +192,7 @@ def made_up(rows: Rows, key: str = "jurisdiction", name: str = "ZZ",
 
 def many_poisoned(rows: Rows) -> Rows:
     """Fourteen states (more than a quarter of the 53) with a negative count in one week."""
-    from pipeline.data.hub_locations import HUB_LOCATIONS
+    from pipeline.data.hub.locations import HUB_LOCATIONS
     week = last_weeks(5, rows)[0]
     states = [h.jurisdiction for h in HUB_LOCATIONS[1:15]]
     for r in rows:
@@ -408,7 +408,7 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
 
 
 def _import_one(path: Path, as_of: str, data_dir: Path) -> str:
-    from pipeline.data.nhsn import import_target_csv
+    from pipeline.data.hub.nhsn import import_target_csv
     summary = import_target_csv(path, target=HOSP_COVID, as_of=as_of, data_dir=data_dir)
     return summary.vintages[0].action
 
@@ -425,8 +425,8 @@ def run_concurrent_imports(data_dir: Path, trials: int = 3) -> CaseResult:
     """Two processes import an older and a newer vintage at the same moment, ``trials`` times
     on fresh caches: both must end where they belong (the newer live, both archived by their
     own dates), never "moves backwards" (issue 32, item 7)."""
-    from pipeline.data.nhsn import cached_weekly_vintages
-    from pipeline.data.nhsn_vintages import live_manifest
+    from pipeline.data.hub.nhsn import cached_weekly_vintages
+    from pipeline.data.hub.nhsn_vintages import live_manifest
 
     older, newer = "2025-09-17", GOOD_AS_OF
 

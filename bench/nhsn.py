@@ -124,7 +124,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, CombineConfig
-    from pipeline.forecast.hub_round import load_vintages
+    from pipeline.hub_round.run import load_vintages
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
     from pipeline.panels.hub import hub_rounds
@@ -199,11 +199,11 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
-    from pipeline.data.hub_forecasts import read_excluded_locations, read_hub_forecasts, \
+    from pipeline.data.hub.team_forecasts import read_excluded_locations, read_hub_forecasts, \
         quantile_table, read_target_data
-    from pipeline.data.hub_import import import_hub_time_series
+    from pipeline.data.hub.target_import import import_hub_time_series
     from pipeline.evaluation.hub_leaderboard import score_quantile_forecasts
-    from pipeline.forecast.hub_round import load_vintages
+    from pipeline.hub_round.run import load_vintages
     from pipeline.io import atomic_write_json
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
 

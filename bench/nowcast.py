@@ -4,7 +4,7 @@ against today's method (drop the last 14 days) and the truncated data as is.
 ``python -m bench.nowcast [--completions 32] [--seed 0] [--quick]`` → ``bench/results/nowcast.json``
 (``--quick``: 8 counties, ``nowcast-quick.json``).
 
-1. **Delay model** (:mod:`pipeline.data.delays`) on the chain of consecutive CDPH vintages, every
+1. **Delay model** (:mod:`pipeline.data.california.delays`) on the chain of consecutive CDPH vintages, every
    county: completeness by lag 0–28 of the pooled county at the latest era (median, 50 % and 90 %
    intervals of the posterior), the beta-binomial precision, and the Laplace evidence of a few
    prior scales (the defaults' neighbours).
@@ -54,16 +54,16 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.data.cdph import CDPHVintage, find_vintage_files, read_vintages
-from pipeline.data.delays import DelayModel, DelayModelConfig, fit_delay_model
-from pipeline.data.vintage_pairs import RevisionPairs, revision_pairs
+from pipeline.data.california.cdph import CDPHVintage, find_vintage_files, read_vintages
+from pipeline.data.california.delays import DelayModel, DelayModelConfig, fit_delay_model
+from pipeline.data.california.vintage_pairs import RevisionPairs, revision_pairs
 from pipeline.members.autoets import AutoETSMember
 from pipeline.nowcast.completions import (CompletedHistories, NowcastConfig, complete_histories,
                                        nowcast_history)
 from pipeline.backtest.track_record import TrackRecordConfig
 from pipeline.combine.combiner import CombineConfig, Ensemble
 from pipeline.members.base import reach
-from pipeline.members.flow_finetune import latest_refit_date
+from pipeline.members.nf.finetune import latest_refit_date
 from pipeline.members.published import build_members
 from pipeline.nowcast.hub_weeks import HUB_HORIZONS, hub_weeks, last_saturday
 from pipeline.nowcast.then_forecast import (Forecaster, nowcast_then_forecast_places,

@@ -120,8 +120,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import numpy as np
 
     from pipeline import forecast as fc
-    from pipeline.data.cdph import find_vintage_files
-    from pipeline.data.cdph_source import import_cdph_exports
+    from pipeline.data.california.cdph import find_vintage_files
+    from pipeline.data.california.cdph_source import import_cdph_exports
     from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
     from pipeline.forecast.nowcasting import nowcast_recent_days
     from pipeline.forecast.sources import import_exports, load_series, series_to_sir, sir_arrays

@@ -55,7 +55,7 @@ def forecast_command(
 ) -> None:
     """Run the weekly San Francisco (or --county) forecast once, or with --hub this week's hub
     round, and print where the report went."""
-    from pipeline.data.california import california_county
+    from pipeline.data.california.counties import california_county
     from pipeline.errors import ConfigError
 
     if hub is not None:

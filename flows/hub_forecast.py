@@ -2,9 +2,9 @@
 
 Tasks: ``fetch-nhsn`` (the disease's admissions and ED share from data.cdc.gov, with retries and
 the cache as fallback) and ``forecast-rounds`` (every cached vintage's round, the newest this
-week's: :func:`pipeline.forecast.hub_round.run_hub_round`), then ``publish-round`` (the hub's
+week's: :func:`pipeline.hub_round.run.run_hub_round`), then ``publish-round`` (the hub's
 file validated against its ``tasks.json``, the report, the track record:
-:func:`pipeline.forecast.hub_publish.publish_hub_round`). Deployed for the hub's deadline
+:func:`pipeline.hub_round.publish.publish_hub_round`). Deployed for the hub's deadline
 (``flows/deploy.py``, ``prefect.yaml``: Wednesdays, after NHSN's Wednesday release).
 
     python -m flows.hub_forecast [--disease covid] [--data-source live|cache]
@@ -20,8 +20,8 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
-from pipeline.forecast.hub_publish import publish_hub_round
-from pipeline.forecast.hub_round import HubRunConfig, hub_members_preset, run_hub_round
+from pipeline.hub_round.publish import publish_hub_round
+from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
 from pipeline.progress import LogProgress
 
 FLOW_NAME = "hub_forecast"

@@ -47,7 +47,7 @@ from prefect.client.schemas.objects import State
 from prefect.states import Completed
 
 from pipeline import forecast as fc
-from pipeline.data.california import california_county, county_slug
+from pipeline.data.california.counties import california_county, county_slug
 from pipeline.errors import ConfigError
 from pipeline.forecast.config import DataSourceKind
 from pipeline.forecast.publish import PublishedRun, publish

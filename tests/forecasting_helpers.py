@@ -8,7 +8,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.backtest.result import QuantileForecast
-from pipeline.data.sir_transform import proportions, sir_counts
+from pipeline.data.core.sir_counts import proportions, sir_counts
 from pipeline.members.base import Member, MemberForecast
 from pipeline.panels.history import EpiHistory, History
 from pipeline.panels.panel import Cells, Panel

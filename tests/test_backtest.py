@@ -25,9 +25,9 @@ LEVELS5 = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
 
 @pytest.fixture(scope="module")
 def sf(datasf_dir, tmp_path_factory) -> EpiHistory:
-    from pipeline.data.csv_import import import_csv_exports
-    from pipeline.data.series import SFDataConfig, load_sf_series
-    from pipeline.data.sir_transform import to_sir
+    from pipeline.data.sf.csv_import import import_csv_exports
+    from pipeline.data.sf.series import SFDataConfig, load_sf_series
+    from pipeline.data.sf.sir_transform import to_sir
 
     root = tmp_path_factory.mktemp("bt-data")
     import_csv_exports([datasf_dir / EXPORTS[k] for k in ("cases", "deaths", "tests")],

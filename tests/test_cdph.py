@@ -26,16 +26,16 @@ from bench.faults_cdph import (CDPH, DOWNLOAD_PATH, GOOD_VINTAGE, FakeCKAN, clie
                                edited, faults, held_files, package_show, revised_settled,
                                run_fault, vintage_bytes)
 from pipeline.cli.data import data_app
-from pipeline.data.cache import CacheDamagedError, DatasetCache
-from pipeline.data.cdph import CDPHFormatError, parse_cdph_csv, read_cdph_csv
-from pipeline.data.cdph_source import (SPEC, CDPHConfig, cached_vintages, check_cdph_successor,
-                                       import_cdph_exports, is_cdph_export,
-                                       load_cdph, load_cdph_vintage, peek_columns, vintages_dir)
-from pipeline.data.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient, CHHSClientConfig,
-                                CKANResponseError)
-from pipeline.data.gate import CountBound, GateError, GateRules, Places, gate
-from pipeline.data.plausibility import DAILY
-from pipeline.data.revisions import RevisionRefusedError
+from pipeline.data.core.cache import CacheDamagedError, DatasetCache, RevisionRefusedError
+from pipeline.data.california.cdph import CDPHFormatError, parse_cdph_csv, read_cdph_csv
+from pipeline.data.california.cdph_source import (SPEC, CDPHConfig, cached_vintages,
+                                                  check_cdph_successor, import_cdph_exports,
+                                                  is_cdph_export, load_cdph, load_cdph_vintage,
+                                                  peek_columns, vintages_dir)
+from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
+                                           CHHSClientConfig, CKANResponseError)
+from pipeline.data.core.gate import CountBound, GateError, GateRules, Places, gate
+from pipeline.data.core.plausibility import DAILY
 from pipeline.errors import ConfigError, OfflineError, ValidationError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -214,7 +214,7 @@ def test_ckan_failure_is_named():
     with pytest.raises(Exception, match=r"HTTP 404 from .*package_show.*Not Found Error"):
         CHHSClient(CHHSClientConfig(base_url=base)).fetch()
     with pytest.raises(CKANResponseError, match="did not succeed"):
-        from pipeline.data.chhs import parse_package_show
+        from pipeline.data.california.chhs import parse_package_show
         parse_package_show(b'{"success": false, "error": {"message": "Not found"}}', "u")
 
 
@@ -303,7 +303,7 @@ def test_unreachable_without_a_cache_names_import(data_dir):
 def test_base_url_is_read_at_use_not_at_import(data_dir, monkeypatch):
     env = {**os.environ, BASE_URL_ENV: "data.chhs.ca.gov", "PYTHONPATH": str(REPO)}
     imported = subprocess.run(
-        [sys.executable, "-c", "import pipeline.data.cdph_source, pipeline.data.chhs, "
+        [sys.executable, "-c", "import pipeline.data.california.cdph_source, pipeline.data.california.chhs, "
                                "pipeline.cli.data"], env=env, capture_output=True, text=True,
         timeout=120)
     assert imported.returncode == 0, imported.stderr
@@ -441,7 +441,7 @@ def test_validation_error_is_a_data_source_error():
 def test_a_stored_parse_reads_back_the_same_vintage(vintages, tmp_path, monkeypatch):
     """The parse kept beside the cached vintages (``parsed/<sha256>.npz``) is the same frame,
     is used instead of parsing again, and a damaged one is parsed again and replaced."""
-    import pipeline.data.cdph as cdph_module
+    import pipeline.data.california.cdph as cdph_module
 
     path = path_of("ofaye98__CSC508_Mentor_Class")
     data = path.read_bytes()

@@ -16,14 +16,14 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.data.cdph import CDPHVintage, read_cdph_csv
+from pipeline.data.california.cdph import CDPHVintage, read_cdph_csv
 from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.writers import write_backtest
 from pipeline.combine.average import vincentize
 from pipeline.errors import FlowcastError
-from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
-                                   train_growth_model)
-from pipeline.members.flow_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.members.nf.growth import NFGrowthMember
+from pipeline.members.nf.model import GrowthModelConfig, SyntheticWindows, train_growth_model
+from pipeline.members.nf.finetune import FineTuneConfig, fit_finetuned_member, refit_dates
 from pipeline.members.growth_regression import PooledGrowthMember, growth_regression_quantiles
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.panels.california import select_counties

@@ -21,9 +21,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.data.california import (COUNTIES, COUNTY_FIPS, california_county, county_fips,
-                                      county_slug)
-from pipeline.data.cdph import read_cdph_csv
+from pipeline.data.california.counties import (COUNTIES, COUNTY_FIPS, california_county,
+                                               county_fips, county_slug)
+from pipeline.data.california.cdph import read_cdph_csv
 from pipeline.errors import ConfigError
 from pipeline.forecast.config import DataSourceConfig, resolve_config
 from pipeline.forecast.run import StepRunner
@@ -49,7 +49,8 @@ def test_fips_codes_follow_the_alphabetical_odd_number_rule():
     codes = [COUNTY_FIPS[c] for c in sorted(COUNTIES)]
     assert len(COUNTIES) == 58 and len(set(codes)) == 58
     assert codes == [f"06{n:03d}" for n in range(1, 116, 2)]
-    from pipeline.outputs.hubverse import SF_COUNTY_FIPS, load_tasks_config
+    from pipeline.outputs.hubverse import SF_COUNTY_FIPS
+    from pipeline.outputs.hubverse_validation import load_tasks_config
 
     assert SF_COUNTY_FIPS == "06075"
     task = load_tasks_config(REPO / "hub-config" / "tasks.json")["rounds"][0]["model_tasks"][0]
@@ -103,7 +104,7 @@ def county_run(tmp_path_factory):
     missing = [str(p) for p in VINTAGES if not p.is_file()]
     if missing:
         pytest.fail(f"real CDPH vintages expected at {missing}")
-    from pipeline.data.cdph_source import cached_vintages
+    from pipeline.data.california.cdph_source import cached_vintages
     from pipeline.forecast.publish import output_root, write_tables
     from pipeline.forecast.run import run_forecast
     from pipeline.forecast.sources import load_series, series_to_sir
@@ -167,7 +168,7 @@ def test_county_nowcast_uses_its_own_delay_effect(county_run):
 
 @pytest.mark.slow
 def test_county_run_writes_its_own_hub_file_and_report(county_run):
-    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
     from pipeline.outputs.run_folders import render_index_html
     from pipeline.report.weekly import forecast_report_content
 
@@ -251,7 +252,7 @@ def test_cli_flow_run_for_a_county_from_the_imported_cdph_files(county_run, pref
     from prefect.artifacts import Artifact
 
     from flows.cli import app
-    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
 
     root, _, _, results, folder = county_run
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(root / "data"))

@@ -14,8 +14,8 @@ import typer
 from typer.testing import CliRunner
 
 from pipeline.cli.data import data_app
-from pipeline.data.cache import DatasetCache
-from pipeline.data.datasf import CASES
+from pipeline.data.core.cache import DatasetCache
+from pipeline.data.sf.datasf import CASES
 from pipeline.io import atomic_write_json
 from tests.test_datasf_client import EXPORTS, cache_snapshot
 from tests.test_datasf_import import VACCINATIONS

@@ -19,11 +19,11 @@ import pytest
 import requests
 import responses
 
-from pipeline.data.cache import DatasetCache
-from pipeline.data.datasf import (CASES, DATASETS, DEATHS, TESTS, ClientConfig, DataSFClient,
-                                  DatasetSpec, NetworkError)
-from pipeline.data.series import SFDataConfig, load_dataset, load_sf_series
-from pipeline.data.validation import find_column
+from pipeline.data.core.cache import DatasetCache
+from pipeline.data.sf.datasf import (CASES, DATASETS, DEATHS, TESTS, ClientConfig, DataSFClient,
+                                     DatasetSpec, NetworkError)
+from pipeline.data.sf.series import SFDataConfig, load_dataset, load_sf_series
+from pipeline.data.sf.validation import find_column
 from pipeline.errors import DataSourceError, OfflineError, ValidationError
 
 EXPORTS = {

@@ -9,10 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.data.cache import MANIFEST_NAME, DatasetCache
-from pipeline.data.csv_import import detect_dataset, import_csv_exports, read_csv_bytes
-from pipeline.data.datasf import CASES, DATASETS, DEATHS, TESTS
-from pipeline.data.series import SFDataConfig, load_sf_series, trim_trailing_days
+from pipeline.data.core.cache import MANIFEST_NAME, DatasetCache
+from pipeline.data.sf.csv_import import detect_dataset, import_csv_exports, read_csv_bytes
+from pipeline.data.sf.datasf import CASES, DATASETS, DEATHS, TESTS
+from pipeline.data.sf.series import SFDataConfig, load_sf_series, trim_trailing_days
 from pipeline.errors import ConfigError, ValidationError
 from pipeline.io import sha256_file
 from tests.test_datasf_client import EXPORTS, KNOWN, cache_snapshot
@@ -238,8 +238,8 @@ def test_later_testing_export_schema_is_imported(cache_root):
     assert (summary.dataset_key, summary.row_count, summary.first_date, summary.last_date) == (
         "tests", 5, "2022-04-23", "2022-04-27")
     assert summary.data_as_of is None and summary.warnings == ()
-    from pipeline.data.payloads import decode_cached
-    from pipeline.data.validation import validate_frame
+    from pipeline.data.sf.payloads import decode_cached
+    from pipeline.data.sf.validation import validate_frame
 
     cached = DatasetCache(cache_root).load(TESTS)
     assert cached.manifest.source == str(LATER_TESTING.resolve())
@@ -255,7 +255,7 @@ def test_later_testing_schema_from_the_api(cache_root):
     """The client reads the same schema from the API (fields date, tests, pos, neg, indet);
     when DataSF refuses ``$order=specimen_collection_date`` (HTTP 400) it orders by ``date``."""
     from bench.faults import FakeDataSF, client_config
-    from pipeline.data.series import load_dataset
+    from pipeline.data.sf.series import load_dataset
 
     later = pd.read_csv(LATER_TESTING, dtype=str)
     rows = [{"date": d.replace("/", "-") + "T00:00:00.000", "tests": t, "pos": p, "neg": n,

@@ -10,11 +10,13 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.members import flow as nf_member
-from pipeline.members import flow_finetune as nf_finetune
-from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
-                                   train_or_reuse_growth_model)
-from pipeline.members.flow_finetune import FineTuneConfig, StoredRefit, fit_finetuned_member
+from pipeline.members.nf import growth as nf_member
+from pipeline.members.nf import model as nf_model
+from pipeline.members.nf import finetune as nf_finetune
+from pipeline.members.nf.growth import NFGrowthMember
+from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
+                                       train_or_reuse_growth_model)
+from pipeline.members.nf.finetune import FineTuneConfig, StoredRefit, fit_finetuned_member
 from pipeline.training.digests import DIGESTS_DIR, DataDigests
 from pipeline.training.model_store import ModelStore
 from tests.forecasting_helpers import forecast_one, random_walk_history
@@ -72,7 +74,7 @@ def test_a_rerun_on_stored_models_cuts_no_windows_and_loads_refits_when_used(tmp
         raise AssertionError("windows were cut on a rerun")
 
     monkeypatch.setattr(nf_member.NFGrowthMember, "real_windows", no_windows)
-    monkeypatch.setattr(nf_member, "growth_dataset", no_windows)
+    monkeypatch.setattr(nf_model, "growth_dataset", no_windows)
     reused = _refits(tmp_path, dates)
     assert {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")} == entries
     refits = [reused.models[d] for d in dates]

@@ -22,11 +22,11 @@ from typer.testing import CliRunner
 
 from bench.faults import (TOKEN, FakeDataSF, api_rows, bytes_lost, cache_bytes, client_config,
                           faults, redirect, run_fault, with_value)
-from pipeline.data.cache import CacheDamagedError, DatasetCache
-from pipeline.data.csv_import import import_csv_exports
-from pipeline.data.datasf import (BASE_URL_ENV, CASES, DEATHS, TESTS, ClientConfig, DataSFClient,
-                                  parse_retry_after)
-from pipeline.data.series import SFDataConfig, load_dataset, load_sf_series
+from pipeline.data.core.cache import CacheDamagedError, DatasetCache
+from pipeline.data.sf.csv_import import import_csv_exports
+from pipeline.data.sf.datasf import (BASE_URL_ENV, CASES, DEATHS, TESTS, ClientConfig, DataSFClient,
+                                     parse_retry_after)
+from pipeline.data.sf.series import SFDataConfig, load_dataset, load_sf_series
 from pipeline.errors import CheckpointError, ValidationError
 from pipeline.io import LockTimeoutError
 from pipeline.training.model_store import ModelStore

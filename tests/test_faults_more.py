@@ -22,16 +22,15 @@ from bench.faults import (FakeDataSF, api_rows, bytes_lost, cache_bytes, client_
                           closed_port_url, command_faults, fill_cache_from_api, header_drip,
                           held_cache_lock, live_request_threads, run_command_fault, with_value)
 from pipeline.cli.output_paths import OutputPathError, output_dir, output_file
-from pipeline.data.cache import DatasetCache
-from pipeline.data.datasf import (CASES, DATASETS, DataSFClient, check_gate,
-                                  UnreachableError)
-from pipeline.data.decoding import (PayloadRejectedError, decode_boundary, decode_csv_frame,
-                                    decode_json_records)
-from pipeline.data.payloads import rows_frame
-from pipeline.data.gate import CountBound, GateError, GateRules, Places, gate
-from pipeline.data.plausibility import DAILY
-from pipeline.data.series import SFDataConfig, load_dataset, load_sf_series
-from pipeline.data.validation import validate_frame
+from pipeline.data.core.cache import DatasetCache
+from pipeline.data.sf.datasf import CASES, DATASETS, DataSFClient, check_gate, UnreachableError
+from pipeline.data.core.decoding import (PayloadRejectedError, decode_boundary, decode_csv_frame,
+                                         decode_json_records)
+from pipeline.data.sf.payloads import rows_frame
+from pipeline.data.core.gate import CountBound, GateError, GateRules, Places, gate
+from pipeline.data.core.plausibility import DAILY
+from pipeline.data.sf.series import SFDataConfig, load_dataset, load_sf_series
+from pipeline.data.sf.validation import validate_frame
 from pipeline.errors import DataSourceError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -164,8 +163,8 @@ def test_a_base_url_without_scheme_breaks_no_import_and_no_offline_command(data_
     env = {**os.environ, "FLOWCAST_DATASF_BASE_URL": "data.sfgov.org",
            "PYTHONPATH": str(REPO)}
     probe = subprocess.run(
-        [sys.executable, "-c", "import pipeline.data.series, pipeline.data.sir_transform, "
-                               "pipeline.data.csv_import, pipeline.cli.data; print('imported')"],
+        [sys.executable, "-c", "import pipeline.data.sf.series, pipeline.data.sf.sir_transform, "
+                               "pipeline.data.sf.csv_import, pipeline.cli.data; print('imported')"],
         env=env, cwd=REPO, capture_output=True, text=True, timeout=60)
     assert probe.returncode == 0 and probe.stdout.strip() == "imported", probe.stderr
     result = run_command_fault(COMMANDS["base-url-without-scheme"], data_dir.parent)

@@ -15,7 +15,7 @@ import pytest
 import requests
 import responses
 
-from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
+from pipeline.data.sf.sir_transform import SF_POPULATION_2020_CENSUS
 
 
 pytestmark = pytest.mark.slow
@@ -93,7 +93,7 @@ def test_outputs_exist_with_real_numbers(good_run):
                                           "nf-smc", "ensemble-uncalibrated"}
 
     # the hubverse file of the same forecast, valid under hub-config/tasks.json
-    from pipeline.outputs.hubverse import load_tasks_config, validate_model_output
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
 
     tasks = load_tasks_config(Path(__file__).resolve().parents[1] / "hub-config" / "tasks.json")
     submission = out / "model-output" / "flowcast-nfens" / f"{ROUND}-flowcast-nfens.csv"

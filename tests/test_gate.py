@@ -7,11 +7,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.data.california import (CALIFORNIA_POPULATION_2020, COUNTIES,
-                                      COUNTY_POPULATION_2020)
-from pipeline.data.cdph import CDPH_GATE, read_cdph_csv
-from pipeline.data.gate import (CountBound, GateError, GateRules, Places, ShareBound, gate)
-from pipeline.data.plausibility import DAILY, JumpRule, history_bounds
+from pipeline.data.california.counties import (CALIFORNIA_POPULATION_2020, COUNTIES,
+                                               COUNTY_POPULATION_2020)
+from pipeline.data.california.cdph import CDPH_GATE, read_cdph_csv
+from pipeline.data.core.gate import CountBound, GateError, GateRules, Places, ShareBound, gate
+from pipeline.data.core.plausibility import DAILY, JumpRule, history_bounds
 from tests.conftest import SHARED
 
 CDPH = SHARED / "data" / "cdph"
@@ -145,7 +145,7 @@ def test_a_poisoned_county_cell_stops_neither_san_franciscos_nor_a_countys_forec
     Marin itself is one named error."""
     import dataclasses
 
-    from pipeline.data.cdph_source import import_cdph_exports, load_cdph
+    from pipeline.data.california.cdph_source import import_cdph_exports, load_cdph
     from pipeline.forecast.config import resolve_config
     from pipeline.forecast.run import run_forecast
     from pipeline.forecast.sources import load_reference_histories, load_series

@@ -17,15 +17,16 @@ import pytest
 from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.combine.reconcile import median_gap, top_down
-from pipeline.data.hub_import import import_hub_time_series
-from pipeline.data.nhsn_vintages import cached_weekly_vintages
+from pipeline.data.hub.target_import import import_hub_time_series
+from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
-from pipeline.members.weekly_flow import WeeklyFlowConfig, WeeklyFlowMember
-from pipeline.members.flow import train_growth_model
+from pipeline.members.nf.weekly import WeeklyFlowConfig, WeeklyFlowMember
+from pipeline.members.nf.model import train_growth_model
 from pipeline.nowcast.revisions import RevisionNowcastConfig, nowcast_weeks
-from pipeline.outputs.hubverse import (CDC_HUB_MODEL_ID, compound_sample_ids,
-                                       load_model_metadata, load_tasks_config, write_hub_round)
+from pipeline.outputs.hubverse_round import (CDC_HUB_MODEL_ID, compound_sample_ids,
+                                             load_model_metadata, write_hub_round)
+from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.hub import HOSP_COVID, hub_rounds, panel_of, reference_date_for
 from pipeline.panels.panel import Cells, Panel

@@ -25,7 +25,7 @@ TARGETS = set(LOCATIONS)
 def hub_run(prefect_harness, tmp_path_factory):
     """One tiny round from the last three vintages of both targets; shared by the checks."""
     from flows.hub_forecast import hub_forecast
-    from pipeline.data.hub_import import import_hub_time_series
+    from pipeline.data.hub.target_import import import_hub_time_series
 
     root = tmp_path_factory.mktemp("hub-run")
     series = pd.read_parquet(NHSN / "time-series.parquet")

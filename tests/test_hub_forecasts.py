@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.data.hub_forecasts import (HubDataError, quantile_table, read_excluded_locations,
-                                         read_hub_forecasts, read_model_output_dir,
-                                         read_target_data, target_data_vintages)
+from pipeline.data.hub.team_forecasts import (HubDataError, quantile_table, read_excluded_locations,
+                                              read_hub_forecasts, read_model_output_dir,
+                                              read_target_data, target_data_vintages)
 from pipeline.evaluation.hub_leaderboard import (LeaderboardConfig, hub_leaderboard,
                                                  leaderboard_scores, score_quantile_forecasts)
 
@@ -159,7 +159,7 @@ def test_model_output_folder_read_as_hubverse_partitions_it(tmp_path):
 
 
 def test_forecasts_that_cannot_be_ranked_are_refused_by_name():
-    from pipeline.data.hub_forecasts import QuantileTable
+    from pipeline.data.hub.team_forecasts import QuantileTable
     from pipeline.errors import ConfigError
     from pipeline.evaluation.hub_leaderboard import LeaderboardError
 

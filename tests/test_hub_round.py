@@ -14,10 +14,11 @@ import pandas as pd
 import pytest
 from scipy.stats import norm
 
-from pipeline.outputs.hubverse import (CDC_HUB_MODEL_ID, HUB_QUANTILE_LEVELS, HubValidationError,
-                                       compound_sample_ids, load_model_metadata,
-                                       load_tasks_config, validate_model_output,
-                                       write_hub_round)
+from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
+from pipeline.outputs.hubverse_round import (CDC_HUB_MODEL_ID, compound_sample_ids,
+                                             load_model_metadata, write_hub_round)
+from pipeline.outputs.hubverse_validation import (HubValidationError, load_tasks_config,
+                                                  validate_model_output)
 
 REPO = Path(__file__).resolve().parents[1]
 NHSN = REPO.parent / "shared" / "data" / "nhsn"

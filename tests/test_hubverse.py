@@ -14,10 +14,10 @@ import pytest
 import torch
 import yaml
 
-from pipeline.outputs.hubverse import (HUB_QUANTILE_LEVELS, HubFormatError, HubValidationError,
-                                   SubmissionConfig, load_tasks_config, model_output_path,
-                                   reference_date_for, hub_tasks_config,
-                                   validate_model_output, write_model_output)
+from pipeline.outputs.hubverse import (HUB_QUANTILE_LEVELS, SubmissionConfig, model_output_path,
+                                       reference_date_for, hub_tasks_config, write_model_output)
+from pipeline.outputs.hubverse_validation import (HubFormatError, HubValidationError,
+                                                  load_tasks_config, validate_model_output)
 from pipeline.backtest.result import QuantileForecast
 from pipeline.systems.sir import simulate_sir
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from pipeline import forecast as fc
-from pipeline.members.flow import NFGrowthMember
+from pipeline.members.nf.growth import NFGrowthMember
 from pipeline.members.published import ChosenMembers, build_members
 from pipeline.panels.panel import Panel
 from pipeline.forecast.member_training import member_training, start_member_training

@@ -12,7 +12,8 @@ import pytest
 from pipeline.backtest.backtest import BacktestConfig, OneVintage, run_backtest
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.fingerprint import fingerprint
-from pipeline.members.flow import GrowthModelConfig, NFGrowthMember, train_or_reuse_growth_model
+from pipeline.members.nf.growth import NFGrowthMember
+from pipeline.members.nf.model import GrowthModelConfig, train_or_reuse_growth_model
 from pipeline.members.growth_regression import PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.panels.history import EpiHistory

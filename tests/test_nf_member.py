@@ -6,9 +6,10 @@ import pandas as pd
 import pytest
 
 from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
-from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember,
-                                            build_growth_dataset, decode_paths, growth_targets,
-                                            trailing_week_sums, train_or_reuse_growth_model)
+from pipeline.members.nf.growth import NFGrowthMember
+from pipeline.members.nf.model import (GrowthModelConfig, build_growth_dataset, decode_paths,
+                                       growth_targets, trailing_week_sums,
+                                       train_or_reuse_growth_model)
 from pipeline.panels.history import EpiHistory
 from tests.forecasting_helpers import forecast_one
 from pipeline.systems.waves import WavePrior, simulate_waves

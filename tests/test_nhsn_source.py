@@ -20,10 +20,10 @@ from bench.faults_nhsn import (HRD_ORDER, NHSN, FakeCDC, edited, faults, held_fi
                                hub_vintage, nhsn_config, revised_settled, run_concurrent_imports,
                                run_fault, send_pages, write_target_csv)
 from pipeline.cli.data import data_app
-from pipeline.data.hub_locations import BY_LOCATION, HUB_LOCATIONS, hub_location
-from pipeline.data.nhsn import (ED_COVID, HOSP_COVID, NHSNConfig, cached_weekly_vintages,
-                                import_hub_time_series, import_target_csv, load_nhsn,
-                                vintage_as_of)
+from pipeline.data.hub.locations import BY_LOCATION, HUB_LOCATIONS, hub_location
+from pipeline.data.hub.nhsn import (ED_COVID, HOSP_COVID, NHSNConfig, cached_weekly_vintages,
+                                    import_hub_time_series, import_target_csv, load_nhsn,
+                                    vintage_as_of)
 from pipeline.errors import ConfigError, OfflineError
 
 FAULTS = {f.name: f for f in faults()}

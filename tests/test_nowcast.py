@@ -11,10 +11,10 @@ import pandas as pd
 import pytest
 from scipy import optimize, stats
 
-from pipeline.data.cdph import CDPHVintage
-from pipeline.data.delays import (DelayModelConfig, fit_delay_model, load_delay_model,
-                                  save_delay_model)
-from pipeline.data.vintage_pairs import VintagePairError, revision_pairs
+from pipeline.data.california.cdph import CDPHVintage
+from pipeline.data.california.delays import (DelayModelConfig, fit_delay_model, load_delay_model,
+                                             save_delay_model)
+from pipeline.data.california.vintage_pairs import VintagePairError, revision_pairs
 from pipeline.backtest.result import QuantileForecast
 from pipeline.combine.average import mix_quantiles
 from pipeline.members.base import MemberForecast
@@ -25,7 +25,8 @@ from pipeline.nowcast.mixture import CompletionMixture, floor_current_week, medi
 from pipeline.panels.history import EpiHistory
 from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 from tests.forecasting_helpers import forecast_one
-from pipeline.outputs.hubverse import NowcastWeek, load_tasks_config, write_model_output
+from pipeline.outputs.hubverse import NowcastWeek, write_model_output
+from pipeline.outputs.hubverse_validation import load_tasks_config
 
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
 MAX_LAG = 21

@@ -480,8 +480,8 @@ def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):
     import requests
     import responses
 
-    from pipeline.data.datasf import DATASETS, ClientConfig
-    from pipeline.data.series import SFDataConfig, load_sf_series
+    from pipeline.data.sf.datasf import DATASETS, ClientConfig
+    from pipeline.data.sf.series import SFDataConfig, load_sf_series
     from pipeline.forecast.sources import import_exports, staleness_notes
 
     import_exports([str(datasf_dir)])
@@ -630,7 +630,8 @@ def test_real_report_pages_are_neither_blank_nor_mixed_conventions(real_results,
 def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results):
     """Diagnostic sections drawn in a forked child (as publish draws half of them): the report
     holds the same sections, captions and images as when all are drawn here."""
-    from pipeline.report.weekly import forecast_report_content, start_diagnostics
+    from pipeline.report.diagnostics import start_diagnostics
+    from pipeline.report.weekly import forecast_report_content
 
     def parts(content):
         return [(s.key, [getattr(i, "png", None) for i in s.items],
@@ -685,7 +686,7 @@ def test_rollout_band_quantiles_are_nanquantiles_of_the_paths():
     NaN on some paths), computed through np.quantile where every path has a value."""
     import warnings
 
-    from pipeline.report.weekly import LEVELS, _path_quantiles
+    from pipeline.report.diagnostics import LEVELS, _path_quantiles
 
     rng = np.random.default_rng(0)
     samples = rng.lognormal(size=(64, 50, 3))

@@ -7,12 +7,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.data.csv_import import import_csv_exports
-from pipeline.data.series import (DataVintage, SeriesProvenance, SFDataConfig, SFSeries,
-                                  load_sf_series)
-from pipeline.data.sir_transform import (SF_POPULATION_2020_CENSUS, AscertainmentConfig,
-                                         SIRConversionConfig, ascertainment_multiplier,
-                                         sir_counts, to_sir, trailing_positivity)
+from pipeline.data.sf.csv_import import import_csv_exports
+from pipeline.data.sf.series import (DataVintage, SeriesProvenance, SFDataConfig, SFSeries,
+                                     load_sf_series)
+from pipeline.data.core.sir_counts import sir_counts
+from pipeline.data.sf.sir_transform import (SF_POPULATION_2020_CENSUS, AscertainmentConfig,
+                                            SIRConversionConfig, ascertainment_multiplier, to_sir,
+                                            trailing_positivity)
 from pipeline.errors import ConfigError
 from tests.test_datasf_client import EXPORTS
 

@@ -14,8 +14,8 @@ import time
 import traceback
 from pathlib import Path
 
-from pipeline.data.cache import DatasetCache
-from pipeline.data.datasf import CASES
+from pipeline.data.core.cache import DatasetCache
+from pipeline.data.sf.datasf import CASES
 from pipeline.io import sha256_bytes
 from pipeline.training.model_store import ModelStore
 
@@ -82,7 +82,7 @@ def test_concurrent_writers_never_leave_a_broken_entry(tmp_path):
     # forkserver: writers fork from a clean server process, not from pytest's, which by now may
     # hold other tests' threads (Prefect's harness) that a plain fork copies mid-flight.
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["pipeline.data.cache", "pipeline.training.model_store"])
+    ctx.set_forkserver_preload(["pipeline.data.core.cache", "pipeline.training.model_store"])
     failures = ctx.Value("i", 0)
     after_failures = []
     for trial in range(TRIALS):

@@ -16,11 +16,11 @@ import pytest
 from numpy.typing import NDArray
 from scipy import stats
 
-from pipeline.data.cdph import read_cdph_csv
+from pipeline.data.california.cdph import read_cdph_csv
 from pipeline.combine.average import mix_quantiles
 from pipeline.combine.combiner import LOG_AVERAGE, Ensemble
 from pipeline.members.base import MemberForecast
-from pipeline.members.flow_finetune import REFIT_EPOCH, latest_refit_date, refit_dates
+from pipeline.members.nf.finetune import REFIT_EPOCH, latest_refit_date, refit_dates
 from pipeline.members.growth_regression import PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.nowcast.completions import Nowcast, complete_histories, week_sums

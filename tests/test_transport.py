@@ -1,4 +1,4 @@
-"""The one bounded HTTP transport (``pipeline.data.transport``), once, through the real
+"""The one bounded HTTP transport (``pipeline.data.core.transport``), once, through the real
 ``requests`` stack against a tiny threaded HTTP server on 127.0.0.1 built here: retries and
 Retry-After, same-origin redirects only, the request deadline over a server that drips its
 headers (no thread and no socket left), a gzip bomb stopped at the cap after decoding, a refused
@@ -15,8 +15,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 
 from bench.faults import client_sockets_to
-from pipeline.data.transport import (REQUEST_THREAD_NAME, NetworkError, RedirectRefusedError,
-                                     Transport, TransportConfig, UnreachableError)
+from pipeline.data.core.transport import (REQUEST_THREAD_NAME, NetworkError, RedirectRefusedError,
+                                          Transport, TransportConfig, UnreachableError)
 from pipeline.errors import DataSourceError
 
 Reply = Callable[[BaseHTTPRequestHandler], None]

@@ -1,13 +1,13 @@
-"""Schema and value rules of pipeline.data.validation, on small frames and on the real exports."""
+"""Schema and value rules of pipeline.data.sf.validation, on small frames and on the real exports."""
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.data.csv_import import validate_csv_export
-from pipeline.data.datasf import CASES, DEATHS, TESTS
-from pipeline.data.validation import GapPolicy, find_column, parse_dates, validate_frame
+from pipeline.data.sf.csv_import import validate_csv_export
+from pipeline.data.sf.datasf import CASES, DEATHS, TESTS
+from pipeline.data.sf.validation import GapPolicy, find_column, parse_dates, validate_frame
 from pipeline.errors import ValidationError
 from tests.test_datasf_client import EXPORTS
 

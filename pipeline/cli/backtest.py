@@ -112,7 +112,7 @@ def _without_flows(record: TrackRecordConfig, nf: bool) -> TrackRecordConfig:
 def _county_backtest(county: str, out: Path, nf: bool, seed: int) -> None:
     """``--county``: the cross-county backtest on the latest cached CDPH vintage."""
     from pipeline.backtest.writers import write_backtest
-    from pipeline.data.cdph_source import load_cdph_vintage
+    from pipeline.data.california.cdph_source import load_cdph_vintage
     from pipeline.forecast import resolve_config
     from pipeline.forecast.county_skill import county_backtest
     from pipeline.panels.california import select_counties

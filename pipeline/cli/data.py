@@ -11,16 +11,16 @@ import typer
 
 from pipeline.cli import app
 from pipeline.cli.output_paths import output_dir, output_file
-from pipeline.data.datasf import SF_POPULATION_2020_CENSUS
+from pipeline.data.sf.datasf import SF_POPULATION_2020_CENSUS
 from pipeline.errors import ConfigError, FlowcastError
 
 if TYPE_CHECKING:
     from datetime import datetime
 
-    from pipeline.data.cache import CacheManifest, CacheSpec, DatasetCache
-    from pipeline.data.hub_import import HubImportSummary
-    from pipeline.data.series import SFDataConfig
-    from pipeline.data.sir_transform import SIRConversionConfig
+    from pipeline.data.core.cache import CacheManifest, CacheSpec, DatasetCache
+    from pipeline.data.hub.target_import import HubImportSummary
+    from pipeline.data.sf.series import SFDataConfig
+    from pipeline.data.sf.sir_transform import SIRConversionConfig
 
 data_app = typer.Typer(no_args_is_help=True,
                        help="COVID-19 data: San Francisco from DataSF, California counties from "
@@ -41,8 +41,8 @@ def _fail(exc: Exception) -> NoReturn:
 
 def _config(trailing_days: int, *, base_url: str | None = None, app_token: str | None = None,
             accept_revisions: bool = False, offline: bool = False) -> SFDataConfig:
-    from pipeline.data.datasf import DEFAULT_BASE_URL, ClientConfig
-    from pipeline.data.series import SFDataConfig
+    from pipeline.data.sf.datasf import DEFAULT_BASE_URL, ClientConfig
+    from pipeline.data.sf.series import SFDataConfig
     if offline:
         # Never contacted: a bad $FLOWCAST_DATASF_BASE_URL must not stop a cache-only command.
         base_url = base_url or DEFAULT_BASE_URL
@@ -80,11 +80,11 @@ def import_command(
 ) -> None:
     """Validate downloaded data and put it into the cache ($FLOWCAST_DATA_DIR or ./data). CDPH
     files and hub target data are vintages: each is kept, the newest is live."""
-    from pipeline.data.cache import data_dir
-    from pipeline.data.cdph_source import (is_cdph_export, peek_columns, store_cdph_exports,
-                                           validate_cdph_exports)
-    from pipeline.data.csv_import import import_csv_exports
-    from pipeline.data.hub_import import is_hub_time_series, is_target_csv
+    from pipeline.data.core.cache import data_dir
+    from pipeline.data.california.cdph_source import (is_cdph_export, peek_columns,
+                                                      store_cdph_exports, validate_cdph_exports)
+    from pipeline.data.sf.csv_import import import_csv_exports
+    from pipeline.data.hub.target_import import is_hub_time_series, is_target_csv
     hub = [f for f in files if is_hub_time_series(f)]
     dirs = [f for f in files if f.is_dir() and f not in hub]
     if dirs:
@@ -124,7 +124,7 @@ def import_command(
 
 def _import_nhsn(hub: list[Path], targets: list[Path], target: str | None, as_of: str | None,
                  if_empty: bool, accept_revisions: bool) -> list[HubImportSummary]:
-    from pipeline.data.hub_import import import_hub_time_series, import_target_csv
+    from pipeline.data.hub.target_import import import_hub_time_series, import_target_csv
     if targets and (target is None or as_of is None):
         raise ConfigError(f"{targets[0]} is a hub target CSV: give its target and vintage date "
                           f"(--target 'wk inc covid hosp' --as-of YYYY-MM-DD)")
@@ -178,7 +178,7 @@ def fetch_command(
     if source == "nhsn":
         _fetch_nhsn(disease, release, nhsn_base_url, accept_revisions)
         return
-    from pipeline.data.series import load_sf_series
+    from pipeline.data.sf.series import load_sf_series
     try:
         series = load_sf_series(_config(trailing_days, base_url=base_url, app_token=app_token,
                                         accept_revisions=accept_revisions))
@@ -194,8 +194,8 @@ def fetch_command(
 
 
 def _fetch_chhs(base_url: str | None, accept_revisions: bool) -> None:
-    from pipeline.data.cdph_source import CDPHConfig, load_cdph
-    from pipeline.data.chhs import CHHSClientConfig
+    from pipeline.data.california.cdph_source import CDPHConfig, load_cdph
+    from pipeline.data.california.chhs import CHHSClientConfig
     try:
         loaded = load_cdph(CDPHConfig(client=CHHSClientConfig(base_url=base_url),
                                       accept_revisions=accept_revisions))
@@ -211,7 +211,7 @@ def _fetch_chhs(base_url: str | None, accept_revisions: bool) -> None:
 
 def _fetch_nhsn(disease: str, release: str, base_url: str | None,
                 accept_revisions: bool) -> None:
-    from pipeline.data.nhsn import NHSNClientConfig, NHSNConfig, load_nhsn
+    from pipeline.data.hub.nhsn import NHSNClientConfig, NHSNConfig, load_nhsn
     try:
         loaded = load_nhsn(NHSNConfig(disease=disease, release=release,  # type: ignore[arg-type]
                                       client=NHSNClientConfig(base_url=base_url),
@@ -230,8 +230,8 @@ def _fetch_nhsn(disease: str, release: str, base_url: str | None,
 @data_app.command("status")
 def status_command() -> None:
     """What the cache holds and how old it is."""
-    from pipeline.data.cache import DatasetCache, utc_now
-    from pipeline.data.datasf import DATASETS
+    from pipeline.data.core.cache import DatasetCache, utc_now
+    from pipeline.data.sf.datasf import DATASETS
     cache = DatasetCache.default()
     typer.echo(f"cache: {cache.root.resolve() / 'datasf'}")
     now = utc_now()
@@ -268,7 +268,7 @@ def _manifest(cache: DatasetCache, spec: CacheSpec, label: str
 
 
 def _status_chhs(cache: DatasetCache, now: datetime) -> None:
-    from pipeline.data.cdph_source import SPEC, vintages_dir
+    from pipeline.data.california.cdph_source import SPEC, vintages_dir
     label = f"{SPEC.key} ({SPEC.dataset_id})"
     typer.echo(f"cache: {cache.root.resolve() / SPEC.cache_folder}")
     readable, manifest = _manifest(cache, SPEC, label)
@@ -292,8 +292,8 @@ def _status_chhs(cache: DatasetCache, now: datetime) -> None:
 
 
 def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
-    from pipeline.data.nhsn_vintages import CACHE_FOLDER, TARGETS, held_count, vintages_folder
-    from pipeline.data.vintages import VintageArchive
+    from pipeline.data.hub.nhsn_vintages import CACHE_FOLDER, TARGETS, held_count, vintages_folder
+    from pipeline.data.core.vintages import VintageArchive
     typer.echo(f"cache: {cache.root.resolve() / CACHE_FOLDER}")
     if not any(cache.has(spec) for spec in TARGETS.values()):
         typer.echo("NHSN: not cached — `flowcast data fetch --source nhsn` or `flowcast data "
@@ -321,7 +321,7 @@ def counties_command(
                                        help="Only counties with at least this many people."),
 ) -> None:
     """The California counties of the cached CDPH vintage, with CDPH's population (no network)."""
-    from pipeline.data.cdph_source import load_cdph
+    from pipeline.data.california.cdph_source import load_cdph
     try:
         loaded = load_cdph(offline=True)
     except FlowcastError as exc:
@@ -338,7 +338,7 @@ def counties_command(
 
 def _sir_config(population: int, infectious_days: int,
                 ascertainment: bool) -> SIRConversionConfig:
-    from pipeline.data.sir_transform import AscertainmentConfig, SIRConversionConfig
+    from pipeline.data.sf.sir_transform import AscertainmentConfig, SIRConversionConfig
     return SIRConversionConfig(population=population, infectious_period_days=infectious_days,
                                ascertainment=AscertainmentConfig() if ascertainment else None)
 
@@ -355,8 +355,8 @@ def sir_command(out: Path = typer.Option(..., "--out", help="CSV to write (date,
                 population: int = Population, infectious_days: int = InfectiousDays,
                 ascertainment: bool = Ascertainment) -> None:
     """Write the S/I/R proportions of San Francisco, plus <out>.provenance.json (vintage)."""
-    from pipeline.data.series import load_sf_series
-    from pipeline.data.sir_transform import to_sir
+    from pipeline.data.sf.series import load_sf_series
+    from pipeline.data.sf.sir_transform import to_sir
     from pipeline.io import atomic_write_json, atomic_write_text
     try:
         output_file(out, example="sf_sir.csv")
@@ -381,10 +381,10 @@ def plot_command(out: Path = typer.Option(Path("figures"), "--out", help="Output
                                                "sir-multi uses 0.01."),
                  seed: int = typer.Option(0, "--seed")) -> None:
     """Figures: the SF S/I/R series, and SF beside the sir-multi prior (+ measured overlap)."""
-    from pipeline.data.plots import (PriorEnsembleConfig, compare_with_prior, plot_sir_series,
-                                     plot_sir_vs_prior)
-    from pipeline.data.series import load_sf_series
-    from pipeline.data.sir_transform import to_sir
+    from pipeline.report.data_figures import (PriorEnsembleConfig, compare_with_prior,
+                                              plot_sir_series, plot_sir_vs_prior)
+    from pipeline.data.sf.series import load_sf_series
+    from pipeline.data.sf.sir_transform import to_sir
     from pipeline.io import atomic_write_json
     try:
         output_dir(out)

@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
-from pipeline.data.hub_forecasts import TASK_COLUMNS, QuantileTable
+from pipeline.data.hub.team_forecasts import TASK_COLUMNS, QuantileTable
 from pipeline.errors import ConfigError, FlowcastError
 from pipeline.evaluation.pairwise import pairwise_comparison
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score

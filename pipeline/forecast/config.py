@@ -11,11 +11,11 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
 
-from pipeline.data.california import SAN_FRANCISCO, california_county
-from pipeline.data.delays import DelayModelConfig
+from pipeline.data.california.counties import SAN_FRANCISCO, california_county
+from pipeline.data.california.delays import DelayModelConfig
 from pipeline.backtest.track_record import TrackRecordConfig
-from pipeline.members.flow import GrowthModelConfig
-from pipeline.members.flow_finetune import FineTuneConfig
+from pipeline.members.nf.model import GrowthModelConfig
+from pipeline.members.nf.finetune import FineTuneConfig
 from pipeline.members.published import MembersConfig
 from pipeline.errors import ConfigError
 from pipeline.names import DIRECTIONS, Direction

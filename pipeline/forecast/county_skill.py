@@ -22,9 +22,9 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.data.cache import data_dir
-from pipeline.data.cdph import CDPHVintage
-from pipeline.data.cdph_source import load_cdph_vintage
+from pipeline.data.core.cache import data_dir
+from pipeline.data.california.cdph import CDPHVintage
+from pipeline.data.california.cdph_source import load_cdph_vintage
 from pipeline.backtest.backtest import BacktestConfig, OneVintage, Variant, run_backtest
 from pipeline.backtest.result import BacktestResult
 from pipeline.members.base import Member

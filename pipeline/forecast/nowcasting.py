@@ -25,14 +25,14 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.data.cache import data_dir
-from pipeline.data.cdph import CDPHVintage, find_vintage_files
-from pipeline.data.cdph_source import cached_vintages, validate_cdph_exports
-from pipeline.data.delays import (DelayModel, DelayModelError, fit_delay_model,
-                                  load_delay_model, save_delay_model)
-from pipeline.data.series import DataVintage, SFSeries
-from pipeline.data.sir_transform import SIRSeries
-from pipeline.data.vintage_pairs import revision_pairs
+from pipeline.data.core.cache import data_dir
+from pipeline.data.california.cdph import CDPHVintage, find_vintage_files
+from pipeline.data.california.cdph_source import cached_vintages, validate_cdph_exports
+from pipeline.data.california.delays import (DelayModel, DelayModelError, fit_delay_model,
+                                             load_delay_model, save_delay_model)
+from pipeline.data.sf.series import DataVintage, SFSeries
+from pipeline.data.sf.sir_transform import SIRSeries
+from pipeline.data.california.vintage_pairs import revision_pairs
 from pipeline.nowcast.completions import NowcastConfig, complete_histories, nowcast_history
 from pipeline.nowcast.hub_weeks import hub_weeks, last_saturday
 from pipeline.nowcast.mixture import RunNowcast, median_history

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.data.california import county_fips, county_slug
+from pipeline.data.california.counties import county_fips, county_slug
 from pipeline.backtest.track_record import TrackRecord
 from pipeline.backtest.writers import hub_frame
 from pipeline.combine.combiner import PUBLISHED
@@ -21,12 +21,13 @@ from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import ForecastResults
 from pipeline.forecast.steps import published_skill
 from pipeline.io import atomic_write_json, atomic_write_text
-from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission,
-                                       SubmissionConfig, load_tasks_config, write_model_output)
+from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission, SubmissionConfig,
+                                       write_model_output)
+from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 from pipeline.report.render import start_report
-from pipeline.report.weekly import (FORKED_DIAGNOSTICS, forecast_report_content,
-                                    start_diagnostics)
+from pipeline.report.diagnostics import FORKED_DIAGNOSTICS, start_diagnostics
+from pipeline.report.weekly import forecast_report_content
 from pipeline.report.headline import compute_headline
 
 HUB_TASKS = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"

@@ -14,18 +14,18 @@ import numpy as np
 import pandas as pd
 import requests
 
-from pipeline.data.cache import utc_now
-from pipeline.data.california import SAN_FRANCISCO
-from pipeline.data.cdph import CountySeries, find_vintage_files
-from pipeline.data.chhs import CHHSClientConfig
-from pipeline.data.csv_import import ImportSummary, detect_dataset, import_csv_exports
-from pipeline.data.datasf import ClientConfig
-from pipeline.data.payloads import read_csv_bytes
-from pipeline.data.series import (DatasetProvenance, DataVintage, SeriesProvenance, SFDataConfig,
-                                  SFSeries, load_sf_series, trim_trailing_days)
-from pipeline.data.sir_transform import SIRConversionConfig, SIRSeries, to_sir
-from pipeline.data.cdph_source import (CDPHConfig, CDPHProvenance, import_cdph_exports,
-                                       load_cdph, load_cdph_vintage)
+from pipeline.data.core.cache import utc_now
+from pipeline.data.california.counties import SAN_FRANCISCO
+from pipeline.data.california.cdph import CountySeries, find_vintage_files
+from pipeline.data.california.chhs import CHHSClientConfig
+from pipeline.data.sf.csv_import import ImportSummary, detect_dataset, import_csv_exports
+from pipeline.data.sf.datasf import ClientConfig
+from pipeline.data.sf.payloads import read_csv_bytes
+from pipeline.data.sf.series import (DatasetProvenance, DataVintage, SeriesProvenance, SFDataConfig,
+                                     SFSeries, load_sf_series, trim_trailing_days)
+from pipeline.data.sf.sir_transform import SIRConversionConfig, SIRSeries, to_sir
+from pipeline.data.california.cdph_source import (CDPHConfig, CDPHProvenance, import_cdph_exports,
+                                                  load_cdph, load_cdph_vintage)
 from pipeline.panels.history import EpiHistory, history_from_county, history_from_frames
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
 from pipeline.forecast.config import DataSourceConfig, DataSourceKind
@@ -159,7 +159,7 @@ def staleness_notes(series: SFSeries) -> list[str]:
 
 
 def series_to_sir(series: SFSeries) -> SIRSeries:
-    """S, I, R proportions with the default conversion (see :mod:`pipeline.data.sir_transform`)
+    """S, I, R proportions with the default conversion (see :mod:`pipeline.data.sf.sir_transform`)
     on the place's own population."""
     return to_sir(series, SIRConversionConfig(population=series.population))
 

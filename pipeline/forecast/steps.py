@@ -35,11 +35,11 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from pipeline.data.cache import data_dir
-from pipeline.data.california import county_slug
+from pipeline.data.core.cache import data_dir
+from pipeline.data.california.counties import county_slug
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.backtest.track_record import TrackRecord, track_record
-from pipeline.members.flow import single_thread
+from pipeline.members.nf.model import single_thread
 from pipeline.members.smc import NFSeededSMCMember, PrecomputedMember, batched_smc_forecasts
 from pipeline.panels.california import place_panel
 from pipeline.panels.history import EpiHistory

@@ -7,7 +7,7 @@
   California's other counties; the counties together; the hub's 53 locations);
 * ``nf-growth`` — the conditional flow trained on the multi-wave prior (model store);
 * ``nf-real`` — that flow fine-tuned, on the calendar of
-  :func:`~pipeline.members.flow_finetune.refit_dates`, on the real windows known by each refit
+  :func:`~pipeline.members.nf.finetune.refit_dates`, on the real windows known by each refit
   date of :func:`finetune_pool`. Without such places there is no nf-real (one series alone is
   too few windows to fine-tune a flow on).
 
@@ -23,11 +23,12 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.members.base import Member
-from pipeline.members.flow import (GrowthModelConfig, NFGrowthMember, SyntheticWindows,
-                                   train_or_reuse_growth_model)
-from pipeline.members.flow_finetune import FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.members.nf.growth import NFGrowthMember
+from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
+                                       train_or_reuse_growth_model)
+from pipeline.members.nf.finetune import FineTuneConfig, fit_finetuned_member, refit_dates
 from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMember
-from pipeline.members.weekly_flow import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
+from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
 from pipeline.members.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.errors import ConfigError
@@ -82,7 +83,7 @@ def build_members(config: MembersConfig, store_root: Path, panel: Panel,
     """The published members of ``panel`` forecast at ``origins`` (module docstring): the
     flows trained or reused from the model store, nf-real refitted at the refit dates among
     ``origins``. ``newest_refits_first``: see
-    :func:`~pipeline.members.flow_finetune.fit_finetuned_member`."""
+    :func:`~pipeline.members.nf.finetune.fit_finetuned_member`."""
     members: list[Member] = [HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
                              PooledGrowthMember(config.regression)]
     if not config.include_nf:

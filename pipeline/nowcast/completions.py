@@ -3,7 +3,7 @@ arrived.
 
 The last weeks of an episode-date series are incomplete (a day's count grows for weeks as late
 reports arrive). Given the delay model's completeness draws F_k(d) of each recent day
-(:mod:`pipeline.data.delays`), each of K completions k draws the final count Y_d of every recent
+(:mod:`pipeline.data.california.delays`), each of K completions k draws the final count Y_d of every recent
 day d as
 
     c_d ~ Poisson(λ_d p_d),  Y_d = c_d + Z_d,  Z_d ~ Poisson(λ_d (1 − p_d)),
@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.data.delays import DelayModel, lag_days
+from pipeline.data.california.delays import DelayModel, lag_days
 from pipeline.panels.history import EpiHistory, history_length_up_to
 from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 

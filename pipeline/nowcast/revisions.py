@@ -4,7 +4,7 @@ earlier vintages (NHSN admissions, the NSSP ED share).
 A hub vintage's newest week is incomplete: hospitals report late, so its count rises in later
 releases (NHSN admissions, 44 vintages: the first report of a week is 7 % below the latest
 in the median, 45 % below at the 90th percentile; a week's second report is final in the median).
-The delay model of the daily CDPH series (:mod:`pipeline.data.delays`, by day) becomes, by
+The delay model of the daily CDPH series (:mod:`pipeline.data.california.delays`, by day) becomes, by
 week: for lag k (0: the vintage's newest week), the log ratio g(now) − g(reported) between a
 week's value as known at the round and as an earlier vintage reported it at lag k, over every
 earlier vintage and location (the US apart from the states: its aggregate revises more

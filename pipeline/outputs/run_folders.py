@@ -43,7 +43,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from pipeline.data.california import SAN_FRANCISCO
+from pipeline.data.california.counties import SAN_FRANCISCO
 from pipeline.errors import ConfigError
 from pipeline.io import STALE_AFTER_S, atomic_write_json, atomic_write_text, file_lock, sweep_stale
 

@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 
 import pandas as pd
 
-from pipeline.data.cdph import CDPHVintage
+from pipeline.data.california.cdph import CDPHVintage
 from pipeline.panels.history import History, history_from_county
 from pipeline.panels.panel import Panel
 

@@ -7,7 +7,7 @@ series the members forecast (``weekly_cases``: the complete weeks ending at the 
 first) and the susceptible share S the flows' coordinates are bounded by.
 
 * :class:`EpiHistory` — a daily source (DataSF, CDPH): daily reported cases and their S/I/R
-  proportions (:mod:`pipeline.data.sir_transform`); its targets are the weekly cases and I, the
+  proportions (:mod:`pipeline.data.sf.sir_transform`); its targets are the weekly cases and I, the
   infectious share (with the product's L = 7 days, N·I(t) is the trailing 7-day case count).
 * :class:`WeeklyHistory` — a weekly source (NHSN admissions, the NSSP ED share as a rate per
   100,000 visits): one count per week ending on a Saturday; its one target is that count, named
@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.data.cdph import CountySeries, county_sir
+from pipeline.data.california.cdph import CountySeries, county_sir
 from pipeline.fingerprint import fingerprint
 from pipeline.panels.targets import (CASES, DAYS_PER_WEEK, SHARE, TargetError)
 

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from pipeline.data.hub_locations import POPULATION, US
-from pipeline.data.nhsn_vintages import ED_COVID, HOSP_COVID, WeeklyVintage
+from pipeline.data.hub.locations import POPULATION, US
+from pipeline.data.hub.nhsn_vintages import ED_COVID, HOSP_COVID, WeeklyVintage
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.panel import Panel
 from pipeline.panels.targets import DAYS_PER_WEEK, SATURDAY, TargetError
@@ -93,7 +93,7 @@ def vintage_panel(frame: pd.DataFrame, target: str, populations: Mapping[str, in
 
 
 def panel_of(vintage: WeeklyVintage, populations: Mapping[str, int] = POPULATION) -> Panel:
-    """The panel of a cached hub vintage (:mod:`pipeline.data.nhsn_vintages`), the locations
+    """The panel of a cached hub vintage (:mod:`pipeline.data.hub.nhsn_vintages`), the locations
     its gate skipped named on it."""
     return vintage_panel(vintage.frame, vintage.target, populations, vintage.as_of,
                          skipped=vintage.skipped)

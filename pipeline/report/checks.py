@@ -25,7 +25,7 @@ STALE_HEADLINE = ("Stale data: {provider} could not be reached (every retry fail
 # the transport's error notes, left out of the banner (the run log keeps them)
 _UNREACHABLE = ("DataSF unreachable", "CHHS portal unreachable")
 _URL = re.compile(r"https?://[^\s;,)]+")
-# pipeline.data.series' cache note, said shorter (the banner is on page 1)
+# pipeline.data.sf.series' cache note, said shorter (the banner is on page 1)
 _CACHE_NOTE = re.compile(r"using cache, fetched (\S+) days ago \(its last day, ([0-9-]+), is "
                          r"[0-9,]+ days before today\)")
 

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from pipeline import __version__
 from pipeline.backtest.hub_rounds import HubRoundsResult
 from pipeline.combine.combiner import PUBLISHED
-from pipeline.data.hub_locations import BY_LOCATION, US
+from pipeline.data.hub.locations import BY_LOCATION, US
 from pipeline.evaluation.summary import score_cells
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.hub import is_share, target_scale

@@ -20,7 +20,7 @@ Readings of the paper (see docs/systems.md):
   trajectory. Both hold N * 1001 * 3 >= 1.5 million observed values, like the paper's data.
 
 ``sir-sf`` is not the paper's: it is the prior the San Francisco forecast trains on, fitted to
-what the SF series (``pipeline.data.sir_transform``) looks like. The paper's ``sir-multi`` puts
+what the SF series (``pipeline.data.sf.sir_transform``) looks like. The paper's ``sir-multi`` puts
 every epidemic at I0 = 0.01 with infectious periods of 40-200 days and observation noise 0.027;
 the SF series has I <= 0.026 (median 0.0008, so the paper's noise alone is 30x the signal), an
 infectious period fixed by the conversion (L = 7 days now, gamma near 0.14; the prior was fitted

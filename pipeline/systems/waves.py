@@ -8,7 +8,7 @@ gives every level of I every direction, so a model trained on it has to read the
 Daily discrete-time dynamics per trajectory (population fractions, N = the SF population):
 
 * infectious pressure P_t = n_{t-1} + … + n_{t-L}: an infection is infectious for exactly L days,
-  the same fixed window the S/I/R conversion (:mod:`pipeline.data.sir_transform`) applies to
+  the same fixed window the S/I/R conversion (:mod:`pipeline.data.sf.sir_transform`) applies to
   reported cases;
 * new infections n_t = S_t (1 − exp(−β_t P_t − ι)), with an importation hazard ι;
 * waning S_{t+1} = S_t − n_t + ω (1 − S_t − P_t) (SIRS: immunity lost at rate ω);
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.data.sir_transform import SF_POPULATION_2020_CENSUS
+from pipeline.data.sf.sir_transform import SF_POPULATION_2020_CENSUS
 from pipeline.errors import ConfigError
 
 REPORTING_WINDOW_DAYS = 7
@@ -148,7 +148,7 @@ def simulate_waves(prior: WavePrior, n_trajectories: int, seed: int) -> WaveEnse
 # ----------------------------------------------------------------------------- S/I/R view
 #
 # The joint state/parameter flows and the NF-seeded SMC see this prior through the S/I/R
-# conversion of :mod:`pipeline.data.sir_transform` applied to its reported cases, so they model
+# conversion of :mod:`pipeline.data.sf.sir_transform` applied to its reported cases, so they model
 # the same quantities the SF series holds: I_t = the cases reported in the last L days over N,
 # R_t = the cases reported before that (plus the cases reported before the series started) over
 # N, S_t = 1 − I_t − R_t. The recovery rate is γ = 1/L by construction (the window removes every

@@ -253,7 +253,7 @@ def _verified(key: str, path: Path) -> tuple[StoreEntry | None, str]:
 
 def default_store_root() -> Path:
     """The model store under the flowcast data folder ($FLOWCAST_DATA_DIR)."""
-    from pipeline.data.cache import data_dir
+    from pipeline.data.core.cache import data_dir
 
     return data_dir() / "models"
 

@@ -1,0 +1,391 @@
+"""The weekly hub targets (NHSN admissions, NSSP ED-visit shares) as vintages: what a vintage is,
+the validation gate and revision policy it passes, and the cache that keeps every one.
+
+A target's payload (Socrata rows as received, or the canonical target CSV an import writes)
+becomes long rows for the validation gate (:mod:`pipeline.data.core.gate`): locations only the hub's
+53 (territories and HHS regions dropped as known non-hub places), weeks on Saturday and not after
+the vintage's date, one row per week, no gap, admissions whole, not negative, at most 0.5 % of the
+location's population in a week and plausible against the location's previous weeks
+(:data:`WEEKLY`), ED shares within 0 … 0.5. A location that fails is skipped and named
+(:attr:`WeeklyVintage.skipped`); a vintage is committed under the cache lock
+(:mod:`pipeline.data.core.vintages`) against the revision policy (:class:`WeeklyRevisionPolicy`).
+
+Cache: ``<data dir>/nhsn/<target, slugged>/`` (manifest, live payload, ``vintages/``, ``held/``).
+The live source and the loader are :mod:`pipeline.data.hub.nhsn`; imports of a hub's target data
+:mod:`pipeline.data.hub.target_import`.
+"""
+from __future__ import annotations
+
+import bisect
+import logging
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import date, datetime
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
+                                      RevisionRefusedError)
+from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
+from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
+from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
+from pipeline.data.hub.locations import (JURISDICTION_LOCATION, NAME_LOCATION,
+                                         NOT_HUB_JURISDICTIONS, POPULATION)
+from pipeline.data.core.plausibility import JumpRule
+from pipeline.data.core.vintages import Committed, Older, VintageArchive
+from pipeline.errors import ConfigError, DataSourceError, ValidationError
+from pipeline.io import sha256_bytes
+
+log = logging.getLogger(__name__)
+
+HOSP_COVID = "wk inc covid hosp"
+HOSP_FLU = "wk inc flu hosp"
+HOSP_RSV = "wk inc rsv hosp"
+ED_COVID = "wk inc covid prop ed visits"
+ED_FLU = "wk inc flu prop ed visits"
+ED_RSV = "wk inc rsv prop ed visits"
+Disease = Literal["covid", "flu", "rsv"]
+DISEASES: tuple[Disease, ...] = ("covid", "flu", "rsv")
+CACHE_FOLDER = "nhsn"
+SATURDAY = 5
+HRD_OFFICIAL, HRD_PRELIMINARY, NSSP = "ua7e-t2fy", "mpgq-jmmr", "rdmq-nq56"
+FIRST_WEEK = date(2024, 11, 9)   # the first week of the hub's target data
+
+# Admissions against the location's own previous weeks (pipeline.data.core.plausibility): on the hub's
+# 44 real vintages the largest ratio of a week to this bound is 0.69 (Pennsylvania's 6,124 for
+# the week ending 2024-11-16 in the release of 2024-11-20, after 868; revised to 1,005 a week
+# later); every other vintage stays below 0.23.
+WEEKLY = JumpRule(window=8, jump_factor=10.0, floor=20, growth_factor=6.0, growth_window=2,
+                  unit="week")
+ED_SHARE_MAX = 0.5   # the largest real share in the hub's data: 0.0614
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """One hub target: what it counts, where it is read live and where it is cached."""
+
+    target: str
+    disease: Disease
+    kind: Literal["admissions", "ed-share"]
+    live_column: str          # HRD count column, or NSSP percent column
+
+    @property
+    def key(self) -> str:
+        return self.target
+
+    @property
+    def dataset_id(self) -> str:
+        return re.sub(r"[^a-z0-9]+", "-", self.target.lower()).strip("-")
+
+    @property
+    def cache_folder(self) -> str:
+        return CACHE_FOLDER
+
+
+TARGETS: dict[str, TargetSpec] = {s.target: s for s in (
+    TargetSpec(HOSP_COVID, "covid", "admissions", "totalconfc19newadm"),
+    TargetSpec(HOSP_FLU, "flu", "admissions", "totalconfflunewadm"),
+    TargetSpec(HOSP_RSV, "rsv", "admissions", "totalconfrsvnewadm"),
+    TargetSpec(ED_COVID, "covid", "ed-share", "percent_visits_covid"),
+    TargetSpec(ED_FLU, "flu", "ed-share", "percent_visits_influenza"),
+    TargetSpec(ED_RSV, "rsv", "ed-share", "percent_visits_rsv"))}
+
+
+def target_spec(target: str) -> TargetSpec:
+    spec = TARGETS.get(target.strip())
+    if spec is None:
+        raise ConfigError(f"unknown hub target {target!r}; known: {', '.join(TARGETS)}")
+    return spec
+
+
+def disease_targets(disease: str) -> tuple[str, str]:
+    """The admissions and ED-share targets of ``disease`` (covid, flu or rsv)."""
+    if disease not in DISEASES:
+        raise ConfigError(f"disease must be one of {', '.join(DISEASES)}, got {disease!r}")
+    return (next(t for t, s in TARGETS.items() if s.disease == disease and s.kind == "admissions"),
+            next(t for t, s in TARGETS.items() if s.disease == disease and s.kind == "ed-share"))
+
+
+@dataclass(frozen=True, eq=False)
+class WeeklyVintage:
+    """One release of one target: ``frame`` has ``target_end_date`` (datetime64[ns], Saturdays),
+    ``location`` (str: ``US`` or two-digit FIPS) and ``value`` (float64), sorted by week and
+    location; ``skipped`` names each location the gate dropped, with why."""
+
+    target: str
+    as_of: pd.Timestamp
+    frame: pd.DataFrame
+    skipped: Mapping[str, str] = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def locations(self) -> tuple[str, ...]:
+        return tuple(sorted(self.frame["location"].unique()))
+
+    @property
+    def last_week(self) -> pd.Timestamp:
+        return pd.Timestamp(self.frame["target_end_date"].max())
+
+
+# ------------------------------------------------------------------------------ the gate
+
+HUB_PLACES = Places("hub location", POPULATION, "hub locations.csv")
+
+
+def gate_rules(spec: TargetSpec, column: str, *, percent: bool = False) -> GateRules:
+    """The gate of a target whose values are in ``column`` (NSSP's raw percent: ``percent``)."""
+    if spec.kind == "admissions":
+        return GateRules(source=f"NHSN {spec.target}", places=HUB_PLACES,
+                         counts=(admissions_bound(column),), step_days=7, weekday=SATURDAY,
+                         jump=WEEKLY)
+    return GateRules(source=f"NSSP {spec.target}", places=HUB_PLACES,
+                     shares=(ShareBound(column, ED_SHARE_MAX * (100.0 if percent else 1.0)),),
+                     step_days=7, weekday=SATURDAY)
+
+
+def _weeks(text: pd.Series) -> pd.Series:
+    """Dates as the hub and Socrata write them (``2024-11-09``, ``2024-11-09T00:00:00.000``)."""
+    return pd.to_datetime(text.astype("string").str.strip().str[:10], format="%Y-%m-%d",
+                          errors="coerce")
+
+
+def rows_of_payload(spec: TargetSpec, data: bytes, *, suffix: str, source: str
+                    ) -> tuple[pd.DataFrame, GateRules, float]:
+    """A payload as the gate's long rows (``place``, ``date``, the value column), its rules and
+    the factor that turns the gated values into the target's unit. ``csv``: the canonical
+    target CSV (``target_end_date, location, value``); ``json``: Socrata rows as received."""
+    if suffix == "csv":
+        raw = decode_csv_frame(data, source=source, max_bytes=MAX_CSV_BYTES)
+        missing = [c for c in ("target_end_date", "location", "value") if c not in raw.columns]
+        if missing:
+            raise ValidationError(f"{source}: missing column(s) {missing} of a hub target CSV; "
+                                  f"columns present: {list(raw.columns)[:10]}")
+        rows = pd.DataFrame({"place": raw["location"].astype("string").str.strip(),
+                             "date": _weeks(raw["target_end_date"]), "value": raw["value"]})
+        return rows, gate_rules(spec, "value"), 1.0
+    records = pd.DataFrame.from_records(decode_json_records(data, source=source,
+                                                            max_bytes=MAX_JSON_BYTES))
+    if records.empty:
+        raise ValidationError(f"{source}: empty payload (no rows) for {spec.target}")
+    if spec.kind == "admissions":
+        needed = ("weekendingdate", "jurisdiction", spec.live_column)
+        _need(records, needed, source)
+        names = records["jurisdiction"].astype("string").str.strip()
+        records, names = records[~names.isin(list(NOT_HUB_JURISDICTIONS))], names.str.upper()
+        places = names[records.index].map(JURISDICTION_LOCATION).fillna(names[records.index])
+        dates = records["weekendingdate"]
+    else:
+        needed = ("week_end", "geography", "county", spec.live_column)
+        _need(records, needed, source)
+        records = records[records["county"].astype("string").str.strip() == "All"]
+        names = records["geography"].astype("string").str.strip()
+        places = names.str.casefold().map(NAME_LOCATION).fillna(names)
+        dates = records["week_end"]
+    rows = pd.DataFrame({"place": places.to_numpy(), "date": _weeks(dates).to_numpy(),
+                         spec.live_column: records[spec.live_column].to_numpy()})
+    percent = spec.kind == "ed-share"
+    return rows, gate_rules(spec, spec.live_column, percent=percent), 0.01 if percent else 1.0
+
+
+def _need(records: pd.DataFrame, columns: Sequence[str], source: str) -> None:
+    missing = [c for c in columns if c not in records.columns]
+    if missing:
+        raise ValidationError(f"{source}: missing field(s) {missing}; fields present: "
+                              f"{sorted(map(str, records.columns))[:12]}")
+
+
+# Genuine sizes (docs/data.md): a vintage as the canonical CSV is at most 196,811 bytes in the
+# hub's design data (ED shares since 2022-10-01; admissions 47,291); one Socrata page of 1,000
+# rows 98 KB (HRD) or 116 KB (NSSP).
+MAX_CSV_BYTES = 16 << 20
+MAX_JSON_BYTES = 16 << 20
+_PARSED: dict[tuple[str, str], WeeklyVintage] = {}
+_PARSED_LIMIT = 256
+
+
+def parse_vintage(spec: TargetSpec, data: bytes, *, suffix: str, as_of: date,
+                  source: str) -> WeeklyVintage:
+    """A payload of ``spec`` through the gate, as a :class:`WeeklyVintage` (parsed once per
+    process for the same bytes and date)."""
+    key = (sha256_bytes(data), f"{spec.target}|{suffix}|{as_of}")
+    if key not in _PARSED:
+        rows, rules, scale = rows_of_payload(spec, data, suffix=suffix, source=source)
+        gated = gate(rows, rules, source=source, as_of=pd.Timestamp(as_of))
+        value = gated.frame[rules.columns[0]].to_numpy(np.float64) * scale
+        frame = pd.DataFrame({"target_end_date": gated.frame["date"].to_numpy("datetime64[ns]"),
+                              "location": gated.frame["place"].astype(str).to_numpy(),
+                              "value": value}).sort_values(
+            ["target_end_date", "location"], ignore_index=True)
+        if len(_PARSED) >= _PARSED_LIMIT:
+            _PARSED.pop(next(iter(_PARSED)))
+        _PARSED[key] = WeeklyVintage(spec.target, pd.Timestamp(as_of), frame,
+                                     dict(gated.skipped))
+    parsed = _PARSED[key]
+    return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source)
+
+
+def canonical_csv(frame: pd.DataFrame) -> bytes:
+    """A vintage's rows as the canonical target CSV the cache keeps for imports."""
+    out = frame[["target_end_date", "location", "value"]].sort_values(
+        ["target_end_date", "location"], kind="stable")
+    out = out.assign(target_end_date=pd.to_datetime(out["target_end_date"]).dt.strftime(
+        "%Y-%m-%d"))
+    return out.to_csv(index=False, lineterminator="\n").encode()
+
+
+# ------------------------------------------------------------------------------ revisions
+
+
+@dataclass(frozen=True)
+class WeeklyRevisionPolicy:
+    """A new vintage against the live one. Weeks ending more than ``open_weeks`` before the live
+    vintage's last week are settled: each may change by at most max(``settled_abs``,
+    ``settled_rel`` × its cached value). On the hub's 44 real vintages the largest settled
+    revisions are Arizona's, down to 0.37× and back up 2.7× a fortnight later (516 → 191 → 516
+    for the week ending 2024-11-09), and Puerto Rico's 13 → 107 (lag 74 days): a revision of a
+    settled week beyond 3× its value (or 100 admissions) is held for review."""
+
+    open_weeks: int = 4
+    settled_abs: float = 100.0
+    settled_rel: float = 2.0
+
+
+ADMISSIONS_POLICY = WeeklyRevisionPolicy()
+# NSSP shares: the largest settled revision in the 15 real vintages is 0.0008 (0.08 points)
+ED_POLICY = WeeklyRevisionPolicy(settled_abs=0.005, settled_rel=0.5)
+
+
+def policy_of(spec: TargetSpec) -> WeeklyRevisionPolicy:
+    return ADMISSIONS_POLICY if spec.kind == "admissions" else ED_POLICY
+
+
+def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
+                           policy: WeeklyRevisionPolicy) -> None:
+    """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (held for
+    review when it revises settled weeks beyond ``policy``)."""
+    t = new.target
+    if new.as_of < cached.as_of:
+        raise RevisionRefusedError(f"{t}: vintage date moves backwards: new {new.as_of.date()}, "
+                                   f"the cached copy {cached.as_of.date()}; cached copy kept")
+    new_first, old_first = new.frame["target_end_date"].min(), cached.frame["target_end_date"].min()
+    if new_first > old_first:
+        raise RevisionRefusedError(f"{t}: payload shrinks: new vintage starts "
+                                   f"{pd.Timestamp(new_first).date()}, the cached copy "
+                                   f"{pd.Timestamp(old_first).date()}; cached copy kept")
+    if new.last_week < cached.last_week:
+        raise RevisionRefusedError(f"{t}: last week moves backwards: new vintage ends "
+                                   f"{new.last_week.date()}, the cached copy "
+                                   f"{cached.last_week.date()}; cached copy kept")
+    dropped = sorted(set(cached.locations) - set(new.locations) - set(new.skipped))
+    if dropped:
+        raise RevisionRefusedError(f"{t}: location dropped: {', '.join(dropped)} in the cached "
+                                   f"vintage of {cached.as_of.date()} but not in the new one; "
+                                   f"cached copy kept")
+    worse = sorted(set(cached.locations) & set(new.skipped))
+    if worse and new.as_of == cached.as_of:
+        raise RevisionRefusedError(f"{t}: {worse[0]} passes the validation gate in the cached "
+                                   f"vintage of {cached.as_of.date()} but fails it in a new "
+                                   f"payload of the same date ({new.skipped[worse[0]]}); cached "
+                                   f"copy kept")
+    common = cached.frame.merge(new.frame, on=["target_end_date", "location"],
+                                suffixes=("", "_new"))
+    settled_until = cached.last_week - pd.Timedelta(weeks=policy.open_weeks)
+    before, after = common["value"].to_numpy(), common["value_new"].to_numpy()
+    breaks = (common["target_end_date"] <= settled_until).to_numpy() & (
+        np.abs(after - before) > np.maximum(policy.settled_abs, policy.settled_rel * before))
+    if breaks.any():
+        i = int(np.flatnonzero(breaks)[0])
+        raise RevisionRefusedError(
+            f"{t}: revision beyond policy: {int(breaks.sum())} settled week(s) (ending on or "
+            f"before {settled_until.date()}) changed by more than max({policy.settled_abs:g}, "
+            f"{policy.settled_rel:g}×), e.g. {common['location'].iloc[i]} week ending "
+            f"{pd.Timestamp(common['target_end_date'].iloc[i]).date()} {before[i]:g} -> "
+            f"{after[i]:g}; held for review, cached copy kept", hold=True)
+
+
+# ------------------------------------------------------------------------------ the cache
+
+
+def archive(cache: DatasetCache, spec: TargetSpec) -> VintageArchive:
+    return VintageArchive(cache, spec)
+
+
+def _cached(cache: DatasetCache, spec: TargetSpec, live: CachedPayload) -> WeeklyVintage | None:
+    try:
+        return parse_vintage(spec, live.payload, suffix=live.path.suffix.lstrip("."),
+                             as_of=date.fromisoformat(str(live.manifest.data_as_of)[:10]),
+                             source=str(live.path))
+    except (DataSourceError, ValueError) as exc:
+        log.warning("cached %s vintage no longer passes (%s); replacing it", spec.target, exc)
+        return None
+
+
+def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *,
+                  suffix: str, source_kind: SourceKind, source: str, older: Older,
+                  final_url: str | None = None, accept_revisions: bool = False,
+                  lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S) -> Committed:
+    """Store a gated vintage: live, archived (older, imports) or refused/held (module doc)."""
+    spec = target_spec(vintage.target)
+
+    def check(live: CachedPayload | None) -> None:
+        if live is None or accept_revisions:
+            return
+        cached = _cached(cache, spec, live)
+        if cached is not None:
+            check_weekly_successor(vintage, cached, policy_of(spec))
+
+    frame = vintage.frame
+    return archive(cache, spec).commit(
+        payload, as_of=vintage.as_of.date(), suffix=suffix,
+        older=older if not accept_revisions else "refuse", check=check,
+        accept_hint="`flowcast data fetch --source nhsn --accept-revisions` (or `flowcast data "
+                    "import --accept-revisions FILE`)",
+        source_kind=source_kind, source=source, row_count=len(frame),
+        first_date=str(frame["target_end_date"].min().date()),
+        last_date=str(vintage.last_week.date()), data_as_of=str(vintage.as_of.date()),
+        final_cumulative=None, final_url=final_url, lock_timeout_s=lock_timeout_s)
+
+
+def skipped_note(vintage: WeeklyVintage) -> tuple[str, ...]:
+    if not vintage.skipped:
+        return ()
+    return (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
+            f"{vintage.target} vintage of {vintage.as_of.date()}: "
+            + "; ".join(vintage.skipped.values()),)
+
+
+def cached_weekly_vintages(target: str, data_dir: str | os.PathLike[str] | None = None
+                           ) -> list[WeeklyVintage]:
+    """Every vintage of ``target`` the cache holds, oldest first (one per date), each through
+    the gate (its skipped locations named on it); each file checked against its hash."""
+    spec = target_spec(target)
+    kept = archive(DatasetCache.default(data_dir), spec)
+    return [parse_vintage(spec, kept.read(path), suffix=path.suffix.lstrip("."), as_of=as_of,
+                          source=str(path)) for as_of, path in kept.listing()]
+
+
+def vintage_as_of(vintages: Sequence[WeeklyVintage], when: date | datetime | str | pd.Timestamp
+                  ) -> WeeklyVintage | None:
+    """The newest of ``vintages`` (oldest first) released on or before ``when``; None if none."""
+    cut = pd.Timestamp(when).normalize()
+    k = bisect.bisect_right([v.as_of for v in vintages], cut)
+    return vintages[k - 1] if k else None
+
+
+def live_manifest(target: str, data_dir: str | os.PathLike[str] | None = None
+                  ) -> CacheManifest | None:
+    return DatasetCache.default(data_dir).read_manifest(target_spec(target))
+
+
+def held_count(target: str, data_dir: str | os.PathLike[str] | None = None) -> int:
+    held = DatasetCache.default(data_dir).directory(target_spec(target)) / "held"
+    return len(list(held.glob("payload-*.reason.json"))) if held.is_dir() else 0
+
+
+def vintages_folder(target: str, data_dir: str | os.PathLike[str] | None = None) -> Path:
+    return archive(DatasetCache.default(data_dir), target_spec(target)).folder

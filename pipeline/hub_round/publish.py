@@ -1,0 +1,110 @@
+"""A hub round's files, written into a staging folder and promoted to
+``<output_dir>/hub-<disease>/<reference date>/`` only when all were written (a failed run never
+replaces the last good round):
+
+* ``model-output/<model>/<reference date>-<model>.csv`` and ``model-metadata/<model>.yml``: the
+  round as the hub takes it, every location × target × horizon −1 … 3, 23 quantiles and 200
+  sample trajectories per location × target, validated against the hub's ``tasks.json``;
+* ``track_record_scores.csv``: every forecaster's scores over the earlier rounds;
+  ``summary.json``: the round's facts and the track record per target × horizon;
+* ``report.html`` and ``report.pdf`` (:mod:`pipeline.report.hub`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from pipeline.combine.combiner import PUBLISHED
+from pipeline.data.core.cache import utc_now
+from pipeline.errors import ConfigError
+from pipeline.hub_round.run import HubRun
+from pipeline.io import atomic_write_json, atomic_write_text
+from pipeline.outputs.hubverse_round import (compound_sample_ids, load_model_metadata,
+                                             write_hub_round)
+from pipeline.outputs.hubverse_validation import load_tasks_config
+from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
+from pipeline.report.hub import hub_report_content, track_record_table
+from pipeline.report.render import write_report
+
+REPO = Path(__file__).resolve().parents[2]
+METADATA_DIR = REPO / "model-metadata"
+
+
+@dataclass(frozen=True)
+class PublishedRound:
+    reference_date: str
+    folder: Path
+    files: tuple[str, ...]
+    model_output: Path
+
+
+def round_frame(run: HubRun) -> pd.DataFrame:
+    """The newest round of every target in the hubverse format, sample ids unique per
+    location × target (one id a trajectory across the horizons)."""
+    frames = [result.round_frame(len(result.rounds) - 1) for result in run.results.values()]
+    reference = max(f["reference_date"].iloc[0] for f in frames)
+    kept = [f for f in frames if f["reference_date"].iloc[0] == reference]
+    return compound_sample_ids(pd.concat(kept, ignore_index=True))
+
+
+def summary(run: HubRun) -> dict[str, Any]:
+    """The round's facts and each target's track record (JSON)."""
+    out: dict[str, Any] = {"reference_date": str(run.reference_date),
+                           "model_id": run.config.model_id, "model_key": run.model_key,
+                           "model_reused": run.model_reused, "stale": run.stale,
+                           "skipped": run.skipped(),
+                           "seconds": {k: round(v, 1) for k, v in run.seconds.items()}}
+    for target, result in run.results.items():
+        table = track_record_table(result)
+        out[target] = {"rounds": {"first": str(result.rounds[0].reference.date()),
+                                  "last": str(result.rounds[-1].reference.date()),
+                                  "n": len(result.rounds)},
+                       "n_locations": len(result.places),
+                       "track_record": json.loads(table.to_json(orient="index"))}
+    return out
+
+
+def publish_hub_round(run: HubRun) -> PublishedRound:
+    """Write the round's files and report (module docstring) and promote them."""
+    config = run.config
+    hub_config = config.hub_config_dir()
+    if hub_config is None:
+        raise ConfigError("the hub's tasks.json is needed to validate the round file: pass "
+                          "--hub-config DIR or set FLOWCAST_HUB_CONFIG to the hub's hub-config "
+                          "folder (the CDC hub's, github.com/CDCgov/covid19-forecast-hub)")
+    tasks = load_tasks_config(hub_config / "tasks.json")
+    metadata = load_model_metadata(METADATA_DIR / f"{config.model_id}.yml")
+    reference = str(run.reference_date)
+    outputs = RunOutputs(Path(config.output_dir) / f"hub-{config.disease}",
+                         place=f"CDC hub ({config.disease})")
+    with outputs.staged(reference) as staging:
+        written = write_hub_round(round_frame(run), hub_dir=staging, model_id=config.model_id,
+                                  tasks=tasks, metadata=metadata)
+        scores = pd.concat([r.scores() for r in run.results.values()], ignore_index=True)
+        atomic_write_text(staging / "track_record_scores.csv",
+                          scores.to_csv(index=False, float_format="%.6g"))
+        atomic_write_json(staging / "summary.json", summary(run))
+        notes = [f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes]
+        vintage = "; ".join(f"{p.target}: as of {p.as_of} ({p.source_kind}"
+                            f"{', cache' if p.from_cache else ''})"
+                            for p in run.provenance.values())
+        content = hub_report_content(run.results, reference_date=run.reference_date,
+                                     model_id=config.model_id, data_vintage=vintage,
+                                     warnings=notes, skipped=run.skipped(),
+                                     config=dataclasses.asdict(config))
+        write_report(content, staging)
+        files = tuple(sorted(p.relative_to(staging).as_posix()
+                             for p in staging.rglob("*") if p.is_file()))
+        record = RunRecord(reference_date=reference, run_id=new_run_id(),
+                           finished_at=utc_now().isoformat(timespec="seconds"),
+                           data_stale=run.stale, data_vintage=vintage, model_key=run.model_key,
+                           seed=config.seed, preset=f"hub-{config.disease}", files=files,
+                           summary={"forecast": PUBLISHED, "notes": notes})
+        folder = outputs.promote(staging, record)
+    return PublishedRound(reference, folder, files,
+                          folder / written.path.relative_to(staging))

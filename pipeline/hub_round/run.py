@@ -1,0 +1,180 @@
+"""A round of the CDC COVID-19 Forecast Hub as a typed library run: NHSN admissions and the
+NSSP ED share of the US, the 50 states, DC and Puerto Rico, forecast from every vintage in the
+cache, the newest round published as the hub's file.
+
+1. **Data** (:mod:`pipeline.data.hub.nhsn`): the disease's two targets live from data.cdc.gov with
+   cache fallback (or the cache only), every vintage kept; the locations the gate skipped are
+   named in the run and the report.
+2. **Rounds** (:func:`~pipeline.panels.hub.hub_rounds`): one per cached vintage; the newest is
+   this week's round, the earlier ones its real-time track record — the same method, from the
+   data as released then (:mod:`pipeline.backtest.hub_rounds`).
+3. **Members** (:func:`~pipeline.members.published.build_hub_members`): the weekly flow and the
+   seasonal member averaged; the hub baseline, growth-qr and the fine-tuned flow scored beside.
+4. **Publish** (:mod:`pipeline.hub_round.publish`): the round's file
+   ``model-output/<model>/<reference date>-<model>.csv`` with its metadata, validated against
+   the hub's ``tasks.json``, the report, the track record's scores.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import pandas as pd
+
+from pipeline.backtest.hub_rounds import HubBacktestConfig, HubRoundsResult, run_hub_rounds
+from pipeline.backtest.memo import ForecastMemo
+from pipeline.data.core.cache import data_dir
+from pipeline.data.hub.nhsn import NHSNConfig, NHSNProvenance, load_nhsn
+from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targets
+from pipeline.errors import ConfigError, OfflineError
+from pipeline.members.nf.finetune import FineTuneConfig
+from pipeline.members.published import HubMembersConfig, build_hub_members
+from pipeline.members.nf.weekly import WeeklyFlowConfig
+from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
+from pipeline.panels.hub import hub_rounds, is_share, panel_of
+from pipeline.panels.panel import Panel
+from pipeline.progress import ProgressReporter, SilentProgress
+from pipeline.training.model_store import default_store_root
+
+log = logging.getLogger(__name__)
+HUB_CONFIG_ENV = "FLOWCAST_HUB_CONFIG"
+DEFAULT_HUB_CONFIG = Path(__file__).resolve().parents[3] / "shared" / "data" / "nhsn" / \
+    "hub-config"
+Disease = Literal["covid", "flu", "rsv"]
+HubPreset = Literal["default", "tiny"]
+HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
+    "default": HubMembersConfig(),
+    # Seconds, for tests and smoke runs: a small flow, a short refit, fewer draws.
+    "tiny": HubMembersConfig(
+        flow=WeeklyFlowConfig(n_trajectories=150, iterations=40, batch_size=256,
+                              hidden_features=16, flow_layers=2, flow_hidden=16),
+        finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
+                                batch_size=128),
+        flow_samples=200, baseline_samples=2000),
+}
+
+
+def hub_members_preset(preset: str) -> HubMembersConfig:
+    if preset not in HUB_MEMBER_PRESETS:
+        raise ConfigError(f"hub preset {preset!r}: use one of {sorted(HUB_MEMBER_PRESETS)}")
+    return HUB_MEMBER_PRESETS[preset]
+
+
+@dataclass(frozen=True)
+class HubRunConfig:
+    """One hub round: the disease, where the data come from (``live``: data.cdc.gov with cache
+    fallback; ``cache``: offline), the members, the rounds' settings, the model's id and where
+    the hub's ``tasks.json`` is (to validate the file against)."""
+
+    disease: Disease = "covid"
+    data_source: Literal["live", "cache"] = "live"
+    members: HubMembersConfig = field(default_factory=HubMembersConfig)
+    rounds: HubBacktestConfig = field(default_factory=HubBacktestConfig)
+    model_id: str = CDC_HUB_MODEL_ID
+    output_dir: str = "reports"
+    hub_config: str | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.disease not in ("covid", "flu", "rsv"):
+            raise ConfigError(f"disease {self.disease!r}: use covid, flu or rsv")
+        if self.data_source not in ("live", "cache"):
+            raise ConfigError(f"data source {self.data_source!r}: use live or cache")
+
+    def hub_config_dir(self) -> Path | None:
+        """The hub's ``hub-config`` folder: the option, ``$FLOWCAST_HUB_CONFIG``, or the shared
+        hub data's beside the checkout; None when none is there."""
+        for candidate in (self.hub_config, os.environ.get(HUB_CONFIG_ENV),
+                          str(DEFAULT_HUB_CONFIG)):
+            if candidate and (Path(candidate) / "tasks.json").is_file():
+                return Path(candidate)
+        return None
+
+
+@dataclass(frozen=True, eq=False)
+class HubRun:
+    """The round's forecasts of each target (its track record with them), where the data came
+    from, and the seconds each step took."""
+
+    config: HubRunConfig
+    results: dict[str, HubRoundsResult]
+    provenance: dict[str, NHSNProvenance]
+    model_key: str
+    model_reused: bool
+    seconds: dict[str, float]
+
+    @property
+    def reference_date(self) -> dt.date:
+        return max(r.rounds[-1].reference for r in self.results.values()).date()
+
+    @property
+    def stale(self) -> bool:
+        """A live run that fell back to the cache (data.cdc.gov unreachable); a run from the
+        cache by choice is not stale."""
+        return self.config.data_source == "live" and any(
+            p.from_cache for p in self.provenance.values())
+
+    def skipped(self) -> dict[str, dict[str, str]]:
+        """Per target, the locations left out of this round and why."""
+        return {t: dict(r.rounds[-1].panel.skipped) for t, r in self.results.items()}
+
+
+def memo_path(config: HubRunConfig, target: str) -> Path:
+    """The memo of the target's member forecasts: a round's cells are forecast once (each round
+    from its own vintage, so next week's run forecasts only the new round)."""
+    slug = target.replace(" ", "-")
+    return data_dir() / "forecast-memo" / f"hub-{config.disease}-{slug}.npz"
+
+
+def _save(memo: ForecastMemo) -> None:
+    try:
+        memo.save()
+    except OSError as error:        # a cache: the round stands, the next run re-forecasts
+        log.warning("could not write the forecast memo %s: %s", memo.path, error)
+
+
+def load_vintages(target: str) -> list[tuple[pd.Timestamp, Panel]]:
+    """Every cached vintage of ``target`` as (release date, panel), oldest first."""
+    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(target)]
+
+
+def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None) -> HubRun:
+    """The round (module docstring); the newest cached vintage is this week's."""
+    progress = progress or SilentProgress()
+    seconds: dict[str, float] = {}
+    started = time.perf_counter()
+    targets = disease_targets(config.disease)
+    loaded = load_nhsn(NHSNConfig(disease=config.disease),
+                       offline=config.data_source == "cache")
+    for provenance in loaded.provenance.values():     # its notes: pipeline.data.hub.nhsn logs them
+        if provenance.skipped:
+            log.warning("%s: locations left out: %s", provenance.target,
+                        "; ".join(f"{p} ({why})" for p, why in provenance.skipped.items()))
+    vintages = {t: load_vintages(t) for t in targets}
+    if not all(vintages.values()):
+        raise OfflineError(f"no cached vintage of {[t for t, v in vintages.items() if not v]}: "
+                           "import the hub's target data with `flowcast data import <hub "
+                           "folder>` or fetch it with `flowcast data fetch --source nhsn`")
+    seconds["data"] = time.perf_counter() - started
+    climatology = next(v for t, v in vintages.items() if is_share(t))
+    results: dict[str, HubRoundsResult] = {}
+    model_key, reused = "", True
+    for target, target_vintages in vintages.items():
+        started = time.perf_counter()
+        members = build_hub_members(config.members, default_store_root(), target_vintages,
+                                    climatology, progress)
+        model_key, reused = members.model_key, reused and members.reused
+        memo = ForecastMemo.load(memo_path(config, target))
+        results[target] = run_hub_rounds(
+            hub_rounds(target_vintages), target_vintages[-1][1],
+            [memo.wrap(m, config.rounds.n_samples) for m in members.published], config.rounds,
+            references=[memo.wrap(m, config.rounds.n_samples) for m in members.references],
+            progress=progress)
+        _save(memo)
+        seconds[target] = time.perf_counter() - started
+    return HubRun(config, results, dict(loaded.provenance), model_key, reused, seconds)

@@ -1,0 +1,33 @@
+"""The layout docs/ARCHITECTURE.md declares, checked on the code: its layering list against every
+import of pipeline/ and flows/ (read from the AST by bench/architecture.py), and the engine's
+module and folder sizes. A second: no run, no torch."""
+from __future__ import annotations
+
+from bench.architecture import MAX_LINES, MAX_MODULES, imports, sizes
+
+ENGINE = ("panels", "members", "combine", "backtest", "nowcast", "evaluation", "outputs")
+TYPE_ONLY = {"pipeline.report.headline", "pipeline.report.weekly", "pipeline.report.diagnostics"}
+
+
+def test_no_import_runs_back_up_the_declared_layers_and_no_package_cycle():
+    found = imports()
+    assert found["upward_imports"] == []
+    assert found["package_cycles"] == []
+    # the one documented exception: the report annotates against the run's results
+    assert {row["from"].split(":")[0] for row in found["upward_type_checking_imports"]} == TYPE_ONLY
+    assert {row["to"] for row in found["upward_type_checking_imports"]} == {
+        "pipeline.forecast.results"}
+    # the pipeline/ library never imports flows/ (Prefect) at all
+    assert not any(target.startswith("flows") for source, targets in
+                   found["package_graph"].items() if source.startswith("pipeline")
+                   for target in targets)
+
+
+def test_the_engine_has_no_module_over_400_lines_and_no_folder_over_10_modules():
+    found = sizes()
+    engine = [path for path in found["lines"] if path.split("/")[1] in ENGINE]
+    assert len(engine) > 40      # every engine module is counted
+    assert [p for p in engine if found["lines"][p] > MAX_LINES] == []
+    assert {folder: n for folder, n in found["over_max_modules"].items()
+            if folder.split("/")[1] in ENGINE or folder.startswith("pipeline/data")} == {}
+    assert max(len(found["folders"][f"pipeline/{p}"]) for p in ENGINE) <= MAX_MODULES
