@@ -1,13 +1,14 @@
 """The Prefect flow of a CDC COVID-19 Forecast Hub round: ``hub_forecast``.
 
-Tasks: ``fetch-nhsn`` (the disease's admissions and ED share from data.cdc.gov, with retries and
-the cache as fallback) and ``forecast-rounds`` (every cached vintage's round, the newest this
-week's: :func:`pipeline.hub_round.run.run_hub_round`), then ``publish-round`` (the hub's
+Tasks: ``forecast-rounds`` (the disease's admissions and ED share from data.cdc.gov, the
+transport's retries and the cache as fallback; then every cached vintage's round, the newest
+this week's: :func:`pipeline.hub_round.run.run_hub_round`; one task retry), then
+``publish-round`` (the hub's
 file validated against its ``tasks.json``, the report, the track record:
 :func:`pipeline.hub_round.publish.publish_hub_round`). Deployed for the hub's deadline
 (``flows/deploy.py``, ``prefect.yaml``: Wednesdays, after NHSN's Wednesday release).
 
-    python -m flows.hub_forecast [--disease covid] [--data-source live|cache]
+    python -m flows.hub_forecast [--disease covid] [--data-source live|cache] [--preset tiny]
 """
 from __future__ import annotations
 
