@@ -19,6 +19,8 @@ its trouble checks (rollout overshoot, SMC collapse, β not updated from its pri
 
     python -m bench.calibration                 # panels and seeds 0, 1, 2
     python -m bench.calibration --seeds 0       # panels and one seed
+    python -m bench.calibration --joint-iterations 9000   # the rollouts with a longer-trained
+                                                          # joint pair (an experiment)
 """
 from __future__ import annotations
 
@@ -169,36 +171,72 @@ def pd_dates(values: Any) -> Any:
     return pd.DatetimeIndex(pd.to_datetime(values))
 
 
-def seed_run(seed: int) -> dict[str, Any]:
-    """One training seed: published skill on both panels, the SF rollouts and the report's
-    trouble checks."""
+def sf_rollouts(config: Any) -> dict[str, Any]:
+    """The report's SF rollouts and trouble checks with ``config``'s joint pair (trained or
+    reused): per view the peak ratio and the 90 % band's coverage; a rollout that fails is
+    recorded with its error."""
     from bench.rollouts_sf import _view_scores
-    from pipeline import forecast as fc
+    from pipeline.errors import FlowcastError
     from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
     from pipeline.forecast.nowcasting import nowcast_recent_days
     from pipeline.forecast.sources import load_series, series_to_sir, sir_arrays
     from pipeline.forecast.steps import rollouts
 
-    started = time.perf_counter()
-    config = fc.resolve_config("default", seed=seed, data=fc.DataSourceConfig(kind="cache"))
-    county_panel, county_wis = counties(config)
-    sf_panel, sf_wis = san_francisco(config)
     series = load_series(config.data)
     recent = nowcast_recent_days(series, series_to_sir(series), config.nowcast,
                                  config.step_seed("nowcast"))
     sir = sir_arrays(recent.sir_frame)
     models = train_or_reuse_models(config, simulate_training_data(config))
-    rolled = rollouts(models, sir, config)
-    views = {f"{d}_{every}d": _view_scores(result.samples, sir.values[:, 1])
-             for (d, every), result in rolled.items()}
+    out: dict[str, Any] = {"models": {"key": models.key, "reused": models.reused}}
+    try:
+        rolled = rollouts(models, sir, config)
+    except FlowcastError as error:
+        return out | {"error": str(error)}
+    return out | {"rollouts": {f"{d}_{every}d": _view_scores(result.samples, sir.values[:, 1])
+                               for (d, every), result in rolled.items()},
+                  "trouble_checks": report_checks(models, recent, sir, config, rolled)}
+
+
+def seed_run(seed: int) -> dict[str, Any]:
+    """One training seed: published skill on both panels, the SF rollouts and the report's
+    trouble checks."""
+    from pipeline import forecast as fc
+
+    started = time.perf_counter()
+    config = fc.resolve_config("default", seed=seed, data=fc.DataSourceConfig(kind="cache"))
+    county_panel, county_wis = counties(config)
+    sf_panel, sf_wis = san_francisco(config)
     return {"seed": seed, "counties_published_relative_wis": county_wis,
             "sf_published_relative_wis": sf_wis,
             "coverage": {"counties": {r: county_panel[r] for r in (*REGIMES, "all")},
                          "sf": {r: sf_panel[r] for r in (*REGIMES, "all")}},
-            "rollouts": views,
-            "trouble_checks": report_checks(models, recent, sir, config, rolled),
-            "models": {"key": models.key, "reused": models.reused},
+            **sf_rollouts(config), "seconds": round(time.perf_counter() - started, 1)}
+
+
+def longer_training(seed: int, iterations: int) -> dict[str, Any]:
+    """The SF rollouts with the joint pair trained ``iterations`` steps per direction instead of
+    the preset's (the published skill does not depend on the joint pair)."""
+    from pipeline import forecast as fc
+
+    started = time.perf_counter()
+    config = fc.resolve_config("default", seed=seed, data=fc.DataSourceConfig(kind="cache"))
+    config = dataclasses.replace(config, training=dataclasses.replace(
+        config.training, iterations=iterations, background_members=False))
+    return {"seed": seed, "iterations": iterations, **sf_rollouts(config),
             "seconds": round(time.perf_counter() - started, 1)}
+
+
+def rollout_bounds(values: list[dict[str, Any]]) -> dict[str, float]:
+    """The worst peak ratio and band coverage over the seeds, 28-day rollouts (the issue's
+    bounds) and 7-day ones beside them."""
+    out = {}
+    for every, prefix in ((28, "rollout"), (7, "rollout_7d")):
+        views = [v["rollouts"][f"{d}_{every}d"] for v in values for d in ("forward", "backward")]
+        if not views:
+            continue
+        out[f"{prefix}_peak_ratio_max"] = max(r[PEAK] for r in views)
+        out[f"{prefix}_cover_min"] = min(r[COVER] for r in views)
+    return out
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -206,6 +244,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--no-panels", action="store_true", help="the seeds only")
+    parser.add_argument("--joint-iterations", type=int, default=None,
+                        help="instead: the seeds' SF rollouts with the joint pair trained this "
+                             "many steps (an experiment; → joint_iterations.<N>)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     from pipeline import forecast as fc
@@ -219,10 +260,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         accept_revisions=True)
     path = Path(args.out) if args.out else RESULTS / "calibration.json"
     out: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
+    command = "python -m bench.calibration " + " ".join(argv if argv is not None
+                                                         else sys.argv[1:])
+    if args.joint_iterations is not None:
+        runs = {str(seed): longer_training(seed, args.joint_iterations)
+                for seed in (int(s) for s in args.seeds.split(",") if s)}
+        out.setdefault("joint_iterations", {})[str(args.joint_iterations)] = {
+            "command": command, "seed_runs": runs}
+        atomic_write_json(path, out)
+        print(json.dumps(runs, indent=1))
+        return out
     out.update({"machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
-                "python": sys.version.split()[0],
-                "command": "python -m bench.calibration " + " ".join(
-                    argv if argv is not None else sys.argv[1:])})
+                "python": sys.version.split()[0], "command": command})
     started = time.perf_counter()
     if not args.no_panels:
         config = fc.resolve_config("default", data=fc.DataSourceConfig(kind="cache"))
@@ -250,16 +299,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "relative_wis_spread": max(max(county) - min(county), max(sf) - min(sf)),
             "relative_wis_spread_counties": max(county) - min(county),
             "relative_wis_spread_sf": max(sf) - min(sf),
-            # the issue's bounds are on the 28-day rollouts; the 7-day ones are beside them
-            "rollout_peak_ratio_max": max(v["rollouts"][f"{d}_28d"][PEAK] for v in values
-                                          for d in ("forward", "backward")),
-            "rollout_cover_min": min(v["rollouts"][f"{d}_28d"][COVER] for v in values
-                                     for d in ("forward", "backward")),
-            "rollout_7d_peak_ratio_max": max(v["rollouts"][f"{d}_7d"][PEAK] for v in values
-                                             for d in ("forward", "backward")),
-            "rollout_7d_cover_min": min(v["rollouts"][f"{d}_7d"][COVER] for v in values
-                                        for d in ("forward", "backward")),
-            "trouble_checks": {v["seed"]: v["trouble_checks"] for v in values}}
+            **rollout_bounds([v for v in values if "rollouts" in v]),
+            "rollout_errors": {v["seed"]: v["error"] for v in values if "error" in v},
+            "trouble_checks": {v["seed"]: v.get("trouble_checks") for v in values}}
     atomic_write_json(path, out)
     print(json.dumps(out.get("seeds", {}), indent=1))
     return out
