@@ -172,8 +172,9 @@ def test_a_revised_settled_week_is_held_by_the_policy_and_taken_after_review(dat
         held = load_nhsn(nhsn_config(cdc.url, data_dir))
         note = held.provenance[HOSP_COVID].notes[0]
         assert held.provenance[HOSP_COVID].from_cache
-        assert ("revision beyond policy: 1 settled week(s) (ending on or before 2025-08-23) "
-                "changed by more than max(100, 2×), e.g. 06 week ending 2025-06-07 ") in note
+        assert ("revision beyond policy: 'value' changed on 1 settled week(s) (ending on or "
+                "before 2025-08-23) by more than max(100, 200%), e.g. 06 week ending "
+                "2025-06-07 ") in note
         [payload] = held_files(data_dir, HOSP_COVID)
         assert f"payload held in {payload}" in note
         assert bytes_lost(before, cache_bytes(data_dir)) == 0

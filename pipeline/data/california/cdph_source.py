@@ -51,6 +51,7 @@ import requests
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
                                       utc_now, RevisionRefusedError)
+from pipeline.data.core.revision_policy import refuse_settled_changes, refuse_total_drop
 from pipeline.data.california.cdph import (COUNT_COLUMNS, CDPHFormatError, CDPHVintage,
                                            parse_cdph_csv)
 from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
@@ -173,22 +174,14 @@ def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
     for column in columns:
         before = common[column].to_numpy(np.int64)
         after = common[f"{column}_new"].to_numpy(np.int64)
-        allowed = np.maximum(policy.settled_abs, policy.settled_rel * np.abs(before))
-        breaks = settled & (np.abs(after - before) > allowed)
-        if breaks.any():
-            i = int(np.flatnonzero(breaks)[0])
-            raise RevisionRefusedError(
-                f"{key}: revision beyond policy: '{column}' changed on {int(breaks.sum())} "
-                f"settled county-day(s) (on or before {settled_until.date()}) by more than "
-                f"max({policy.settled_abs}, {policy.settled_rel:.0%}), e.g. "
-                f"{common['area'].iloc[i]} {pd.Timestamp(common['date'].iloc[i]).date()} "
-                f"{before[i]:,} -> {after[i]:,}; held for review, cached copy kept", hold=True)
-        total_before, total_after = int(before.sum()), int(after.sum())
-        if total_before > 0 and total_after < (1.0 - policy.max_total_drop) * total_before:
-            raise RevisionRefusedError(
-                f"{key}: revision beyond policy: statewide total '{column}' over the common days "
-                f"falls from {total_before:,} to {total_after:,} (more than "
-                f"{policy.max_total_drop:.0%}); held for review, cached copy kept", hold=True)
+        refuse_settled_changes(
+            key, column, before, after, settled, settled_abs=policy.settled_abs,
+            settled_rel=policy.settled_rel, cells="county-day",
+            until=f"on or before {settled_until.date()}",
+            example=lambda i: (f"{common['area'].iloc[i]} "
+                               f"{pd.Timestamp(common['date'].iloc[i]).date()}"))
+        refuse_total_drop(key, column, before, after, max_total_drop=policy.max_total_drop,
+                          over="the counties' common days")
 
 
 def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | None:

@@ -31,6 +31,7 @@ import pandas as pd
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
                                       RevisionRefusedError)
+from pipeline.data.core.revision_policy import refuse_settled_changes
 from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
@@ -295,17 +296,13 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
     common = cached.frame.merge(new.frame, on=["target_end_date", "location"],
                                 suffixes=("", "_new"))
     settled_until = cached.last_week - pd.Timedelta(weeks=policy.open_weeks)
-    before, after = common["value"].to_numpy(), common["value_new"].to_numpy()
-    breaks = (common["target_end_date"] <= settled_until).to_numpy() & (
-        np.abs(after - before) > np.maximum(policy.settled_abs, policy.settled_rel * before))
-    if breaks.any():
-        i = int(np.flatnonzero(breaks)[0])
-        raise RevisionRefusedError(
-            f"{t}: revision beyond policy: {int(breaks.sum())} settled week(s) (ending on or "
-            f"before {settled_until.date()}) changed by more than max({policy.settled_abs:g}, "
-            f"{policy.settled_rel:g}×), e.g. {common['location'].iloc[i]} week ending "
-            f"{pd.Timestamp(common['target_end_date'].iloc[i]).date()} {before[i]:g} -> "
-            f"{after[i]:g}; held for review, cached copy kept", hold=True)
+    refuse_settled_changes(
+        t, "value", common["value"].to_numpy(), common["value_new"].to_numpy(),
+        (common["target_end_date"] <= settled_until).to_numpy(),
+        settled_abs=policy.settled_abs, settled_rel=policy.settled_rel, cells="week",
+        until=f"ending on or before {settled_until.date()}",
+        example=lambda i: (f"{common['location'].iloc[i]} week ending "
+                           f"{pd.Timestamp(common['target_end_date'].iloc[i]).date()}"))
 
 
 # ------------------------------------------------------------------------------ the cache

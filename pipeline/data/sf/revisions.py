@@ -32,6 +32,7 @@ import pandas as pd
 
 from pipeline.data.core.cache import (CachedPayload, CommitCheck, DatasetCache,
                                       RevisionRefusedError, SourceKind)
+from pipeline.data.core.revision_policy import refuse_settled_changes, refuse_total_drop
 from pipeline.data.sf.datasf import check_gate
 from pipeline.data.sf.payloads import decode_cached
 from pipeline.data.core.plausibility import DAILY, JumpRule
@@ -95,23 +96,12 @@ def _check_revisions(new: ValidatedFrame, cached: ValidatedFrame, key: str,
     for column in columns:
         before = common[column].to_numpy(dtype=np.int64)
         after = common[f"{column}_new"].to_numpy(dtype=np.int64)
-        allowed = np.maximum(policy.settled_abs, policy.settled_rel * before)
-        breaks = settled & (np.abs(after - before) > allowed)
-        if breaks.any():
-            first = int(np.flatnonzero(breaks)[0])
-            raise RevisionRefusedError(
-                f"{key}: revision beyond policy: '{column}' changed on {int(breaks.sum())} "
-                f"settled day(s) (on or before {settled_until.date()}) by more than "
-                f"max({policy.settled_abs}, {policy.settled_rel:.0%}), e.g. "
-                f"{common.index[first].date()} {before[first]} -> {after[first]}; held for "
-                f"review, cached copy kept", hold=True)
-        total_before, total_after = int(before.sum()), int(after.sum())
-        if total_after < (1.0 - policy.max_total_drop) * total_before:
-            raise RevisionRefusedError(
-                f"{key}: revision beyond policy: total '{column}' over the "
-                f"{len(common)} common days falls from {total_before:,} to {total_after:,} "
-                f"(more than {policy.max_total_drop:.0%}); held for review, cached copy kept",
-                hold=True)
+        refuse_settled_changes(key, column, before, after, settled,
+                               settled_abs=policy.settled_abs, settled_rel=policy.settled_rel,
+                               cells="day", until=f"on or before {settled_until.date()}",
+                               example=lambda i: str(common.index[i].date()))
+        refuse_total_drop(key, column, before, after, max_total_drop=policy.max_total_drop,
+                          over=f"the {len(common)} common days")
 
 
 def successor_check(new: ValidatedFrame, *, gap_policy: GapPolicy,
