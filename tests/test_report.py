@@ -465,13 +465,15 @@ def test_checks_say_trouble_in_words():
     past = checks.rollout_overshoot("forward 28-day rollout",
                                     [0.01, 0.02, 0.04, 0.05, 0.06, 0.07], rising,
                                     dates=days, anchors=(0, 3), direction="forward")
-    assert ("reaches 0.07 on 2021-12-25 (its segment starts on 2021-12-23; I peaked on "
-            "2021-12-22), 2.3×") in past and "past a turn" not in past
+    assert ("reaches 0.07 on 2021-12-25, 2.3× the highest I observed (0.03 on 2021-12-22). "
+            "Its segment starts on 2021-12-23, after the peak: chained estimates") in past
     inside = checks.rollout_overshoot("forward 28-day rollout",
                                       [0.01, 0.02, 0.04, 0.07, 0.06, 0.05], rising,
                                       dates=days, anchors=(0, 4), direction="forward")
-    assert "segment starts on 2021-12-20; I peaked on 2021-12-22" in inside
+    assert "Its segment starts on 2021-12-20, so the peak lies inside it" in inside
     assert "follows the rise it started from past a turn" in inside
+    # page 1 shows each check up to its first "; ": the whole finding, no broken parenthesis
+    assert inside.split("; ")[0].endswith("could not see")
 
 
 def test_one_stale_banner_naming_each_datasets_own_source(datasf_dir):

@@ -109,20 +109,23 @@ def rollout_overshoot(label: str, median_i: ArrayLike, observed_i: ArrayLike,
     top = float(np.nanmax(median)) if np.isfinite(median).any() else float("nan")
     if not (peak > 0 and top > factor * peak):
         return None
-    where, why = "", ("Chained estimates compound their errors over the window")
+    where, peak_where = "", ""
+    why = "Chained estimates compound their errors over the window"
     if dates is not None and anchors:
         at, peak_at = int(np.nanargmax(median)), int(np.nanargmax(observed))
         start = (max(a for a in anchors if a <= at) if direction == "forward"
                  else min(a for a in anchors if a >= at))
-        where = (f" on {dates[at].date()} (its segment starts on {dates[start].date()}; "
-                 f"I peaked on {dates[peak_at].date()})")
-        if min(start, at) <= peak_at <= max(start, at):
-            why = ("The observed peak lies inside that segment: the rollout follows the "
-                   f"{'rise' if direction == 'forward' else 'fall'} it started from past a turn "
-                   "its starting window could not see")
+        where, peak_where = f" on {dates[at].date()}", f" on {dates[peak_at].date()}"
+        turn = "rise" if direction == "forward" else "fall"
+        why = (f"Its segment starts on {dates[start].date()}, "
+               + (f"so the peak lies inside it: the rollout follows the {turn} it started from "
+                  "past a turn its starting window could not see"
+                  if min(start, at) <= peak_at <= max(start, at) else
+                  "after the peak: chained estimates compound their errors over the window"))
+    # page 1 lists each check up to its first "; "
     return (f"The {label} overshoots: its median I reaches {top:.3g}{where}, "
-            f"{top / peak:.1f}× the highest I observed ({peak:.3g}). {why}; this is the "
-            "paper's reconstruction method shown for reference, not the published forecast "
+            f"{top / peak:.1f}× the highest I observed ({peak:.3g}{peak_where}). {why}; this is "
+            "the paper's reconstruction method shown for reference, not the published forecast "
             "(section 1).")
 
 
