@@ -278,6 +278,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out["panels"] = {"counties": counties(config)[0], "sf": san_francisco(config)[0],
                          "nhsn": nhsn()}
         out["panels_seconds"] = round(time.perf_counter() - started, 1)
+        out["panels_command"] = command
         atomic_write_json(path, out)
         for name, panel in out["panels"].items():
             print(name, {r: (round(v.get("coverage50", 0), 3),
@@ -295,7 +296,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         county = [v["counties_published_relative_wis"] for v in values]
         sf = [v["sf_published_relative_wis"] for v in values]
         out["seeds"] = {
-            "n": len(values), "seeds": sorted(runs),
+            "command": command, "n": len(values), "seeds": sorted(runs),
             "relative_wis_spread": max(max(county) - min(county), max(sf) - min(sf)),
             "relative_wis_spread_counties": max(county) - min(county),
             "relative_wis_spread_sf": max(sf) - min(sf),
