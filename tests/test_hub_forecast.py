@@ -55,6 +55,8 @@ def test_the_round_is_valid_for_the_hub_and_read_back_by_hubdata(hub_run):
     for name in ("report.html", "report.pdf", "summary.json", "track_record_scores.csv",
                  "model-metadata/flowcast-nfhub.yml"):
         assert (folder / name).stat().st_size > 0, name
+    html = (folder / "report.html").read_text()
+    assert "flowcast forecast hub round" in html and "likely rising" in html
     (folder / "hub-config").symlink_to(NHSN / "hub-config")
     back = hubdata.connect_hub(folder).get_dataset().to_table().to_pandas()
     (folder / "hub-config").unlink()

@@ -192,6 +192,7 @@ class ReportContent:
     summary: str = ""                     # a short lead paragraph under the title
     generated_at: dt.datetime | None = None
     headline: Section | None = None       # page 1: the forecast's numbers, before any section
+    kicker: str = "flowcast weekly report"   # the line above the title: which report this is
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sections", tuple(self.sections))

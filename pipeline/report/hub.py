@@ -187,4 +187,5 @@ def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date
                          reference_date=reference_date, data_vintage=data_vintage,
                          sections=tuple(sections), provenance=provenance,
                          warnings=tuple(warnings) + tuple(f"Left out: {n}" for n in notes),
-                         summary=lead, headline=headline)
+                         summary=lead, headline=headline,
+                         kicker="flowcast forecast hub round")

@@ -202,7 +202,7 @@ def render_html(content: ReportContent) -> str:
     template = _environment().get_template("report.html.j2")
     generated = content.generated_at.isoformat(timespec="minutes") if content.generated_at else ""
     return template.render(
-        title=content.title, version=__version__, css=_stylesheet(),
+        title=content.title, kicker=content.kicker, version=__version__, css=_stylesheet(),
         reference_date=content.reference_date.isoformat(), data_vintage=content.data_vintage,
         generated_at=generated, warnings=content.warnings, summary=content.summary,
         headline=_section_view(content.headline) if content.headline else None,
