@@ -41,23 +41,19 @@ BEFORE = "before (log average, no recalibration)"
 PEAK, COVER = "max_median_I_over_max_observed_I", "share_observed_I_in_90_band"
 
 
-def _regime_rows(summary: dict[str, Any], name: str, key: str) -> dict[str, Any]:
-    s = summary[name]
-    out = {r: {"coverage50": s["by_regime"][r]["coverage50"],
-               "coverage90": s["by_regime"][r]["coverage90"],
-               "relative_wis": s["by_regime"][r][key], "n_scored": s["by_regime"][r]["n_scored"]}
-           for r in REGIMES}
-    out["all"] = {"coverage50": s["coverage50"], "coverage90": s["coverage90"],
-                  "relative_wis": (s["gmean_relative_wis"] if key == "gmean_relative_wis"
-                                   else s["relative_wis_vs_baseline"])["all"],
-                  "n_scored": s["n_scored"]}
-    return out
+def _regime_rows(s: dict[str, Any], key: str, outer: str) -> dict[str, Any]:
+    """One forecaster's summary (pipeline.evaluation.summary) per regime and overall."""
+    rows = {r: s["by_regime"][r] | {"relative_wis": s["by_regime"][r][key]} for r in REGIMES}
+    rows["all"] = s | {"relative_wis": s[key]["all"]}
+    return {r: {k: v[k] for k in ("coverage50", outer, "relative_wis", "n_scored")}
+            for r, v in rows.items()}
 
 
-def panel_summary(summary: dict[str, Any], key: str) -> dict[str, Any]:
+def panel_summary(summary: dict[str, Any], key: str, outer: str = "coverage90"
+                  ) -> dict[str, Any]:
     """The published forecast per regime and overall, with the rule before beside it."""
-    published = _regime_rows(summary, "published", key)
-    before = _regime_rows(summary, BEFORE, key)
+    published = _regime_rows(summary["published"], key, outer)
+    before = _regime_rows(summary[BEFORE], key, outer)
     published["all"]["relative_wis_before"] = before["all"]["relative_wis"]
     return published | {"before": before}
 
@@ -99,16 +95,11 @@ def san_francisco(config: Any) -> tuple[dict[str, Any], float]:
 def nhsn() -> dict[str, Any]:
     """The hub's admissions rounds: coverage 50 %/95 % and Σ WIS / Σ WIS of the re-implemented
     hub baseline, per regime, published against the rule before."""
-    import numpy as np
-
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED
     from pipeline.data.hub.target_import import import_hub_time_series
-    from pipeline.evaluation.regimes import REGIME_NAMES
-    from pipeline.evaluation.summary import score_cells
     from pipeline.hub_round.run import load_vintages
-    from pipeline.members.hub_baseline import HUB_BASELINE
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.panels.hub import ED_COVID, HOSP_COVID, hub_rounds
     from pipeline.training.model_store import default_store_root
@@ -120,24 +111,10 @@ def nhsn() -> dict[str, Any]:
     result = run_hub_rounds(hub_rounds(vintages), vintages[-1][1], members.published,
                             HubBacktestConfig(variants=(Variant(BEFORE, before),)),
                             references=members.references)
-    forecast_weeks = [k for k, h in enumerate(result.horizons) if h >= 0]
-    regimes = np.broadcast_to(result.backtest.regimes[..., None],
-                              result.backtest.regimes.shape + (len(forecast_weeks),))
-    base = score_cells(result.forecasts[HUB_BASELINE][:, :, forecast_weeks],
-                       result.truth[:, :, forecast_weeks], result.levels).wis
-    out: dict[str, Any] = {}
-    for name in (PUBLISHED, BEFORE):
-        s = score_cells(result.forecasts[name][:, :, forecast_weeks],
-                        result.truth[:, :, forecast_weeks], result.levels)
-        masks = {r: regimes == i for i, r in enumerate(REGIME_NAMES)} | {
-            "all": np.ones(regimes.shape, dtype=bool)}
-        out[name] = {r: {"coverage50": float(np.nanmean(s.covered[0.5][m])),
-                         "coverage95": float(np.nanmean(s.covered[0.95][m])),
-                         "relative_wis": float(np.nansum(s.wis[m]) / np.nansum(base[m]))}
-                     for r, m in masks.items()}
-    out[PUBLISHED]["all"]["relative_wis_before"] = out[BEFORE]["all"]["relative_wis"]
-    return out[PUBLISHED] | {"before": out[BEFORE], "horizons": "0-3 (hub)",
-                             "n_rounds": len(result.rounds)}
+    forecast_weeks = tuple(h for h in result.horizons if h >= 0)
+    summary = {name: result.summary(name, forecast_weeks) for name in (PUBLISHED, BEFORE)}
+    return panel_summary(summary, "relative_wis_vs_baseline", outer="coverage95") | {
+        "horizons": "0-3 (hub)", "n_rounds": len(result.rounds)}
 
 
 def report_checks(models: Any, recent: Any, sir: Any, config: Any,

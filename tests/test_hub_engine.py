@@ -17,8 +17,9 @@ import pytest
 from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.combine.reconcile import median_gap, top_down
-from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
+from pipeline.data.hub.target_import import import_hub_time_series
+from pipeline.evaluation.summary import score_cells
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
 from pipeline.members.nf.weekly import WeeklyFlowConfig, WeeklyFlowMember
@@ -177,6 +178,13 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
                                   np.stack([result.nowcasts[0].quantiles[p][0]
                                             for p in result.places]))
     assert np.isfinite(result.forecasts[PUBLISHED][:, :, 1:]).all()
+    # the one summary of every backtest, at the forecast horizons, by phase of the epidemic
+    summary = result.summary(PUBLISHED, (0, 1))
+    phases = [summary["by_regime"][r]["n_scored"] for r in ("falling", "flat", "rising")]
+    assert sum(phases) == summary["n_scored"] > 0
+    covered = score_cells(result.forecasts[PUBLISHED][:, :, 1:3], result.truth[:, :, 1:3],
+                          result.levels).covered[0.5]
+    assert summary["coverage50"] == pytest.approx(float(np.nanmean(covered)), abs=1e-12)
     frame = compound_sample_ids(result.round_frame(len(rounds) - 1))
     root = tmp_path / "hub"
     shutil.copytree(NHSN / "hub-config", root / "hub-config")

@@ -32,8 +32,9 @@ from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
 from pipeline.combine.reconcile import median_gap, top_down
 from pipeline.evaluation.quantile_function import quantiles_at
-from pipeline.evaluation.summary import score_cells
+from pipeline.evaluation.summary import regime_masks, score_cells, summarize_forecaster
 from pipeline.members.base import Member
+from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.nowcast.revisions import RevisionNowcastConfig, WeekNowcast, nowcast_weeks
 from pipeline.panels.hub import HUB_HORIZONS, US, HubRound, is_share, target_scale
 from pipeline.panels.panel import Panel, weeks_ending
@@ -88,6 +89,19 @@ class HubRoundsResult:
         """``(R, H)`` the week each round's horizon ends."""
         return np.array([[r.target_end(h) for h in self.horizons] for r in self.rounds],
                         dtype="datetime64[ns]")
+
+    def summary(self, forecaster: str = PUBLISHED,
+                horizons: Sequence[int] | None = None) -> dict[str, Any]:
+        """The one summary of every backtest (:func:`~pipeline.evaluation.summary.
+        summarize_forecaster`) of ``forecaster`` at the hub ``horizons`` (default: all),
+        against the hub baseline, by the phase of the epidemic at each round's origin."""
+        steps = list(self.horizons) if horizons is None else list(horizons)
+        k = [self.horizons.index(h) for h in steps]
+        truth = self.truth[:, :, k]
+        scores = score_cells(self.forecasts[forecaster][:, :, k], truth, self.levels)
+        base = score_cells(self.forecasts[HUB_BASELINE][:, :, k], truth, self.levels).wis
+        return summarize_forecaster(scores, base, steps, self.places,
+                                    regime_masks(self.backtest.regimes, truth, len(k)))
 
     def scores(self, forecasters: Sequence[str] | None = None) -> pd.DataFrame:
         """One row per scored (forecaster, round, horizon, location): WIS and its parts,
@@ -264,11 +278,9 @@ def _truth(latest: Panel, places: Sequence[str], rounds: Sequence[HubRound],
 def summary_by_horizon(result: HubRoundsResult, forecaster: str = PUBLISHED
                        ) -> dict[str, Any]:
     """Coverage of a forecaster per hub horizon (50 %, 95 %) and overall."""
-    s = score_cells(result.forecasts[forecaster], result.truth, result.levels)
-    out: dict[str, Any] = {}
-    for k, h in enumerate(result.horizons):
-        out[f"h{h}"] = {f"coverage{round(100 * c)}": float(np.nanmean(v[:, :, k]))
-                        for c, v in s.covered.items() if c in (0.5, 0.95)}
-    out["all"] = {f"coverage{round(100 * c)}": float(np.nanmean(v))
-                  for c, v in s.covered.items() if c in (0.5, 0.95)}
-    return out
+    s = result.summary(forecaster)
+
+    def hub(coverage: dict[str, Any]) -> dict[str, Any]:
+        return {k: coverage[k] for k in ("coverage50", "coverage95")}
+
+    return {k: hub(v) for k, v in s["coverage_by_horizon"].items()} | {"all": hub(s)}

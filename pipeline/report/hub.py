@@ -22,8 +22,6 @@ from pipeline import __version__
 from pipeline.backtest.hub_rounds import HubRoundsResult
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.hub.locations import BY_LOCATION, US
-from pipeline.evaluation.summary import score_cells
-from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.hub import is_share, target_scale
 from pipeline.panels.panel import weeks_ending
 from pipeline.report.content import (FigureItem, Provenance, ReportContent, Section, TableItem)
@@ -116,26 +114,20 @@ def fan_figure(result: HubRoundsResult) -> bytes:
 
 def track_record_table(result: HubRoundsResult) -> pd.DataFrame:
     """Every forecaster over the earlier rounds: Σ WIS / Σ WIS of the hub baseline per hub
-    horizon and overall, and the 50 %/95 % coverage."""
-    base = score_cells(result.forecasts[HUB_BASELINE], result.truth, result.levels).wis \
-        if HUB_BASELINE in result.forecasts else None
+    horizon and overall, and the 50 %/95 % coverage (NaN where no week has ended yet)."""
     rows = {}
-    for name, values in result.forecasts.items():
-        s = score_cells(values, result.truth, result.levels)
-        row: dict[str, float] = {}
-        for k, h in enumerate(result.horizons):
-            if base is not None:
-                both = np.isfinite(s.wis[:, :, k]) & np.isfinite(base[:, :, k])
-                # a horizon none of whose weeks has ended yet has no score (NaN, not 0/0)
-                row[f"{h:+d} wk"] = (float(s.wis[:, :, k][both].sum()
-                                           / base[:, :, k][both].sum())
-                                     if both.any() else float("nan"))
-        seen = np.isfinite(s.wis)
-        row["50% covered"] = float(s.covered[0.5][seen].mean()) if seen.any() else float("nan")
-        row["95% covered"] = float(s.covered[0.95][seen].mean()) if seen.any() else float("nan")
-        row["scored"] = float(np.isfinite(s.wis).sum())
-        rows[name] = row
+    for name in result.forecasts:
+        s = result.summary(name)
+        ratios = s["relative_wis_vs_baseline"]
+        row = {f"{h:+d} wk": _or_nan(ratios[f"h{h}"]) for h in result.horizons}
+        rows[name] = row | {"50% covered": _or_nan(s.get("coverage50")),
+                            "95% covered": _or_nan(s.get("coverage95")),
+                            "scored": float(s["n_scored"])}
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("forecaster")
+
+
+def _or_nan(value: float | None) -> float:
+    return float("nan") if value is None else float(value)
 
 
 def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date: dt.date,
