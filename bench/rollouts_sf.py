@@ -8,8 +8,10 @@ CDPH vintages' delay model):
 * rollouts: the rolling forward and backward rollouts re-anchored every 7 and 28 days (the
   report's), per view the share of days whose observed I lies in the 90 % band (5 %–95 % of the
   paths) and the largest ratio of the median I to the highest I observed;
-* the same rollouts on synthetic paths of the prior (known truth) with and without the paths'
-  noise persistence (``RolloutSettings.noise_persistence``): why it is what it is;
+* the same rollouts on synthetic paths of the prior (known truth);
+* variants beside them, on both: the chained forward flow the report showed until 2026-11-27
+  (``RolloutSettings.forward``) and other noise persistences of the chained paths
+  (``RolloutSettings.noise_persistence``);
 * β: on synthetic paths, the share of days whose true β lies in the forward flow's 90 %
   interval and the interval's median width relative to the prior's starting range;
 * SMC: the NF-seeded filter over the last ``smc.days`` SF days (the report's), its minimum ESS
@@ -51,34 +53,47 @@ def _view_scores(samples: Any, observed: Any) -> dict[str, float]:
             "max_median_I": float(median.max())}
 
 
-def synthetic_coverage(models: Any, config: Any, persistence: float) -> dict[str, float]:
-    """Mean 90 % band coverage of I over synthetic paths of the prior, per view."""
+def synthetic_coverage(models: Any, config: Any) -> dict[str, float]:
+    """Mean 90 % band coverage of I over synthetic paths of the prior, per view, with
+    ``config``'s rollouts (the report's views, drawn as the report draws them)."""
     import numpy as np
+    import pandas as pd
 
-    from pipeline.forecast.steps import rollout_settings
-    from pipeline.inference.rollout import rolling_rollout
+    from pipeline.forecast.results import SIRArrays
+    from pipeline.forecast.steps import rolling_view
     from pipeline.names import DIRECTIONS
     from pipeline.systems.waves import simulate_waves, sir_view
-    from pipeline.training.datasets import WAVE_TARGET_FEATURES
 
     view = sir_view(simulate_waves(config.resolved.prior, SYNTHETIC_PATHS, seed=12345), 999)
     keep = (view.sir[..., 1] > 0).all(axis=1)
-    adjusted = dataclasses.replace(config, rollouts=dataclasses.replace(
-        config.rollouts, noise_persistence=persistence))
+    small = dataclasses.replace(config, rollouts=dataclasses.replace(config.rollouts, paths=64))
     out = {}
     for direction in DIRECTIONS:
         for every in config.rollouts.windows:
             covers = []
             for path in view.sir[keep]:
-                times = np.arange(len(path), dtype=np.float64)
-                result = rolling_rollout(models.by_direction(direction), times, path, every,
-                                         direction, rollout_settings(adjusted, 64, 1),
-                                         names=WAVE_TARGET_FEATURES,
-                                         window_length=config.resolved.window)
+                series = SIRArrays(np.arange(len(path), dtype=np.float64), path,
+                                   pd.date_range("2020-01-01", periods=len(path), freq="D"))
+                result = rolling_view(models, series, small, direction, every)
                 covers.append(_view_scores(result.samples, path[:, 1])
                               ["share_observed_I_in_90_band"])
             out[f"{direction}_{every}d"] = float(np.mean(covers))
     return out
+
+
+def rollout_variants(config: Any) -> dict[str, Any]:
+    """The report's rollouts and what they replaced: the chained forward flow (published until
+    2026-11-27) and the chained paths' noise persistence."""
+    def variant(**changes: Any) -> Any:
+        return dataclasses.replace(config, rollouts=dataclasses.replace(config.rollouts,
+                                                                        **changes))
+    persistence = config.rollouts.noise_persistence
+    return {"chained forward, noise persistence 0.5 (published until 2026-11-27)":
+                variant(forward="chained-flow", noise_persistence=0.5),
+            "chained forward, noise persistence 0 (fresh noise every day)":
+                variant(forward="chained-flow", noise_persistence=0.0),
+            **{f"{config.rollouts.forward} forward, backward noise persistence {p:g}":
+                   variant(noise_persistence=p) for p in (0.5, 0.7, 0.9) if p != persistence}}
 
 
 def beta_identification(models: Any, config: Any) -> dict[str, float]:
@@ -149,9 +164,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"SF {name}: observed I in 90% band {v['share_observed_I_in_90_band']:.3f}, "
               f"max median I / max observed {v['max_median_I_over_max_observed_I']:.2f}",
               flush=True)
-    synthetic = {f"noise_persistence={p:g}": synthetic_coverage(models, config, p)
-                 for p in sorted({0.0, config.rollouts.noise_persistence})}
+    synthetic = synthetic_coverage(models, config)
     print("synthetic 90% band coverage:", synthetic, flush=True)
+    variants = {}
+    for name, variant in rollout_variants(config).items():
+        variants[name] = {
+            "rollouts_sf": {f"{d}_{every}d": _view_scores(result.samples, sir.values[:, 1])
+                            for (d, every), result in rollouts(models, sir, variant).items()},
+            "synthetic_rollout_coverage": synthetic_coverage(models, variant)}
+        print(f"{name}: SF", {k: (round(v["share_observed_I_in_90_band"], 3),
+                                  round(v["max_median_I_over_max_observed_I"], 2))
+                              for k, v in variants[name]["rollouts_sf"].items()},
+              "synthetic", {k: round(v, 3)
+                            for k, v in variants[name]["synthetic_rollout_coverage"].items()},
+              flush=True)
     beta = beta_identification(models, config)
     print("beta on synthetic paths:", beta, flush=True)
     params = parameter_track(models, sir, config)
@@ -172,6 +198,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "rollout_settings": dataclasses.asdict(config.rollouts),
         "rollout_seconds": round(rollout_seconds, 2),
         "synthetic_rollout_coverage": synthetic,
+        "variants": variants,
         "beta_synthetic": beta,
         "latest_forward_estimates": {row["component"]: {"q0.05": row["q0.05"], "q0.5": row["q0.5"],
                                                         "q0.95": row["q0.95"]}

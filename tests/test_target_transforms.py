@@ -301,5 +301,5 @@ def test_smc_seed_refuses_invalid_draws_instead_of_clipping_them() -> None:
     bad = good.clone()
     bad[0, 1, 1] = -0.01                       # negative I
     bad[0, 0, 3] = -0.2                        # negative beta
-    with pytest.raises(ConfigError, match="2 of 2 flow draws seeding the SMC filter"):
+    with pytest.raises(ConfigError, match="2 of 2 flow draws seeding the multi-wave model"):
         check_valid_draws(bad)

@@ -56,7 +56,9 @@ from pipeline.forecast.results import (FuturePaths, LatestEstimates, Rollouts, S
 from pipeline.inference.estimate import (ObservationWindow, batch_window_context, estimate,
                                          sample_conditional)
 from pipeline.inference.hybrid import WaveSMCConfig, nf_seeded_wave_smc
-from pipeline.inference.rollout import RolloutConfig, rollout, rolling_rollout
+from pipeline.inference.rollout import RolloutConfig, RolloutResult, rollout, rolling_rollout
+from pipeline.inference.seeded_rollout import (SeededRolloutConfig, seeded_future_rollout,
+                                               seeded_rolling_rollout)
 from pipeline.inference.smc import DEFAULT_QUANTILES
 from pipeline.names import DIRECTIONS, JOINT_NAMES, Direction
 from pipeline.training.datasets import WAVE_TARGET_FEATURES
@@ -154,12 +156,8 @@ def rollouts(models: TrainedModels, sir: SIRArrays, config: ForecastConfig,
         out: Rollouts = {}
         with single_thread():
             for direction, every in subset:
-                settings = rollout_settings(config, config.rollouts.paths,
-                                            config.step_seed("rollout") + every)
-                out[(direction, every)] = rolling_rollout(
-                    models.by_direction(direction), sir.times, sir.values, every, direction,
-                    settings, names=WAVE_TARGET_FEATURES,
-                    window_length=config.resolved.window, progress=reporter)
+                out[(direction, every)] = rolling_view(models, sir, config, direction, every,
+                                                       reporter)
         return out
 
     backward = start_in_child(lambda: draw([v for v in views if v[0] == "backward"], None))
@@ -167,13 +165,37 @@ def rollouts(models: TrainedModels, sir: SIRArrays, config: ForecastConfig,
     return {view: drawn[view] for view in views}
 
 
+def rolling_view(models: TrainedModels, sir: SIRArrays, config: ForecastConfig,
+                 direction: Direction, every: int,
+                 progress: ProgressReporter | None = None) -> RolloutResult:
+    """One rolling view of the report: forward ones as ``rollouts.forward`` says (the flow's
+    estimate carried on by the prior, or the chained flow), backward ones chained."""
+    seed = config.step_seed("rollout") + every
+    if direction == "forward" and config.rollouts.forward == "flow-seeded-prior":
+        return seeded_rolling_rollout(
+            models.forward, sir.times, sir.values, every, config.resolved.prior,
+            SeededRolloutConfig(n_paths=config.rollouts.paths, seed=seed),
+            names=WAVE_TARGET_FEATURES, window_length=config.resolved.window, progress=progress)
+    return rolling_rollout(models.by_direction(direction), sir.times, sir.values, every,
+                           direction, rollout_settings(config, config.rollouts.paths, seed),
+                           names=WAVE_TARGET_FEATURES, window_length=config.resolved.window,
+                           progress=progress)
+
+
 def future_paths(models: TrainedModels, sir: SIRArrays, config: ForecastConfig) -> FuturePaths:
     """Forward sample paths for ``rollouts.forecast_days`` days after the last observed day."""
     r, days = config.resolved.window, config.rollouts.forecast_days
-    window = _last_window(sir, r, float(sir.times[-1]) + 1.0)
-    settings = rollout_settings(config, config.rollouts.future_paths, config.step_seed("future"))
-    result = rollout(models.forward, window, days, 1.0, "forward", settings,
-                     names=WAVE_TARGET_FEATURES, window_length=r)
+    seed = config.step_seed("future")
+    if config.rollouts.forward == "flow-seeded-prior":
+        result = seeded_future_rollout(
+            models.forward, sir.times, sir.values, days, config.resolved.prior,
+            SeededRolloutConfig(n_paths=config.rollouts.future_paths, seed=seed),
+            names=WAVE_TARGET_FEATURES, window_length=r)
+    else:
+        window = _last_window(sir, r, float(sir.times[-1]) + 1.0)
+        result = rollout(models.forward, window, days, 1.0, "forward",
+                         rollout_settings(config, config.rollouts.future_paths, seed),
+                         names=WAVE_TARGET_FEATURES, window_length=r)
     dates = pd.date_range(sir.dates[-1] + pd.Timedelta(days=1), periods=days, freq="D")
     return FuturePaths(dates, result.samples, sir.dates[-1].date())
 

@@ -105,7 +105,7 @@ def check_valid_draws(draws: Tensor) -> None:
     bad = ((state < 0).any(-1) | ((state.sum(-1) - 1).abs() > 1e-6)
            | (rates <= 0).any(-1) | ~torch.isfinite(draws).all(-1))
     if bool(bad.any()):
-        raise ConfigError(f"{int(bad.sum())} of {bad.numel()} flow draws seeding the SMC filter "
+        raise ConfigError(f"{int(bad.sum())} of {bad.numel()} flow draws seeding the multi-wave model "
                           "are not valid S/I/R states with positive rates; the joint model must "
                           "use target_transform='sir-log-ratio' (retrain it)")
 
@@ -196,6 +196,31 @@ def _static_prior_draws(prior: WavePrior, shape: tuple[int, int],
                         uniform(prior.volatility_per_day, 2), log_import.exp()], dim=-1)
 
 
+def wave_particles(draws: Tensor, lag_shape: Tensor, prior: WavePrior,
+                   generator: torch.Generator) -> Tensor:
+    """(F, N, D) particles of :class:`WaveRenewalModel` from the joint flow's (S, I, R, β) draws
+    ``(F, N, 4)``: the last L days' new cases are each draw's I spread over its window in
+    ``lag_shape (F, L)`` (rows summing to 1, oldest day first); μ, θ, σ, ι from ``prior``."""
+    check_valid_draws(draws)
+    return torch.cat([draws, draws[..., 1:2] * lag_shape[:, None, :],
+                      _static_prior_draws(prior, (draws.shape[0], draws.shape[1]), generator),
+                      draws.new_zeros((*draws.shape[:2], 1))], dim=-1)
+
+
+def wave_model(prior: WavePrior, population: Tensor | np.ndarray | float, dispersion: Tensor,
+               *, forecasting: bool) -> WaveRenewalModel:
+    """The prior as a state-space model for F places (``dispersion (F,)``); ``forecasting``
+    proposes jumps at the prior's own rate (no importance correction), filtering more often."""
+    num_filters = dispersion.shape[0]
+    people = torch.as_tensor(population, dtype=torch.float64).reshape(-1, 1)
+    model = WaveRenewalModel(population=people.expand(num_filters, 1),
+                             dispersion=dispersion.reshape(-1, 1).double(),
+                             window_days=prior.window_days, jump_rate=prior.jump_rate_per_day,
+                             jump_sd=prior.jump_sd)
+    return (dataclasses.replace(model, proposal_jump_rate=model.jump_rate) if forecasting
+            else model)
+
+
 def nf_seeded_wave_smc(estimator: Estimator, context: Tensor, mask: Tensor,
                        daily_cases: Tensor, population: Tensor, filter_days: int,
                        prior: WavePrior, config: WaveSMCConfig = WaveSMCConfig(), *,
@@ -223,18 +248,12 @@ def nf_seeded_wave_smc(estimator: Estimator, context: Tensor, mask: Tensor,
     factors, dispersion = reporting_pattern(cases, min(config.pattern_days, length))
     draws = sample_conditional(estimator, context, mask, config.n_particles,
                                config.seed).double()                          # (F, N, 4)
-    check_valid_draws(draws)
     generator = torch.Generator().manual_seed(config.seed + 1)
     start = length - filter_days
     position = (torch.arange(start - lag, start) - length) % 7
     before = (cases[:, start - lag:start] + 0.5) / factors[:, position]
-    shape = before / before.sum(1, keepdim=True)                              # (F, L)
-    particles = torch.cat([draws, draws[..., 1:2] * shape[:, None, :],
-                           _static_prior_draws(prior, (num_filters, config.n_particles), generator),
-                           draws.new_zeros((*draws.shape[:2], 1))], dim=-1)
-    model = WaveRenewalModel(population=torch.as_tensor(population, dtype=torch.float64)
-                             .reshape(-1, 1), dispersion=dispersion[:, None], window_days=lag,
-                             jump_rate=prior.jump_rate_per_day, jump_sd=prior.jump_sd)
+    particles = wave_particles(draws, before / before.sum(1, keepdim=True), prior, generator)
+    model = wave_model(prior, population, dispersion, forecasting=False)
     cumulative = torch.cat([cases.new_zeros((num_filters, 1)), cases.cumsum(1)], dim=1)
     window_sums = cumulative[:, lag:] - cumulative[:, :-lag]                 # days L-1 … T-1
     observations = window_sums[:, -filter_days:, None]

@@ -274,10 +274,17 @@ def rolling_rollout(estimator: Estimator, times: np.ndarray, values: np.ndarray,
     samples = propagate_paths(estimator, torch.as_tensor(times[window_idx]),
                               torch.as_tensor(values[window_idx]), torch.as_tensor(target_times),
                               direction, config, progress)                          # (S, P, W, D)
-    dim = samples.shape[-1]
-    full = torch.full((config.n_paths, len(times), dim), float("nan"))
-    seg, col = np.nonzero(valid)
-    full[:, torch.as_tensor(target_idx[seg, col])] = samples[seg, :, col].permute(1, 0, 2)
-    labels = tuple(names) if names is not None else tuple(f"x{d}" for d in range(dim))
+    full = segments_to_series(samples, target_idx, valid, len(times))
+    labels = tuple(names) if names is not None else tuple(f"x{d}" for d in range(full.shape[-1]))
     return RolloutResult(direction=direction, times=times, samples=full, names=labels,
                          anchors=tuple(anchors))
+
+
+def segments_to_series(samples: Tensor, target_idx: np.ndarray, valid: np.ndarray,
+                       n_times: int) -> Tensor:
+    """``samples (S, P, W, D)`` of S segments placed on a series of ``n_times`` steps: ``(P, T,
+    D)``, segment s's step w at index ``target_idx[s, w]`` where ``valid``, NaN elsewhere."""
+    full = torch.full((samples.shape[1], n_times, samples.shape[-1]), float("nan"))
+    seg, col = np.nonzero(valid)
+    full[:, torch.as_tensor(target_idx[seg, col])] = samples[seg, :, col].permute(1, 0, 2).float()
+    return full

@@ -97,12 +97,13 @@ def ess_collapse(ess: ArrayLike, n_particles: int, dates: pd.DatetimeIndex,
 def rollout_overshoot(label: str, median_i: ArrayLike, observed_i: ArrayLike,
                       factor: float = ROLLOUT_OVERSHOOT, *,
                       dates: pd.DatetimeIndex | None = None, anchors: Sequence[int] = (),
-                      direction: str = "forward") -> str | None:
+                      direction: str = "forward", chained: bool = True) -> str | None:
     """When a rollout's median I exceeds ``factor`` times the highest I ever observed. With the
     ``dates`` of the series and the rolling ``anchors`` (each segment's first predicted index),
     it says where: a segment whose start came before the observed peak and whose overshoot came
     after it extrapolated the rise past a turn it could not see; otherwise its chained
-    estimates compounded their errors."""
+    estimates compounded their errors (``chained``), or the prior's dynamics carried its
+    starting estimate too far."""
     median = np.asarray(median_i, dtype=np.float64)
     observed = np.asarray(observed_i, dtype=np.float64)
     peak = float(np.nanmax(observed))
@@ -110,7 +111,9 @@ def rollout_overshoot(label: str, median_i: ArrayLike, observed_i: ArrayLike,
     if not (peak > 0 and top > factor * peak):
         return None
     where, peak_where = "", ""
-    why = "Chained estimates compound their errors over the window"
+    drift = ("chained estimates compound their errors over the window" if chained else
+             "the prior's dynamics carry the starting estimate too far over the window")
+    why = drift[0].upper() + drift[1:]
     if dates is not None and anchors:
         at, peak_at = int(np.nanargmax(median)), int(np.nanargmax(observed))
         start = (max(a for a in anchors if a <= at) if direction == "forward"
@@ -121,7 +124,7 @@ def rollout_overshoot(label: str, median_i: ArrayLike, observed_i: ArrayLike,
                + (f"so the peak lies inside it: the rollout follows the {turn} it started from "
                   "past a turn its starting window could not see"
                   if min(start, at) <= peak_at <= max(start, at) else
-                  "after the peak: chained estimates compound their errors over the window"))
+                  f"after the peak: {drift}"))
     # page 1 lists each check up to its first "; "
     return (f"The {label} overshoots: its median I reaches {top:.3g}{where}, "
             f"{top / peak:.1f}× the highest I observed ({peak:.3g}{peak_where}). {why}; this is "

@@ -131,17 +131,23 @@ def rollout_section(results: ModelOutputs) -> Section:
         q = _path_quantiles(as_numpy(roll.samples)[..., idx])                      # (5, T, 3)
         png = figures.rollout_figure(dates, observed_at(sir, dates), q,
                                      window_days=int(every), direction=direction)
+        seeded = direction == "forward" and results.config.rollouts.forward == "flow-seeded-prior"
         alert = checks.rollout_overshoot(f"{direction} {every}-day rollout",
                                          q[LEVELS.index(0.5), :, STATES.index("I")],
                                          sir["I"].to_numpy(),
                                          dates=pd.DatetimeIndex(pd.to_datetime(sir["date"])),
-                                         anchors=roll.anchors, direction=direction)
+                                         anchors=roll.anchors, direction=direction,
+                                         chained=not seeded)
         if alert:
             alerts.append(alert)
+        how = (f"the forward flow's estimate of S, I, R and β from the {results.config.resolved.window} "
+               "days before each anchor, carried on by the multi-wave prior's own dynamics (I as "
+               "it would be reported)" if seeded else
+               "the flow's one-day estimates chained, each path fed its own draws")
         items.append(figure_item(
             png, f"{direction.capitalize()} rollout re-anchored on observations every {every} "
-                 "days: median, 50% and 90% intervals of the sample paths; full series (left) "
-                 "and 60 days around the peak of I (right).",
+                 f"days: {how}. Median, 50% and 90% intervals of the sample paths; full series "
+                 "(left) and 60 days around the peak of I (right).",
             f"{direction} {every}-day rollout of S, I, R, full and zoomed"))
     return Section.weekly(SectionKey.ROLLOUTS, items, alerts=alerts)
 
