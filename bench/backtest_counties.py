@@ -59,6 +59,8 @@ def design_variants() -> tuple[Any, ...]:
         # the online calibration's one setting, η, a third and twice the published 0.15
         Variant("v-regime-aci eta=0.05", CombineConfig(tracking_rate=0.05)),
         Variant("v-regime-aci eta=0.3", CombineConfig(tracking_rate=0.3)),
+        # each phase its own adaptive conformal step (a rare phase moves as fast as a common one)
+        Variant("v-regime-aci per-regime step", CombineConfig(tracking_step="per-regime")),
         Variant("v-linear-average", CombineConfig(scale="linear", calibration="none")),
         Variant("v-stacking-12-origins", CombineConfig(scale="log", calibration="none",
                                                        weights="stacking", stacking_step=0.1)),

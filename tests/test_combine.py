@@ -13,7 +13,7 @@ from pipeline.combine.average import fit_weights, mix_quantiles, scored_wis, vin
 from pipeline.combine.combiner import (LOG_AVERAGE, CombineConfig, Ensemble, combine,
                                        scored_before)
 from pipeline.combine.paths import count_invalid, sample_paths
-from pipeline.combine.recalibration import calibrated_levels, fit_recalibration
+from pipeline.combine.recalibration import IntervalTracker, calibrated_levels, fit_recalibration
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
 from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 from tests.forecasting_helpers import POPULATION, random_walk_history
@@ -199,3 +199,25 @@ def test_published_paths_are_valid_by_construction_and_invalid_ones_are_counted(
     counts = count_invalid(bad, start, rates=np.array([0.2, -0.1]))
     assert counts.to_dict() == {"negative_fractions": 1, "s_increases": 1, "r_decreases": 1,
                                 "negative_rates": 1, "total": 4}
+
+
+@pytest.mark.parametrize("step", ["pooled", "per-regime"])
+def test_interval_tracker_moves_each_phase_by_its_misses_and_never_the_median(step: str) -> None:
+    """Nine covered forecasts of one phase and one missed forecast of another, hand-computed:
+    φ[r, e] += η Σ_r (miss − α_e) / N, N all ten forecasts (pooled) or the phase's own."""
+    levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
+    tracker = IntervalTracker(levels, rate=0.2, outer=0.9, step=step)  # type: ignore[arg-type]
+    published = np.tile([1.0, 2.0, 3.0, 4.0, 5.0], (10, 1))
+    truth = np.array([3.0] * 9 + [10.0])
+    regimes = np.array([0] * 9 + [2])
+    tracker.update(published, truth, regimes)
+    alpha = np.array([0.5, 0.1])
+    n_covered, n_missed = (10, 10) if step == "pooled" else (9, 1)
+    np.testing.assert_allclose(tracker.stretch[0], 0.2 * 9 * -alpha / n_covered)
+    np.testing.assert_allclose(tracker.stretch[1], 0.0)
+    np.testing.assert_allclose(tracker.stretch[2], 0.2 * (1 - alpha) / n_missed)
+    moved = tracker.apply(published[:3], np.array([0, 1, 2]))
+    np.testing.assert_allclose(moved[:, 2], 3.0)                     # the median stays
+    assert moved[2, 4] > 5.0 and moved[2, 0] < 1.0                   # the missed phase widens
+    assert moved[0, 4] < 5.0 and moved[0, 0] > 1.0                   # the covered one narrows
+    np.testing.assert_allclose(moved[1], published[1])               # an unseen phase is kept

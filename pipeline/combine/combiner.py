@@ -33,8 +33,9 @@ from numpy.typing import NDArray
 from pipeline.combine.average import (AverageScale, EnsembleError, WeightMethod, fit_weights,
                                       scored_wis, vincentize)
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
-from pipeline.combine.recalibration import (RECALIBRATION_METHODS, IntervalTracker,
-                                            RecalibrationMethod, calibrated_levels,
+from pipeline.combine.recalibration import (RECALIBRATION_METHODS, TRACKING_STEPS,
+                                            IntervalTracker, RecalibrationMethod, TrackingStep,
+                                            calibrated_levels,
                                             fit_recalibration)
 from pipeline.evaluation.regimes import N_REGIMES
 from pipeline.members.base import Member, MemberForecast, forecast_within_reach
@@ -61,6 +62,7 @@ class CombineConfig:
     shrinkage_pits: float = 50.0
     min_level: float = 1e-4
     tracking_rate: float = 0.15         # η of the online calibration ("regime-aci")
+    tracking_step: TrackingStep = "pooled"
     outer_interval: float = 0.9         # the outer interval it holds (the hub's: 0.95)
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
@@ -76,6 +78,9 @@ class CombineConfig:
         if self.scale not in ("log", "linear", "mixture", "log-mixture"):
             raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log, linear, "
                                 "mixture or log-mixture")
+        if self.tracking_step not in TRACKING_STEPS:
+            raise EnsembleError(f"CombineConfig.tracking_step={self.tracking_step!r}: use one "
+                                f"of {TRACKING_STEPS}")
         if self.calibration not in RECALIBRATION_METHODS:
             raise EnsembleError(f"CombineConfig.calibration={self.calibration!r}: use one of "
                                 f"{RECALIBRATION_METHODS}")
@@ -132,7 +137,8 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
         raise EnsembleError(f"member quantiles {values.shape[1:]}, baseline {baseline.shape}, "
                             f"{len(origins)} origins and {len(horizons)} horizons do not match")
     known = scored_before(origins, horizons)                               # (O, O, H)
-    tracker = (IntervalTracker(levels, config.tracking_rate, config.outer_interval)
+    tracker = (IntervalTracker(levels, config.tracking_rate, config.outer_interval,
+                               step=config.tracking_step)
                if config.calibration == "regime-aci" else None)
     counted = np.zeros((n_o, n_h), dtype=bool)
     uncal = np.empty(values.shape[1:])

@@ -35,6 +35,11 @@ RecalibrationMethod = Literal["scale-regime", "scale", "bias-scale-regime", "bia
                               "widen-only", "regime-aci", "none"]
 RECALIBRATION_METHODS: tuple[str, ...] = ("scale-regime", "scale", "bias-scale-regime",
                                           "bias-scale", "widen-only", "regime-aci", "none")
+# How one origin's misses move a phase's stretch: averaged over every newly scored forecast
+# ("pooled": a phase seen rarely moves slowly) or over the phase's own ("per-regime": each phase
+# is its own adaptive conformal inference)
+TrackingStep = Literal["pooled", "per-regime"]
+TRACKING_STEPS: tuple[str, ...] = ("pooled", "per-regime")
 
 
 def fit_bias_scale(probits: NDArray[np.float64], shrinkage: float, with_bias: bool
@@ -96,7 +101,8 @@ class IntervalTracker:
 
     State: a log stretch φ[regime, end]. After each origin, the N forecasts whose target week
     ended by then and were not yet counted (every place and horizon) move it:
-    φ[r, e] += η Σ_{cells of regime r} (1{outcome outside interval e} − α_e) / N. A forecast
+    φ[r, e] += η Σ_{cells of regime r} (1{outcome outside interval e} − α_e) / N, with N all of
+    them (``step="pooled"``) or those of regime r (``"per-regime"``). A forecast
     of a place in regime r is published with each level τ read at Φ(e^{f(τ)} Φ⁻¹(τ)) of the
     average's quantile function, f = φ[r, inner] within the inner interval, φ[r, outer] beyond
     the outer one, linear in |Φ⁻¹(τ)| between: the median is never moved (moving it chased the
@@ -107,6 +113,7 @@ class IntervalTracker:
     rate: float
     outer: float
     cap: float = 1.0
+    step: TrackingStep = "pooled"
 
     def __post_init__(self) -> None:
         self.stretch = np.zeros((N_REGIMES, 2))
@@ -129,7 +136,9 @@ class IntervalTracker:
         missed = (y < q[:, self._low]) | (y > q[:, self._up])                   # (n, 2)
         steps = np.zeros((N_REGIMES, 2))
         np.add.at(steps, regimes[seen], missed - self._alpha)
-        self.stretch = np.clip(self.stretch + self.rate * steps / int(seen.sum()),
+        counts = (np.bincount(regimes[seen], minlength=N_REGIMES)[:, None]
+                  if self.step == "per-regime" else np.full((N_REGIMES, 1), int(seen.sum())))
+        self.stretch = np.clip(self.stretch + self.rate * steps / np.maximum(counts, 1),
                                -self.cap, self.cap)
 
     def apply(self, quantiles: NDArray[np.float64], regimes: NDArray[np.intp]
