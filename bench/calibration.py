@@ -8,7 +8,8 @@ design panels: California's counties ≥ 100k (the latest shared CDPH vintage, e
 origin with four weeks of truth), San Francisco's DataSF series (its track record) and the hub's
 44 NHSN admissions rounds (95 % interval there). Per panel and phase of the epidemic at the
 origin (rising, flat, falling: the last two weekly counts known then; and each place's largest
-10 % of weekly counts): 50 %/90 % coverage and relative WIS (the geometric mean over places of
+10 % of weekly counts): 50 %/90 % coverage (with its 95 % moving-block bootstrap interval over
+origins, pipeline.evaluation.bootstrap) and relative WIS (the geometric mean over places of
 Σ WIS / Σ WIS of the hub baseline; San Francisco's own ratio).
 
 **Seeds.** The flows (the flow member, its refits) and the joint pair trained from 3 seeds
@@ -19,6 +20,7 @@ its trouble checks (rollout overshoot, SMC collapse, β not updated from its pri
 
     python -m bench.calibration                 # panels and seeds 0, 1, 2
     python -m bench.calibration --seeds 0       # panels and one seed
+    python -m bench.calibration --seeds ""      # panels only (the seeds' figures kept)
     python -m bench.calibration --joint-iterations 9000   # the rollouts with a longer-trained
                                                           # joint pair (an experiment)
 """
@@ -45,8 +47,9 @@ def _regime_rows(s: dict[str, Any], key: str, outer: str) -> dict[str, Any]:
     """One forecaster's summary (pipeline.evaluation.summary) per regime and overall."""
     rows = {r: s["by_regime"][r] | {"relative_wis": s["by_regime"][r][key]} for r in REGIMES}
     rows["all"] = s | {"relative_wis": s[key]["all"]}
-    return {r: {k: v[k] for k in ("coverage50", outer, "relative_wis", "n_scored")}
-            for r, v in rows.items()}
+    keys = ("coverage50", outer, "coverage50_interval", f"{outer}_interval", "relative_wis",
+            "n_scored")
+    return {r: {k: v[k] for k in keys} for r, v in rows.items()}
 
 
 def panel_summary(summary: dict[str, Any], key: str, outer: str = "coverage90"
@@ -263,12 +266,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                              round(v["relative_wis"], 4))
                          for r, v in panel.items() if isinstance(v, dict) and r != "before"})
     runs = dict(out.get("seed_runs", {}))
-    for seed in (int(s) for s in args.seeds.split(",") if s):
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    for seed in seeds:
         runs[str(seed)] = seed_run(seed)
         print(f"seed {seed}: {runs[str(seed)]}", flush=True)
         out["seed_runs"] = runs
         atomic_write_json(path, out)
-    if runs:
+    if seeds:                       # --seeds "": the panels only, the seeds' figures kept
         values = list(runs.values())
         county = [v["counties_published_relative_wis"] for v in values]
         sf = [v["sf_published_relative_wis"] for v in values]

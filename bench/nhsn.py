@@ -79,19 +79,30 @@ def timed_rounds(hub: Path) -> dict[str, float]:
     return out
 
 
-def leaderboards(ours: Any, teams: Any, target: str, exclusions: Any) -> dict[str, Any]:
-    """Pairwise relative WIS of every model with ours added: overall, by horizon, US, states."""
+def leaderboards(ours: Any, teams: Any, target: str, exclusions: Any,
+                 climatology_from: Any = None) -> dict[str, Any]:
+    """Pairwise relative WIS of every model with ours added: overall, by horizon, US, states,
+    and (``climatology_from``: the first climatology vintage's release) by period — the rounds
+    due before it, where the seasonal member has no climatology yet, and those from it on."""
+    import numpy as np
     import pandas as pd
 
     from pipeline.evaluation.hub_leaderboard import LeaderboardConfig, hub_leaderboard
+    from pipeline.panels.hub import DUE_DAYS_BEFORE_REFERENCE
 
     scores = pd.concat([teams, ours], ignore_index=True)
+    if climatology_from is not None:
+        due = scores["reference_date"] - pd.Timedelta(days=DUE_DAYS_BEFORE_REFERENCE)
+        scores = scores.assign(period=np.where(due >= pd.Timestamp(climatology_from),
+                                               "with climatology", "before climatology"))
     out: dict[str, Any] = {}
     for name, config, by in (
             ("all", LeaderboardConfig(target=target), ()),
             ("by_horizon", LeaderboardConfig(target=target), ("horizon",)),
             ("US", LeaderboardConfig(target=target, locations="US"), ()),
-            ("states", LeaderboardConfig(target=target, locations="states"), ())):
+            ("states", LeaderboardConfig(target=target, locations="states"), ()),
+            *((("by_period", LeaderboardConfig(target=target), ("period",)),)
+              if climatology_from is not None else ())):
         table = hub_leaderboard(scores, config, exclusions, by=by)
         out[name] = table.to_dict(orient="records")
     return out
@@ -106,6 +117,9 @@ def relative(board: dict[str, Any], model: str) -> dict[str, float | None]:
             out[f"h{int(r['horizon'])}"] = float(r["relative_wis"])
     for part in ("US", "states"):
         out[part] = _value({r["model_id"]: r for r in board[part]}.get(model))
+    for r in board.get("by_period", []):
+        if r["model_id"] == model:
+            out[str(r["period"])] = float(r["relative_wis"])
     return out
 
 
@@ -135,7 +149,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     rounds = hub_rounds(vintages)
     latest = vintages[-1][1]
     members = build_hub_members(HubMembersConfig(), default_store_root(), vintages,
-                                climatology)
+                                climatology, target=target)
     t_members = time.perf_counter() - started
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
@@ -148,14 +162,17 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                 ("hub-baseline", "growth-qr", "nf-weekly", "nf-real")),
         Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
         Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
-        Variant("v-nf-real+seasonal", reach, ("nf-real", "seasonal")),
+        Variant("v-nf-real+seasonal (published for the ED share)", reach,
+                ("nf-real", "seasonal")),
+        Variant("v-nf-weekly+seasonal (published for admissions)", reach,
+                ("nf-weekly", "seasonal")),
         Variant("v-log-average (the rule published until 2026-11)",
                 dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")),
         Variant("v-log-mixture, no online calibration",
                 dataclasses.replace(reach, calibration="none")),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
-                ("nf-weekly", "seasonal-pseudo")),
+                (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
     )
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
@@ -169,16 +186,18 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     for name in board_names:
         if name not in set(ours["model_id"]):
             continue
-        board = leaderboards(ours[ours["model_id"] == name], teams, target, exclusions)
+        board = leaderboards(ours[ours["model_id"] == name], teams, target, exclusions,
+                             first_ed[0])
         per_model[name] = relative(board, name) | {
             "coverage": summary_by_horizon(result, name)}
-    published = leaderboards(ours[ours["model_id"] == PUBLISHED], teams, target, exclusions)
+    published = leaderboards(ours[ours["model_id"] == PUBLISHED], teams, target, exclusions,
+                             first_ed[0])
     gap = result.gap
     return {
         "target": target,
         "pairwise_relative_wis": relative(published, PUBLISHED),
-        "coverage50": summary_by_horizon(result)["all"]["coverage50"],
-        "coverage95": summary_by_horizon(result)["all"]["coverage95"],
+        "coverage50": summary_by_horizon(result)["h0-3"]["coverage50"],
+        "coverage95": summary_by_horizon(result)["h0-3"]["coverage95"],
         "coverage_by_horizon": summary_by_horizon(result),
         "n_rounds": len(rounds), "n_locations": len(result.places),
         "rounds": {"first": str(rounds[0].reference.date()),
@@ -188,6 +207,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                                   "n_rounds": int(r["n_rounds"])}
                   for r in published["all"]},
         "teams_by_horizon": published["by_horizon"],
+        "climatology_from": str(pd.Timestamp(first_ed[0]).date()),
+        "teams_by_period": published["by_period"],
         "members_and_variants": per_model,
         "reconciliation": None if gap is None else {
             "median_abs_log_gap_before": float(np.nanmedian(np.abs(gap))),

@@ -195,3 +195,15 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
     back = hubdata.connect_hub(root).get_dataset().to_table().to_pandas()
     assert len(back) == 53 * 5 * (23 + 200) and set(back.location) == set(result.places)
     assert written.reference_date == rounds[-1].reference.date()
+
+
+def test_each_hub_target_averages_its_own_members():
+    from pipeline.members.published import HubMembersConfig, published_names
+    from pipeline.panels.hub import ED_COVID, HOSP_COVID
+    config = HubMembersConfig()
+    assert published_names(config, HOSP_COVID, refitted=True) == ("nf-weekly", "seasonal")
+    assert published_names(config, ED_COVID, refitted=True) == ("nf-real", "seasonal")
+    # before the first refit the share's average takes the weekly flow, never nothing
+    assert published_names(config, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
+    both = HubMembersConfig(published_share=("nf-real", "nf-weekly", "seasonal"))
+    assert published_names(both, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")

@@ -172,7 +172,7 @@ def test_a_revised_settled_week_is_held_by_the_policy_and_taken_after_review(dat
         held = load_nhsn(nhsn_config(cdc.url, data_dir))
         note = held.provenance[HOSP_COVID].notes[0]
         assert held.provenance[HOSP_COVID].from_cache
-        assert ("revision beyond policy: 'value' changed on 1 settled week(s) (ending on or "
+        assert ("revision beyond policy: 'value' changed on 1 settled week(s) (on or "
                 "before 2025-08-23) by more than max(100, 200%), e.g. 06 week ending "
                 "2025-06-07 ") in note
         [payload] = held_files(data_dir, HOSP_COVID)

@@ -31,6 +31,7 @@ from pipeline.backtest.result import BacktestResult
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
 from pipeline.combine.reconcile import median_gap, top_down
+from pipeline.evaluation.hub_leaderboard import SCORED_HORIZONS
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.evaluation.summary import regime_masks, score_cells, summarize_forecaster
 from pipeline.members.base import Member
@@ -277,10 +278,13 @@ def _truth(latest: Panel, places: Sequence[str], rounds: Sequence[HubRound],
 
 def summary_by_horizon(result: HubRoundsResult, forecaster: str = PUBLISHED
                        ) -> dict[str, Any]:
-    """Coverage of a forecaster per hub horizon (50 %, 95 %) and overall."""
+    """Coverage of a forecaster (50 %, 95 %) per hub horizon, over the horizons the hub scores
+    (``"h0-3"``: 0 … 3) and over every horizon (``"all"``: −1 included)."""
     s = result.summary(forecaster)
+    scored = result.summary(forecaster, SCORED_HORIZONS)
 
     def hub(coverage: dict[str, Any]) -> dict[str, Any]:
         return {k: coverage[k] for k in ("coverage50", "coverage95")}
 
-    return {k: hub(v) for k, v in s["coverage_by_horizon"].items()} | {"all": hub(s)}
+    return ({k: hub(v) for k, v in s["coverage_by_horizon"].items()}
+            | {"h0-3": hub(scored), "all": hub(s)})

@@ -25,6 +25,8 @@ from pipeline.evaluation.pairwise import pairwise_comparison
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
 
 US = "US"
+# The horizons the hub scores (−1, the week still being reported, is submitted but not scored)
+SCORED_HORIZONS: tuple[int, ...] = (0, 1, 2, 3)
 SCORE_COLUMNS: tuple[str, ...] = (*TASK_COLUMNS, "observed", "wis", "dispersion",
                                   "overprediction", "underprediction", "coverage_50",
                                   "coverage_95")
@@ -94,7 +96,7 @@ class LeaderboardConfig:
     models (None: every model in the scores)."""
 
     target: str = "wk inc covid hosp"
-    horizons: tuple[int, ...] = (0, 1, 2, 3)
+    horizons: tuple[int, ...] = SCORED_HORIZONS
     locations: Literal["all", "states", "US"] = "all"
     apply_exclusions: bool = True
     complete_rounds_only: bool = False

@@ -11,12 +11,15 @@ hub baseline's into its summary:
 * ``gmean_relative_wis.{h…, all}`` — the geometric mean over places of each place's ratio, the
   Forecast Hub's way of comparing across locations; ``share_beating_baseline`` — the share of
   places whose ratio is < 1; ``per_place`` — each place's ratio (panels of more than one place);
-* ``coverage50``, ``coverage90``, ``coverage95`` (and per horizon), ``mean_wis``, the WIS parts'
-  shares, a 10-bin PIT histogram;
-* ``by_regime.{falling, flat, rising, largest10}`` — the same relative WIS and coverage over the
-  cells whose origin was in that phase (:mod:`pipeline.evaluation.regimes`) and over the cells of
-  each place's largest 10 % of observed weekly counts (intervals that hold on average can fail
-  exactly when the epidemic turns).
+* ``coverage50``, ``coverage90``, ``coverage95`` (and per horizon), each overall one with its
+  95 % moving-block bootstrap interval over origins (``coverage50_interval``, …;
+  :mod:`pipeline.evaluation.bootstrap`: how far a miss is from chance), ``mean_wis``, the WIS
+  parts' shares, a 10-bin PIT histogram;
+* ``by_regime.{falling, flat, rising, largest10}`` — the same relative WIS and coverage (with
+  its interval) over the cells whose origin was in that phase
+  (:mod:`pipeline.evaluation.regimes`) and over the cells of each place's largest 10 % of
+  observed weekly counts (intervals that hold on average can fail exactly when the epidemic
+  turns).
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.evaluation.bootstrap import coverage_interval
 from pipeline.evaluation.quantile_function import pit_from_quantiles
 from pipeline.evaluation.regimes import REGIME_NAMES
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
@@ -110,14 +114,25 @@ def _coverage(scores: CellScores, mask: NDArray[np.bool_] | None = None
             for c, v in scores.covered.items()}
 
 
+def _coverage_intervals(scores: CellScores, mask: NDArray[np.bool_]
+                        ) -> dict[str, list[float] | None]:
+    """The 95 % moving-block bootstrap interval of each coverage (origins resampled)."""
+    out: dict[str, list[float] | None] = {}
+    for c, v in scores.covered.items():
+        interval = coverage_interval(v, mask)
+        out[f"coverage{round(100 * c)}_interval"] = None if interval is None else list(interval)
+    return out
+
+
 def _masked_summary(scores: CellScores, base_wis: NDArray[np.float64],
                     mask: NDArray[np.bool_]) -> dict[str, Any]:
     wis = np.where(mask, scores.wis, np.nan)
     base = np.where(mask, base_wis, np.nan)
+    scored = mask & np.isfinite(scores.wis)
     return {"relative_wis_vs_baseline": _sums_ratio(wis, base),
             "gmean_relative_wis": _gmean(_place_ratios(wis, base)),
-            **_coverage(scores, mask & np.isfinite(scores.wis)),
-            "n_scored": int((mask & np.isfinite(scores.wis)).sum())}
+            **_coverage(scores, scored), **_coverage_intervals(scores, scored),
+            "n_scored": int(scored.sum())}
 
 
 def regime_masks(regimes: NDArray[np.intp], truth: NDArray[np.float64], n_horizons: int
@@ -156,6 +171,7 @@ def summarize_forecaster(scores: CellScores, base_wis: NDArray[np.float64],
         "share_beating_baseline": {k: _share_below_one(per_h[:, i]) for i, k in enumerate(keys)}
                                   | {"all": _share_below_one(overall)},
         **_coverage(scores),
+        **_coverage_intervals(scores, np.isfinite(wis)),
         "coverage_by_horizon": {k: _coverage(_at_horizon(scores, i)) for i, k in enumerate(keys)},
         "mean_wis": {k: _mean(wis[:, :, i]) for i, k in enumerate(keys)},
         "wis_parts_share": {p: _ratio(float(np.nansum(getattr(scores, p))), float(total))

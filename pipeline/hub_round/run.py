@@ -8,8 +8,9 @@ cache, the newest round published as the hub's file.
 2. **Rounds** (:func:`~pipeline.panels.hub.hub_rounds`): one per cached vintage; the newest is
    this week's round, the earlier ones its real-time track record — the same method, from the
    data as released then (:mod:`pipeline.backtest.hub_rounds`).
-3. **Members** (:func:`~pipeline.members.published.build_hub_members`): the weekly flow and the
-   seasonal member averaged; the hub baseline, growth-qr and the fine-tuned flow scored beside.
+3. **Members** (:func:`~pipeline.members.published.build_hub_members`): for admissions the
+   weekly flow and the seasonal member averaged, for the ED share the flow refitted on the
+   share's windows and the seasonal member; the others scored beside.
 4. **Publish** (:mod:`pipeline.hub_round.publish`): the round's file
    ``model-output/<model>/<reference date>-<model>.csv`` with its metadata, validated against
    the hub's ``tasks.json``, the report, the track record's scores.
@@ -167,7 +168,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     for target, target_vintages in vintages.items():
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
-                                    climatology, progress)
+                                    climatology, progress, target=target)
         model_key, reused = members.model_key, reused and members.reused
         memo = ForecastMemo.load(memo_path(config, target))
         results[target] = run_hub_rounds(

@@ -16,7 +16,8 @@ transactional store of :mod:`pipeline.data.core.cache`)::
     vintages/<as-of>-<sha[:16]>.csv every vintage ever accepted, immutable (nowcasting needs them)
     held/payload-<sha[:16]>.csv     payloads the revision policy refused, with .reason.json
 
-Revision policy (:class:`CDPHRevisionPolicy`), a new vintage against the live one:
+Revision policy (a :class:`~pipeline.data.core.revision_policy.RevisionPolicy`), a new vintage
+against the live one:
 
 * it may not end earlier (an older vintage) nor start later, nor drop a county;
 * days older than ``open_days`` (28) before the live vintage's last day are *settled*: each
@@ -51,7 +52,7 @@ import requests
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
                                       utc_now, RevisionRefusedError)
-from pipeline.data.core.revision_policy import refuse_settled_changes, refuse_total_drop
+from pipeline.data.core.revision_policy import RevisionPolicy, refuse_revisions
 from pipeline.data.california.cdph import (COUNT_COLUMNS, CDPHFormatError, CDPHVintage,
                                            parse_cdph_csv)
 from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
@@ -68,16 +69,7 @@ _IMPORT_HINT = (f"import a downloaded covid19cases_test.csv ({SPEC.download_url(
                 f"`flowcast data import FILE`")
 
 
-@dataclass(frozen=True)
-class CDPHRevisionPolicy:
-    open_days: int = 28
-    settled_abs: int = 100
-    settled_rel: float = 0.5
-    max_total_drop: float = 0.02
-    columns: tuple[str, ...] = COUNT_COLUMNS
-
-
-DEFAULT_POLICY = CDPHRevisionPolicy()
+DEFAULT_POLICY = RevisionPolicy(open_days=28, settled_abs=100, settled_rel=0.5, max_total_drop=0.02)
 
 
 @dataclass(frozen=True)
@@ -87,7 +79,7 @@ class CDPHConfig:
     client: CHHSClientConfig = field(default_factory=CHHSClientConfig)
     data_dir: Path | None = None          # None -> $FLOWCAST_DATA_DIR or ./data
     accept_revisions: bool = False        # take a payload the revision policy would hold
-    policy: CDPHRevisionPolicy = DEFAULT_POLICY
+    policy: RevisionPolicy = DEFAULT_POLICY
     lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S  # then the fetched payload is dropped
 
 
@@ -142,7 +134,7 @@ def validate_cdph_payload(data: bytes, source: str) -> CDPHVintage:
 
 
 def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
-                         policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> None:
+                         policy: RevisionPolicy = DEFAULT_POLICY) -> None:
     """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (module doc)."""
     key = SPEC.key
     if new.as_of < cached.as_of:
@@ -167,21 +159,15 @@ def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
             f"{key}: {worse[0]} passes the validation gate in the cached vintage of "
             f"{cached.as_of.date()} but fails it in a new payload of the same date "
             f"({new.skipped[worse[0]]}); cached copy kept")
-    columns = list(policy.columns)
     common = cached.frame.merge(new.frame, on=["area", "date"], suffixes=("", "_new"))
-    settled_until = cached.as_of - pd.Timedelta(days=policy.open_days)
-    settled = (common["date"] <= settled_until).to_numpy()
-    for column in columns:
-        before = common[column].to_numpy(np.int64)
-        after = common[f"{column}_new"].to_numpy(np.int64)
-        refuse_settled_changes(
-            key, column, before, after, settled, settled_abs=policy.settled_abs,
-            settled_rel=policy.settled_rel, cells="county-day",
-            until=f"on or before {settled_until.date()}",
+    for column in COUNT_COLUMNS:
+        refuse_revisions(
+            key, column, common[column].to_numpy(np.int64),
+            common[f"{column}_new"].to_numpy(np.int64), common["date"].to_numpy(),
+            policy=policy, last=cached.as_of, cells="county-day",
+            over="the counties' common days",
             example=lambda i: (f"{common['area'].iloc[i]} "
                                f"{pd.Timestamp(common['date'].iloc[i]).date()}"))
-        refuse_total_drop(key, column, before, after, max_total_drop=policy.max_total_drop,
-                          over="the counties' common days")
 
 
 def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | None:
@@ -195,7 +181,7 @@ def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | N
 def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
                    source_kind: SourceKind, source: str, final_url: str | None = None,
                    accept_revisions: bool = False, older: str = "refuse",
-                   policy: CDPHRevisionPolicy = DEFAULT_POLICY,
+                   policy: RevisionPolicy = DEFAULT_POLICY,
                    lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S) -> Committed:
     """Store an already validated vintage (:meth:`VintageArchive.commit`, under the cache lock):
     live if the revision policy allows it against the live copy; older than the live one,
@@ -391,7 +377,7 @@ def validate_cdph_exports(paths: Sequence[str | os.PathLike[str]]) -> list[Check
 def import_cdph_exports(paths: Sequence[str | os.PathLike[str]],
                         data_dir: str | os.PathLike[str] | None = None, *,
                         if_empty: bool = False, accept_revisions: bool = False,
-                        policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
+                        policy: RevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
     """Validate every file first (nothing is stored if one fails), then store them oldest
     first (:func:`store_cdph_exports`)."""
     return store_cdph_exports(validate_cdph_exports(paths), data_dir, if_empty=if_empty,
@@ -401,7 +387,7 @@ def import_cdph_exports(paths: Sequence[str | os.PathLike[str]],
 def store_cdph_exports(checked: Sequence[CheckedExport],
                        data_dir: str | os.PathLike[str] | None = None, *,
                        if_empty: bool = False, accept_revisions: bool = False,
-                       policy: CDPHRevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
+                       policy: RevisionPolicy = DEFAULT_POLICY) -> list[CDPHImportSummary]:
     """Store validated files oldest first: each becomes the live copy if the revision policy
     allows (a refusal stops here: the files before it are stored, the rest are not); one older
     than the live copy is kept in ``vintages/`` only (archived downloads come in any order)."""
@@ -440,7 +426,7 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
 
 
 __all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance",
-           "CDPHRevisionPolicy", "CheckedExport", "cached_vintages", "check_cdph_successor",
+           "CheckedExport", "cached_vintages", "check_cdph_successor",
            "commit_vintage", "import_cdph_exports", "is_cdph_export",
            "load_cdph", "load_cdph_vintage", "store_cdph_exports", "validate_cdph_exports",
            "validate_cdph_payload"]

@@ -11,13 +11,57 @@ kept, and ``--accept-revisions`` takes it after review.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.data.core.cache import RevisionRefusedError
+from pipeline.errors import ConfigError
 
 HELD = "held for review, cached copy kept"
+
+
+@dataclass(frozen=True)
+class RevisionPolicy:
+    """What a new payload may revise: cells dated within ``open_days`` of the cached copy's last
+    date are open (late reports); an older, settled cell may change by at most
+    max(``settled_abs``, ``settled_rel`` × |cached value|); the total of a count over the cells
+    both copies hold may fall by at most ``max_total_drop`` (None: a source whose values are
+    not counts, or whose totals legitimately fall, is not checked)."""
+
+    open_days: int = 28
+    settled_abs: float = 50.0
+    settled_rel: float = 0.25
+    max_total_drop: float | None = 0.02
+
+    def __post_init__(self) -> None:
+        if (self.open_days < 0 or self.settled_abs < 0 or self.settled_rel < 0
+                or (self.max_total_drop is not None and not 0 <= self.max_total_drop <= 1)):
+            raise ConfigError(f"invalid {self}: open_days, settled_abs and settled_rel must be "
+                              ">= 0, max_total_drop in [0, 1] or None")
+
+    def settled_until(self, last: pd.Timestamp) -> pd.Timestamp:
+        """The newest date of a settled cell when the cached copy ends on ``last``."""
+        return pd.Timestamp(last) - pd.Timedelta(days=self.open_days)
+
+
+def refuse_revisions(key: str, label: str, before: NDArray[np.number],
+                     after: NDArray[np.number], dates: NDArray[np.datetime64], *,
+                     policy: RevisionPolicy, last: pd.Timestamp, cells: str, over: str,
+                     example: Callable[[int], str]) -> None:
+    """Both checks of ``policy`` on one column of the cells both copies hold (their ``dates``;
+    ``last``: the cached copy's last date). ``cells``, ``over`` and ``example``: as in
+    :func:`refuse_settled_changes` and :func:`refuse_total_drop`."""
+    until = policy.settled_until(last)
+    refuse_settled_changes(key, label, before, after,
+                           np.asarray(dates, dtype="datetime64[ns]") <= until.to_datetime64(),
+                           settled_abs=policy.settled_abs, settled_rel=policy.settled_rel,
+                           cells=cells, until=f"on or before {until.date()}", example=example)
+    if policy.max_total_drop is not None:
+        refuse_total_drop(key, label, before, after, max_total_drop=policy.max_total_drop,
+                          over=over)
 
 
 def refuse_settled_changes(key: str, label: str, before: NDArray[np.number],

@@ -8,7 +8,7 @@ the vintage's date, one row per week, no gap, admissions whole, not negative, at
 location's population in a week and plausible against the location's previous weeks
 (:data:`WEEKLY`), ED shares within 0 … 0.5. A location that fails is skipped and named
 (:attr:`WeeklyVintage.skipped`); a vintage is committed under the cache lock
-(:mod:`pipeline.data.core.vintages`) against the revision policy (:class:`WeeklyRevisionPolicy`).
+(:mod:`pipeline.data.core.vintages`) against the revision policy (:class:`RevisionPolicy`).
 
 Cache: ``<data dir>/nhsn/<target, slugged>/`` (manifest, live payload, ``vintages/``, ``held/``).
 The live source and the loader are :mod:`pipeline.data.hub.nhsn`; imports of a hub's target data
@@ -31,7 +31,7 @@ import pandas as pd
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
                                       RevisionRefusedError)
-from pipeline.data.core.revision_policy import refuse_settled_changes
+from pipeline.data.core.revision_policy import RevisionPolicy, refuse_revisions
 from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
@@ -242,31 +242,24 @@ def canonical_csv(frame: pd.DataFrame) -> bytes:
 # ------------------------------------------------------------------------------ revisions
 
 
-@dataclass(frozen=True)
-class WeeklyRevisionPolicy:
-    """A new vintage against the live one. Weeks ending more than ``open_weeks`` before the live
-    vintage's last week are settled: each may change by at most max(``settled_abs``,
-    ``settled_rel`` × its cached value). On the hub's 44 real vintages the largest settled
-    revisions are Arizona's, down to 0.37× and back up 2.7× a fortnight later (516 → 191 → 516
-    for the week ending 2024-11-09), and Puerto Rico's 13 → 107 (lag 74 days): a revision of a
-    settled week beyond 3× its value (or 100 admissions) is held for review."""
-
-    open_weeks: int = 4
-    settled_abs: float = 100.0
-    settled_rel: float = 2.0
-
-
-ADMISSIONS_POLICY = WeeklyRevisionPolicy()
+# A new vintage against the live one: weeks ending more than 4 weeks before the live vintage's
+# last week are settled. On the hub's 44 real vintages the largest settled revisions are
+# Arizona's, down to 0.37× and back up 2.7× a fortnight later (516 → 191 → 516 for the week
+# ending 2024-11-09), and Puerto Rico's 13 → 107 (lag 74 days): a revision of a settled week
+# beyond 3× its value (or 100 admissions) is held for review. Totals are not checked: a state's
+# settled week may legitimately fall by more than any small share.
+ADMISSIONS_POLICY = RevisionPolicy(open_days=28, settled_abs=100.0, settled_rel=2.0,
+                                   max_total_drop=None)
 # NSSP shares: the largest settled revision in the 15 real vintages is 0.0008 (0.08 points)
-ED_POLICY = WeeklyRevisionPolicy(settled_abs=0.005, settled_rel=0.5)
+ED_POLICY = RevisionPolicy(open_days=28, settled_abs=0.005, settled_rel=0.5, max_total_drop=None)
 
 
-def policy_of(spec: TargetSpec) -> WeeklyRevisionPolicy:
+def policy_of(spec: TargetSpec) -> RevisionPolicy:
     return ADMISSIONS_POLICY if spec.kind == "admissions" else ED_POLICY
 
 
 def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
-                           policy: WeeklyRevisionPolicy) -> None:
+                           policy: RevisionPolicy) -> None:
     """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (held for
     review when it revises settled weeks beyond ``policy``)."""
     t = new.target
@@ -295,12 +288,10 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
                                    f"copy kept")
     common = cached.frame.merge(new.frame, on=["target_end_date", "location"],
                                 suffixes=("", "_new"))
-    settled_until = cached.last_week - pd.Timedelta(weeks=policy.open_weeks)
-    refuse_settled_changes(
+    refuse_revisions(
         t, "value", common["value"].to_numpy(), common["value_new"].to_numpy(),
-        (common["target_end_date"] <= settled_until).to_numpy(),
-        settled_abs=policy.settled_abs, settled_rel=policy.settled_rel, cells="week",
-        until=f"ending on or before {settled_until.date()}",
+        common["target_end_date"].to_numpy(), policy=policy, last=cached.last_week,
+        cells="week", over="the common location-weeks",
         example=lambda i: (f"{common['location'].iloc[i]} week ending "
                            f"{pd.Timestamp(common['target_end_date'].iloc[i]).date()}"))
 

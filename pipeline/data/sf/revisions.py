@@ -24,7 +24,6 @@ not used; after a person has looked at it, ``flowcast data fetch --accept-revisi
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,7 +31,7 @@ import pandas as pd
 
 from pipeline.data.core.cache import (CachedPayload, CommitCheck, DatasetCache,
                                       RevisionRefusedError, SourceKind)
-from pipeline.data.core.revision_policy import refuse_settled_changes, refuse_total_drop
+from pipeline.data.core.revision_policy import RevisionPolicy, refuse_revisions
 from pipeline.data.sf.datasf import check_gate
 from pipeline.data.sf.payloads import decode_cached
 from pipeline.data.core.plausibility import DAILY, JumpRule
@@ -43,15 +42,7 @@ from pipeline.io import LOCK_TIMEOUT_S
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class RevisionPolicy:
-    open_days: int = 28
-    settled_abs: int = 50
-    settled_rel: float = 0.25
-    max_total_drop: float = 0.02
-
-
-DEFAULT_POLICY = RevisionPolicy()
+DEFAULT_POLICY = RevisionPolicy(open_days=28, settled_abs=50, settled_rel=0.25, max_total_drop=0.02)
 
 
 def check_successor(new: ValidatedFrame, cached: ValidatedFrame,
@@ -91,17 +82,12 @@ def _check_revisions(new: ValidatedFrame, cached: ValidatedFrame, key: str,
     columns = list(new.spec.count_columns)
     old = cached.frame.set_index("date")[columns]
     common = old.join(new.frame.set_index("date")[columns], how="inner", rsuffix="_new")
-    settled_until = cached.report.last_date - pd.Timedelta(days=policy.open_days)
-    settled = common.index <= settled_until
     for column in columns:
-        before = common[column].to_numpy(dtype=np.int64)
-        after = common[f"{column}_new"].to_numpy(dtype=np.int64)
-        refuse_settled_changes(key, column, before, after, settled,
-                               settled_abs=policy.settled_abs, settled_rel=policy.settled_rel,
-                               cells="day", until=f"on or before {settled_until.date()}",
-                               example=lambda i: str(common.index[i].date()))
-        refuse_total_drop(key, column, before, after, max_total_drop=policy.max_total_drop,
-                          over=f"the {len(common)} common days")
+        refuse_revisions(key, column, common[column].to_numpy(dtype=np.int64),
+                         common[f"{column}_new"].to_numpy(dtype=np.int64),
+                         common.index.to_numpy(), policy=policy, last=cached.report.last_date,
+                         cells="day", over=f"the {len(common)} common days",
+                         example=lambda i: str(common.index[i].date()))
 
 
 def successor_check(new: ValidatedFrame, *, gap_policy: GapPolicy,

@@ -42,7 +42,8 @@ from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, n
 from pipeline.data.sf.payloads import decode_cached as _decode_payload
 from pipeline.data.sf.payloads import rows_frame
 from pipeline.data.core.plausibility import DAILY, JumpRule
-from pipeline.data.sf.revisions import DEFAULT_POLICY, RevisionPolicy, commit_validated
+from pipeline.data.core.revision_policy import RevisionPolicy
+from pipeline.data.sf.revisions import DEFAULT_POLICY, commit_validated
 from pipeline.data.sf.validation import GapPolicy, ValidatedFrame, validate_frame
 from pipeline.errors import ConfigError, OfflineError, ValidationError
 
