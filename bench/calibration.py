@@ -109,7 +109,8 @@ def nhsn() -> dict[str, Any]:
 
     import_hub_time_series(SHARED / "nhsn", if_empty=True)
     vintages, climatology = load_vintages(HOSP_COVID), load_vintages(ED_COVID)
-    members = build_hub_members(HubMembersConfig(), default_store_root(), vintages, climatology)
+    members = build_hub_members(HubMembersConfig(), default_store_root(), vintages, climatology,
+                                target=HOSP_COVID)
     before = dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")
     result = run_hub_rounds(hub_rounds(vintages), vintages[-1][1], members.published,
                             HubBacktestConfig(variants=(Variant(BEFORE, before),)),

@@ -5,7 +5,11 @@ rounds 2024-11-23 … 2025-09-27, 15 ED-share rounds from 2025-06-21): each roun
 released by its due date only, nowcast, forecast by the members, combined, reconciled
 (:mod:`pipeline.backtest.hub_rounds`), written as the hub's file, scored against the latest
 vintage, and ranked among every team of the hub by pairwise relative WIS (Cramer et al. 2022;
-``CovidHub-baseline`` = 1) on the forecasts both made, horizons 0–3, with the hub's exclusions.
+``CovidHub-baseline`` = 1) on the forecasts both made, horizons 0–3, with the hub's exclusions;
+also by period (``teams_by_period``): the rounds due before the first ED vintage, where the
+seasonal member has no climatology and the published forecast is the flow's alone, and those
+from it on. Coverage (``coverage50``, ``coverage95``) is over horizons 0–3, the ones the hub
+scores; ``coverage_by_horizon`` has −1 too.
 
 Beside the published forecast: every member alone, the variants (the members the issue named —
 hub baseline, growth-qr, the flows — and others), and the published design with the seasonal
@@ -193,12 +197,13 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     published = leaderboards(ours[ours["model_id"] == PUBLISHED], teams, target, exclusions,
                              first_ed[0])
     gap = result.gap
+    coverage = per_model[PUBLISHED]["coverage"]
     return {
         "target": target,
         "pairwise_relative_wis": relative(published, PUBLISHED),
-        "coverage50": summary_by_horizon(result)["h0-3"]["coverage50"],
-        "coverage95": summary_by_horizon(result)["h0-3"]["coverage95"],
-        "coverage_by_horizon": summary_by_horizon(result),
+        "coverage50": coverage["h0-3"]["coverage50"],
+        "coverage95": coverage["h0-3"]["coverage95"],
+        "coverage_by_horizon": coverage,
         "n_rounds": len(rounds), "n_locations": len(result.places),
         "rounds": {"first": str(rounds[0].reference.date()),
                    "last": str(rounds[-1].reference.date())},

@@ -281,7 +281,7 @@ def summary_by_horizon(result: HubRoundsResult, forecaster: str = PUBLISHED
     """Coverage of a forecaster (50 %, 95 %) per hub horizon, over the horizons the hub scores
     (``"h0-3"``: 0 … 3) and over every horizon (``"all"``: −1 included)."""
     s = result.summary(forecaster)
-    scored = result.summary(forecaster, SCORED_HORIZONS)
+    scored = result.summary(forecaster, [h for h in result.horizons if h in SCORED_HORIZONS])
 
     def hub(coverage: dict[str, Any]) -> dict[str, Any]:
         return {k: coverage[k] for k in ("coverage50", "coverage95")}

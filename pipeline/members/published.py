@@ -33,7 +33,7 @@ from pipeline.members.growth_regression import GrowthRegressionConfig, PooledGro
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.errors import ConfigError
 from pipeline.panels.history import EpiHistory, History
-from pipeline.panels.hub import HOSP_COVID, is_share
+from pipeline.panels.hub import is_share
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter
 from pipeline.training.digests import DataDigests
@@ -124,18 +124,15 @@ class HubMembersConfig:
     # average takes the refit where one exists (bench/results/nhsn.json, ed_visits)
     published_share: tuple[str, ...] = (NF_REAL, SEASONAL)
     flow_samples: int = 1000
-
-    def published_for(self, target: str) -> tuple[str, ...]:
-        """The published average's members for the hub ``target``."""
-        return self.published_share if is_share(target) else self.published
     baseline_samples: int = BASELINE_SAMPLES
 
 
 def published_names(config: HubMembersConfig, target: str, *, refitted: bool
                     ) -> tuple[str, ...]:
-    """The members of ``target``'s published average: the weekly flow stands in for its refit
-    while no refit date has come (``refitted`` False)."""
-    published = config.published_for(target)
+    """The members of ``target``'s published average (``config.published``, or
+    ``published_share`` for a share): the weekly flow stands in for its refit while no refit
+    date has come (``refitted`` False)."""
+    published = config.published_share if is_share(target) else config.published
     if refitted or NF_REAL not in published:
         return published
     return tuple(dict.fromkeys(NF_WEEKLY if n == NF_REAL else n for n in published))
@@ -155,13 +152,12 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
                       refit_vintages: Sequence[tuple[pd.Timestamp, Panel]],
                       climatology: Sequence[tuple[pd.Timestamp, Panel]],
                       progress: ProgressReporter | None = None, *,
-                      target: str = HOSP_COVID) -> HubMembers:
+                      target: str) -> HubMembers:
     """The hub forecast's members (docs/forecasting.md "The hub forecast"): the weekly flow
     (model store), that flow fine-tuned at the refit dates among the vintages' last weeks on
     the windows of the vintage of each (``nf-real``), the seasonal member on the
     ``climatology`` vintages (the ED-visit share), the hub baseline and growth-qr pooled over
-    the 53 locations; ``config.published_for(target)`` chooses the average's members (the
-    weekly flow in place of its refit while no refit date has come)."""
+    the 53 locations; :func:`published_names` chooses the average's members for ``target``."""
     synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
     stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
                                          synthetic=synthetic)

@@ -53,18 +53,18 @@ def refuse_revisions(key: str, label: str, before: NDArray[np.number],
                      example: Callable[[int], str]) -> None:
     """Both checks of ``policy`` on one column of the cells both copies hold (their ``dates``;
     ``last``: the cached copy's last date). ``cells``, ``over`` and ``example``: as in
-    :func:`refuse_settled_changes` and :func:`refuse_total_drop`."""
+    :func:`_refuse_settled_changes` and :func:`_refuse_total_drop`."""
     until = policy.settled_until(last)
-    refuse_settled_changes(key, label, before, after,
+    _refuse_settled_changes(key, label, before, after,
                            np.asarray(dates, dtype="datetime64[ns]") <= until.to_datetime64(),
                            settled_abs=policy.settled_abs, settled_rel=policy.settled_rel,
                            cells=cells, until=f"on or before {until.date()}", example=example)
     if policy.max_total_drop is not None:
-        refuse_total_drop(key, label, before, after, max_total_drop=policy.max_total_drop,
+        _refuse_total_drop(key, label, before, after, max_total_drop=policy.max_total_drop,
                           over=over)
 
 
-def refuse_settled_changes(key: str, label: str, before: NDArray[np.number],
+def _refuse_settled_changes(key: str, label: str, before: NDArray[np.number],
                            after: NDArray[np.number], settled: NDArray[np.bool_], *,
                            settled_abs: float, settled_rel: float, cells: str, until: str,
                            example: Callable[[int], str]) -> None:
@@ -81,7 +81,7 @@ def refuse_settled_changes(key: str, label: str, before: NDArray[np.number],
             f"{example(i)} {_number(before[i])} -> {_number(after[i])}; {HELD}", hold=True)
 
 
-def refuse_total_drop(key: str, label: str, before: NDArray[np.number],
+def _refuse_total_drop(key: str, label: str, before: NDArray[np.number],
                       after: NDArray[np.number], *, max_total_drop: float, over: str) -> None:
     """Refuse when the total of ``label`` over the common cells (``over``, in words) falls by
     more than ``max_total_drop``."""
