@@ -30,6 +30,7 @@ from pipeline.errors import FlowcastError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _FLAT_LIST = re.compile(r"\[\s+([^\[\]{}]*?)\s+\]")
+_SENTENCE_END = re.compile(r"[.!?](?:\s|$)")
 
 
 class ReportError(FlowcastError):
@@ -143,6 +144,48 @@ class Section:
                    intro=intro, alerts=tuple(alerts), new_page=new_page)
 
 
+class NoticeKind(enum.StrEnum):
+    """Why a notice is on page 1."""
+
+    LEFT_OUT = "left out"       # a place, member or target this round went without
+    HELD = "held"               # data held for review, or older than the round wants
+    NOTE = "note"               # anything else the reader must know before the numbers
+
+
+@dataclass(frozen=True)
+class Notice:
+    """One thing this round left out or held, said in words on page 1."""
+
+    kind: NoticeKind
+    text: str
+
+    def __post_init__(self) -> None:
+        if not self.text.strip():
+            raise ReportError("a page-1 notice has no text")
+        object.__setattr__(self, "kind", NoticeKind(self.kind))
+
+
+@dataclass(frozen=True)
+class PageOne:
+    """Page 1: ``figures`` (the fan chart first; a hub round's map beside it), the
+    ``headline`` (one or two sentences), the forecast ``table`` and the ``notices``."""
+
+    figures: tuple[FigureItem, ...]
+    headline: str
+    table: TableItem
+    notices: tuple[Notice, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "figures", tuple(self.figures))
+        object.__setattr__(self, "notices", tuple(self.notices))
+        if not self.figures:
+            raise ReportError("page 1 needs the figure that carries the forecast")
+        sentences = len(_SENTENCE_END.findall(self.headline.strip()))
+        if not 1 <= sentences <= 2:
+            raise ReportError(f"page 1's headline must be one or two sentences, got "
+                              f"{sentences}: {self.headline[:120]!r}")
+
+
 def _freeze(mapping: Mapping[str, Any]) -> Mapping[str, Any]:
     return MappingProxyType(dict(mapping))
 
@@ -191,7 +234,8 @@ class ReportContent:
     warnings: tuple[str, ...] = ()        # e.g. "Data are stale by 9 days (fetch failed)."
     summary: str = ""                     # a short lead paragraph under the title
     generated_at: dt.datetime | None = None
-    headline: Section | None = None       # page 1: the forecast's numbers, before any section
+    headline: Section | None = None       # the forecast's numbers, before any section
+    page1: PageOne | None = None          # page 1: the figure, headline, table, notices
     kicker: str = "flowcast weekly report"   # the line above the title: which report this is
 
     def __post_init__(self) -> None:

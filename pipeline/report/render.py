@@ -30,8 +30,8 @@ import pandas as pd
 from pipeline import __version__
 from pipeline.forked import ChildBuild, start_in_child
 from pipeline.io import atomic_write_bytes, atomic_write_text, sha256_bytes
-from pipeline.report.content import (FigureItem, Provenance, ReportContent, ReportError, Section,
-                                     TableItem)
+from pipeline.report.content import (FigureItem, PageOne, Provenance, ReportContent, ReportError,
+                                     Section, TableItem)
 
 HTML_NAME = "report.html"
 PDF_NAME = "report.pdf"
@@ -191,6 +191,12 @@ def _section_view(section: Section) -> dict[str, Any]:
             "blocks": _blocks(section.items)}
 
 
+def _page_one_view(page: PageOne) -> dict[str, Any]:
+    return {"blocks": _blocks(page.figures), "headline": page.headline,
+            "table": _table_view(page.table),
+            "notices": [{"kind": str(n.kind), "text": n.text} for n in page.notices]}
+
+
 def _provenance_view(p: Provenance) -> dict[str, Any]:
     return {"rows": p.rows(), "config_json": p.config_json() if p.config else ""}
 
@@ -206,6 +212,7 @@ def render_html(content: ReportContent) -> str:
         reference_date=content.reference_date.isoformat(), data_vintage=content.data_vintage,
         generated_at=generated, warnings=content.warnings, summary=content.summary,
         headline=_section_view(content.headline) if content.headline else None,
+        page1=_page_one_view(content.page1) if content.page1 else None,
         checks=content.checks, sections=[_section_view(s) for s in content.sections],
         provenance=_provenance_view(content.provenance))
 
