@@ -127,3 +127,104 @@ def external_references(html: str) -> list[str]:
             bad.append(f"url({match.group(1)[:80]})")
     bad += [f"@import {m.group(0)[:80]}" for m in re.finditer(r"@import[^;]*;", html)]
     return bad
+
+
+# ----------------------------------------------------------------------------- PDF text layout
+
+_WORD_BOX = re.compile(r'<word xMin="([\d.]+)" yMin="([\d.]+)" xMax="([\d.]+)" yMax="([\d.]+)">'
+                       r'([^<]*)</word>')
+_PAGE_BOX = re.compile(r'<page width="([\d.]+)" height="([\d.]+)">')
+PT_PER_MM = 72 / 25.4
+
+
+def pdf_word_boxes(pdf: Path) -> list[list[tuple[float, float, float, float, str]]]:
+    """Per page, every word's box (xMin, yMin, xMax, yMax in points) and text
+    (``pdftotext -bbox``)."""
+    out = subprocess.run(["pdftotext", "-bbox", str(pdf), "-"], capture_output=True, text=True,
+                         check=True, timeout=120).stdout
+    pages = []
+    for chunk in out.split("<page ")[1:]:
+        pages.append([(float(a), float(b), float(c), float(d), w)
+                      for a, b, c, d, w in _WORD_BOX.findall(chunk)])
+    return pages
+
+
+def pdf_page_width(pdf: Path) -> float:
+    out = subprocess.run(["pdftotext", "-bbox", "-f", "1", "-l", "1", str(pdf), "-"],
+                         capture_output=True, text=True, check=True, timeout=60).stdout
+    match = _PAGE_BOX.search(out)
+    if not match:
+        raise AssertionError(f"pdftotext -bbox printed no page size for {pdf}")
+    return float(match.group(1))
+
+
+def overflowing_text_boxes(pdf: Path, right_margin_mm: float = 14.0, slack_pt: float = 1.0
+                           ) -> list[tuple[int, str, float]]:
+    """(page, word, xMax) of every word whose box runs past the page's right margin (the
+    stylesheet's 14 mm), i.e. text cut or squeezed off the printed area."""
+    limit = pdf_page_width(pdf) - right_margin_mm * PT_PER_MM + slack_pt
+    return [(page, word, x1) for page, words in enumerate(pdf_word_boxes(pdf), start=1)
+            for _, _, x1, _, word in words if x1 > limit]
+
+
+def pdf_page_words(pdf: Path, page: int = 1) -> int:
+    """Words of text on one page (a token holding a letter or digit; figures are images)."""
+    text = subprocess.run(["pdftotext", "-f", str(page), "-l", str(page), str(pdf), "-"],
+                          capture_output=True, text=True, check=True, timeout=60).stdout
+    return sum(1 for token in text.split() if any(ch.isalnum() for ch in token))
+
+
+def pdf_page_images(pdf: Path, page: int = 1) -> int:
+    """Images drawn on one page (``pdfimages -list``), soft masks not counted."""
+    out = subprocess.run(["pdfimages", "-list", "-f", str(page), "-l", str(page), str(pdf)],
+                         capture_output=True, text=True, check=True, timeout=60).stdout
+    rows = [line.split() for line in out.splitlines()[2:] if line.strip()]
+    return sum(1 for row in rows if len(row) > 2 and row[2] == "image")
+
+
+# ----------------------------------------------------------------------------- browser check
+
+_PROBE = """<script>
+(function () {
+  var errors = [];
+  window.addEventListener("error", function (e) {
+    var t = e.target;
+    errors.push(t && t.tagName ? "failed to load <" + t.tagName.toLowerCase() + ">" : String(e.message));
+  }, true);
+  window.addEventListener("load", function () {
+    var shown = [].map.call(document.querySelectorAll("#page-1 img"), function (img) {
+      var box = img.getBoundingClientRect();
+      return (img.complete && img.naturalWidth > 0 && box.width > 50 && box.height > 50) ? 1 : 0;
+    });
+    document.body.setAttribute("data-probe-images", shown.join(","));
+    document.body.setAttribute("data-probe-errors", errors.join(" | "));
+  });
+})();
+</script>"""
+
+
+def browser_check(html: Path, timeout_s: float = 90.0) -> dict[str, object]:
+    """Load the report in headless Chromium: which of page 1's images decoded and have a size on
+    the page, and the console errors — every console message the page made (it has no script of
+    its own, so any is the browser complaining) plus resources that failed to load. A probe
+    script (writing attributes, logging nothing) is added to a copy; the report itself has none."""
+    binary = find_chromium()
+    if binary is None:
+        raise FileNotFoundError(missing_tool_reason("chromium"))
+    with tempfile.TemporaryDirectory(prefix="flowcast-chromium-") as profile:
+        probe = Path(profile) / "probe.html"
+        text = html.read_text(encoding="utf-8")
+        probe.write_text(text.replace("<head>", "<head>" + _PROBE, 1), encoding="utf-8")
+        cmd = [binary, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--enable-logging=stderr",
+               "--v=0", "--window-size=1100,2400", "--dump-dom", probe.as_uri()]
+        result = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
+                                env={**os.environ, "HOME": profile})
+    images = re.search(r'data-probe-images="([^"]*)"', result.stdout)
+    failed = re.search(r'data-probe-errors="([^"]*)"', result.stdout)
+    if images is None or failed is None:
+        raise AssertionError(f"chromium did not run the probe (rc={result.returncode}):\n"
+                             f"{result.stderr[-2000:]}")
+    console = [line for line in result.stderr.splitlines() if ":CONSOLE" in line]
+    errors = console + [e for e in failed.group(1).split(" | ") if e]
+    return {"page1_images": [int(x) for x in images.group(1).split(",") if x],
+            "console_errors": errors}

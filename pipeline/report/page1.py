@@ -22,6 +22,7 @@ import datetime as dt
 from collections.abc import Sequence
 
 import matplotlib.dates as mdates
+import matplotlib.ticker as mticker
 import numpy as np
 from numpy.typing import NDArray
 
@@ -64,7 +65,7 @@ def fan_chart_figure(week_ends: Sequence[dt.date], observed: NDArray[np.float64]
                      target_ends: Sequence[dt.date], bands: NDArray[np.float64], *,
                      nowcast: NDArray[np.bool_], unit: str, wide: str,
                      incomplete: NDArray[np.bool_] | None = None, title: str = "",
-                     width_in: float = 8.5, height_in: float = 3.4) -> bytes:
+                     log: bool = False, width_in: float = 8.5, height_in: float = 3.4) -> bytes:
     """The forecast over the last observed weeks.
 
     ``observed (W,)`` at ``week_ends`` (black dots; ``incomplete`` weeks, still being
@@ -72,7 +73,7 @@ def fan_chart_figure(week_ends: Sequence[dt.date], observed: NDArray[np.float64]
     25 %, median, 75 %, wide upper) — ``wide`` names the wide interval ("90%", "95%");
     ``nowcast (H,)`` marks the target weeks that are in the data but still being reported: drawn
     in their own colour over a shaded span labelled "nowcast", so that no one reads them as
-    forecast or as data."""
+    forecast or as data. ``log``: a log axis (counts that fell tenfold in the weeks shown)."""
     observed = np.asarray(observed, dtype=np.float64)
     bands = np.asarray(bands, dtype=np.float64)
     nowcast = np.asarray(nowcast, dtype=bool)
@@ -102,18 +103,23 @@ def fan_chart_figure(week_ends: Sequence[dt.date], observed: NDArray[np.float64]
                     yerr=[bands[nowcast, 2] - bands[nowcast, 0],
                           bands[nowcast, 4] - bands[nowcast, 2]],
                     fmt="D", color=orange, ms=5, lw=1.4, capsize=3,
-                    label=f"nowcast median, {wide}")
+                    label=f"nowcast, {wide}")
     ax.plot(x_obs[~hollow], observed[~hollow], "o", color="black", ms=4, label="reported")
     if hollow.any():
         ax.plot(x_obs[hollow], observed[hollow], "o", mfc="white", mec="black", ms=4,
                 label="reported so far")
-    ax.set_ylim(bottom=0)
-    ax.set_ylabel(unit)
+    if log:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(mticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
+    else:
+        ax.set_ylim(bottom=0)
+    ax.set_ylabel(unit + (" (log scale)" if log else ""))
     if title:
         ax.set_title(title, loc="left")
     locator = mdates.AutoDateLocator(maxticks=7)
     ax.xaxis.set_major_locator(locator)
     ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
     # below the axes: inside, it would hide the weeks it explains
-    fig.legend(loc="outside lower center", fontsize=7.5, frameon=False, ncols=3)
+    fig.legend(loc="outside lower center", fontsize=7.5, frameon=False, ncols=3,
+               columnspacing=1.0, handletextpad=0.4)
     return _png(fig)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import re
 import platform
 from collections.abc import Sequence
 from importlib import metadata
@@ -33,12 +34,15 @@ from torch import Tensor
 from pipeline import __version__
 from pipeline.io import sha256_bytes, sha256_file
 from pipeline.report import checks, figures
-from pipeline.report.content import Provenance, ReportContent, Section, SectionKey, TableItem
+from pipeline.report.content import (FigureItem, Notice, NoticeKind, PageOne, Provenance,
+                                     ReportContent, Section, SectionKey, TableItem)
 from pipeline.report.diagnostics import (DIAGNOSTICS, LEVELS, Q_COLUMNS, DiagnosticsUnderWay,
                                          diagnostic_sections, figure_item)
-from pipeline.report.headline import (PUBLISHED, daily_history, Headline, compute_headline,
-                                      facts_frame, fmt_count, fmt_range, fmt_share,
-                                      forecast_frame, published_weekly, skill_frame)
+from pipeline.report.headline import (PUBLISHED, daily_history, Headline, Interval,
+                                      compute_headline, facts_frame, fmt_count, fmt_prob,
+                                      fmt_range, fmt_rt, fmt_share, forecast_frame,
+                                      published_weekly, skill_frame)
+from pipeline.report.page1 import fan_chart_figure
 
 if TYPE_CHECKING:
     from pipeline.forecast.results import CountySkill, ForecastResults
@@ -86,6 +90,92 @@ def headline_section(h: Headline, county: CountySkill | None = None) -> Section:
             "observations inside the 50% and 90% intervals (nominal 0.50, 0.90)."
             + _county_caption(county)),
             decimals=2, css="skill")))
+
+
+def _bands(x: Interval) -> list[float]:
+    return [x.lo90, x.lo50, x.median, x.hi50, x.hi90]
+
+
+def page_one_figure(results: ForecastResults, h: Headline) -> bytes:
+    """Weekly cases: the last 12 weeks reported (the weeks still being reported hollow), their
+    nowcast and the current week marked as nowcast, the four weeks' forecast fan."""
+    weekly = published_weekly(results)
+    seen = daily_history(weekly).up_to(weekly.origin)
+    cases = seen.weekly_cases()[-HISTORY_WEEKS:]
+    ends = [(weekly.origin - pd.Timedelta(days=7 * k)).date() for k in range(len(cases))][::-1]
+    nowcast = sorted(h.nowcast_weeks, key=lambda w: w.target_end)
+    targets = [w.target_end for w in nowcast] + [f.target_end for f in h.horizons]
+    bands = np.array([_bands(w.cases) for w in nowcast] + [_bands(f.cases) for f in h.horizons])
+    marked = np.array([True] * len(nowcast) + [f.kind == "current week" for f in h.horizons])
+    in_nowcast = {w.target_end for w in nowcast}
+    return fan_chart_figure(ends, np.asarray(cases, dtype=np.float64), targets, bands,
+                            nowcast=marked, unit="cases reported per week", wide="90%",
+                            incomplete=np.array([e in in_nowcast for e in ends]),
+                            log=True, height_in=3.6)
+
+
+def page_one_table(h: Headline) -> pd.DataFrame:
+    """Weekly reported cases: the weeks still being reported (nowcast) and the four weeks
+    ahead, median and 50 %/90 % intervals."""
+    rows, labels = [], []
+    for w in sorted(h.nowcast_weeks, key=lambda w: w.target_end):
+        labels.append(f"{w.target_end} (nowcast, {fmt_prob(w.reported_share.median)} in)")
+        rows.append(w.cases)
+    for f in h.horizons:
+        labels.append(f"{f.target_end} (+{f.horizon} wk"
+                      + (", nowcast)" if f.kind == "current week" else ")"))
+        rows.append(f.cases)
+    return pd.DataFrame([[fmt_count(x.median), fmt_range(x.lo50, x.hi50),
+                          fmt_range(x.lo90, x.hi90)] for x in rows],
+                        index=pd.Index(labels, name="week ending"),
+                        columns=["median", "50% interval", "90% interval"])
+
+
+def page_one_headline(h: Headline) -> str:
+    """Two sentences: the first and last week's forecast against the week to the origin; the
+    chance of growth and R_t."""
+    first, last = h.horizons[0], h.horizons[-1]
+    return (f"Weekly reported cases in {h.place} are forecast at "
+            f"{fmt_count(first.cases.median)} (90%: {fmt_range(first.cases.lo90, first.cases.hi90)}"
+            f") in the week ending {first.target_end} and {fmt_count(last.cases.median)} "
+            f"(90%: {fmt_range(last.cases.lo90, last.cases.hi90)}) in the week ending "
+            f"{last.target_end}, against {fmt_count(h.origin_week_cases)} in the week ending "
+            f"{h.origin}. Probability that cases grow next week: {fmt_prob(h.p_growing)}; "
+            f"R_t {fmt_rt(h.rt.value.median)} (90%: "
+            f"{fmt_range(h.rt.value.lo90, h.rt.value.hi90, fmt_rt)}).")
+
+
+def weekly_notices(results: ForecastResults, today: dt.date, n_left_out_sections: int
+                   ) -> tuple[Notice, ...]:
+    """What this run left out or held, briefly (the full banner and notes are on page 2):
+    stale or old data, the places the gate left out of the pooled data, sections not drawn."""
+    out = []
+    last = pd.to_datetime(results.sir_frame["date"]).max().date()
+    age = (today - last).days
+    if results.stale:
+        out.append(Notice(NoticeKind.HELD, f"Stale data: the live fetch failed and the cache was "
+                          f"used; the newest day is {last} ({age:,} days old)."))
+    elif age > checks.OLD_DATA_DAYS:
+        out.append(Notice(NoticeKind.HELD, f"Old data: the newest day, {last}, is {age:,} days "
+                          "before this run."))
+    weekly = results.weekly
+    skipped = weekly.result.panel.skipped if weekly is not None else {}
+    if skipped:
+        out.append(Notice(NoticeKind.LEFT_OUT, f"{len(skipped)} place(s) left out of the "
+                          f"pooled members' data by the validation gate: "
+                          f"{', '.join(sorted(skipped))}."))
+    if n_left_out_sections:
+        out.append(Notice(NoticeKind.NOTE, f"{n_left_out_sections} diagnostic section(s) could "
+                          "not be drawn (named on page 2)."))
+    return tuple(out)
+
+
+def page_one(results: ForecastResults, h: Headline, notices: Sequence[Notice]) -> PageOne:
+    figure = FigureItem(page_one_figure(results, h), (
+        f"Weekly cases: last {HISTORY_WEEKS} weeks, nowcast, forecast (50%, 90%)."),
+        "Weekly reported cases: observed weeks, the nowcast and the four-week forecast fan")
+    return PageOne((figure,), page_one_headline(h), TableItem(page_one_table(h), "",
+                                                             css="headline"), tuple(notices))
 
 
 def _county_caption(county: CountySkill | None) -> str:
@@ -334,9 +424,12 @@ def forecast_report_content(results: ForecastResults,
             notes.append(part)
     # the header shows the vintage's first two parts (as of, days); the full one is in §3
     vintage = "; ".join(str(results.vintage).split("; ")[:2])
+    vintage = re.sub(r"\s*\([^()]*\)$", "", vintage)     # page 1 is short: the why is in §3
+    left_out = len(notes) - (1 if banner else 0)
     return ReportContent(
         title=f"{headline.place} COVID-19 forecast from {headline.origin}",
         reference_date=headline.origin, data_vintage=vintage,
         sections=tuple(sections), provenance=_provenance(results), warnings=tuple(notes),
         summary=headline.sentence(),
-        headline=headline_section(headline, results.county_skill))
+        headline=headline_section(headline, results.county_skill),
+        page1=page_one(results, headline, weekly_notices(results, dt.date.today(), left_out)))
