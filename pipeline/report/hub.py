@@ -277,12 +277,18 @@ def _headline(result: HubRoundsResult, disease: str) -> str:
 
 def round_notices(results: Mapping[str, HubRoundsResult], warnings: Sequence[str],
                   skipped: Mapping[str, Mapping[str, str]]) -> tuple[Notice, ...]:
-    """What the round left out or held: each target's locations left out (named; why in the
-    appendix) and the data's notes (a stale cache, a vintage held for review)."""
-    left = [Notice(NoticeKind.LEFT_OUT, f"{_target_label(t)}: "
-                   + ", ".join(BY_LOCATION[p].name if p in BY_LOCATION else p for p in places)
-                   + " (no usable data; why in the appendix).")
-            for t, places in skipped.items() if places]
+    """What the round left out or held: each target's hub locations it has no forecast of
+    (the gate skipped them, or the data hold none; named, why in the appendix) and the data's
+    notes (a stale cache, a vintage held for review)."""
+    left = []
+    for target, result in results.items():
+        missing = [p for p in BY_LOCATION if p not in result.places]
+        missing += [p for p in skipped.get(target, {}) if p not in missing
+                    and p not in result.places]
+        if missing:
+            names = ", ".join(BY_LOCATION[p].name if p in BY_LOCATION else p for p in missing)
+            left.append(Notice(NoticeKind.LEFT_OUT, f"{_target_label(target)}: {names} "
+                               "(no usable data)."))
     return tuple(left) + tuple(Notice(NoticeKind.HELD, w) for w in warnings if w.strip())
 
 

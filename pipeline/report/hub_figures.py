@@ -85,7 +85,7 @@ def tile_map_figure(abbreviations: Sequence[str], p_rising: NDArray[np.float64],
     percent."""
     p = np.asarray(p_rising, dtype=np.float64)
     if p.shape != (len(abbreviations),):
-        raise ReportError(f"{p.shape} probabilities for {len(abbreviations)} locations")
+        raise ReportError(f"{p.size} probabilities for {len(abbreviations)} locations")
     unknown = [a for a in abbreviations if a not in TILE_GRID]
     if unknown:
         raise ReportError(f"no tile for {unknown}; the grid holds {sorted(TILE_GRID)}")
