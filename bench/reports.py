@@ -179,9 +179,9 @@ def measure(kind: str, make: Callable[[Path], Any]) -> dict[str, Any]:
         row = {"page1": {"figures": pdf_page_images(pdf, 1), "words": pdf_page_words(pdf, 1)},
                "pages": files.n_pages, "overflowing_text_boxes": len(boxes),
                "overflowing_examples": [f"p{p} {w!r} x={x:.0f}" for p, w, x in boxes[:5]],
-               "browser": {"console_errors": len(browser["console_errors"]),  # type: ignore[arg-type]
-                           "page1_images_rendered": sum(browser["page1_images"]),  # type: ignore[arg-type]
-                           "console_messages": browser["console_errors"]},
+               "browser": {"console_errors": len(browser.console_errors),
+                           "page1_images_rendered": sum(browser.page1_images),
+                           "console_messages": browser.console_errors},
                "seconds": round(seconds, 1)} | extra
     return row
 

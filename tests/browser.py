@@ -11,6 +11,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+from dataclasses import dataclass
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -203,7 +204,16 @@ _PROBE = """<script>
 </script>"""
 
 
-def browser_check(html: Path, timeout_s: float = 90.0) -> dict[str, object]:
+@dataclass(frozen=True)
+class BrowserCheck:
+    """What headless Chromium saw: per image of page 1, 1 if it decoded and has a size on the
+    page; every console error."""
+
+    page1_images: list[int]
+    console_errors: list[str]
+
+
+def browser_check(html: Path, timeout_s: float = 90.0) -> BrowserCheck:
     """Load the report in headless Chromium: which of page 1's images decoded and have a size on
     the page, and the console errors — every console message the page made (it has no script of
     its own, so any is the browser complaining) plus resources that failed to load. A probe
@@ -226,5 +236,4 @@ def browser_check(html: Path, timeout_s: float = 90.0) -> dict[str, object]:
                              f"{result.stderr[-2000:]}")
     console = [line for line in result.stderr.splitlines() if ":CONSOLE" in line]
     errors = console + [e for e in failed.group(1).split(" | ") if e]
-    return {"page1_images": [int(x) for x in images.group(1).split(",") if x],
-            "console_errors": errors}
+    return BrowserCheck([int(x) for x in images.group(1).split(",") if x], errors)

@@ -25,8 +25,9 @@ from pipeline.report.content import (PNG_SIGNATURE, FigureItem, Provenance, Repo
                                      paper_vs_ours, stale_data_warning)
 from pipeline.report.render import (render_html, render_pdf, render_reproduction, write_report,
                                     write_reproduction)
-from tests.browser import (chromium_screenshot, external_references, image_stats,
-                           missing_tool_reason, pdf_page_count, pdf_to_pngs)
+from tests.browser import (browser_check, chromium_screenshot, external_references, image_stats,
+                           missing_tool_reason, overflowing_text_boxes, pdf_page_count,
+                           pdf_page_images, pdf_page_words, pdf_to_pngs)
 
 N_DAYS = 160
 START = dt.date(2020, 3, 3)
@@ -569,9 +570,25 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
                   & (hub["target"] == "cases")].sort_values("horizon")["value"].to_numpy()
     np.testing.assert_array_equal(medians, latest.values["cases"][:, at[0.5]])
 
-    page1 = _pdf_text(real_report / "report.pdf", 1)
+    pdf = real_report / "report.pdf"
+    page1 = _pdf_text(pdf, 1)
     assert page1.startswith(f"FLOWCAST WEEKLY REPORT San Francisco COVID-19 forecast from "
                             f"{weekly.origin.date()}")
+    # page 1 (issue 41): the fan chart, two sentences, the weekly cases' table, what was held
+    assert pdf_page_images(pdf, 1) == 1 and pdf_page_words(pdf, 1) <= 150
+    first, last = headline.horizons[0], headline.horizons[-1]
+    assert (f"Weekly reported cases in San Francisco are forecast at "
+            f"{fmt_count(first.cases.median)} (90%: {fmt_range(first.cases.lo90, first.cases.hi90)}"
+            f") in the week ending {first.target_end}") in page1
+    assert f"Probability that cases grow next week: {fmt_prob(headline.p_growing)}" in page1
+    for k, h in enumerate(latest.horizons):
+        c = latest.values["cases"][k]
+        assert (f"(+{h} wk") in page1 and (f"{fmt_count(c[at[0.5]])} "
+                f"{fmt_range(c[at[0.25]], c[at[0.75]])} "
+                f"{fmt_range(c[at[0.05]], c[at[0.95]])}") in page1, h
+    assert page1.count("Old data") == 1          # one notice (imported, years-old exports)
+    # page 2: the details page 1 used to hold — the lead, both targets, the facts, the skill
+    page1 = _pdf_text(pdf, 2)
     for k, h in enumerate(latest.horizons):
         c, i = latest.values["cases"][k], latest.values["I"][k]
         week = week_label(headline.horizons[k])
@@ -607,8 +624,8 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
                                                            pub["coverage90"]]
         assert f"{label} " + " ".join(f"{v:.2f}" for v in cells) in page1, label
     assert page1.count("Old data") == 1          # one banner (imported, years-old exports)
-    assert "1. Forecast" not in page1            # page 1 is the headline only ...
-    assert "1. Forecast: the last 12 weeks" in _pdf_text(real_report / "report.pdf", 2)
+    assert "1. Forecast" not in page1            # pages 1-2 are the headline only ...
+    assert "1. Forecast: the last 12 weeks" in _pdf_text(pdf, 3)
 
 
 @pytest.mark.slow
@@ -623,7 +640,12 @@ def test_real_report_pages_are_neither_blank_nor_mixed_conventions(real_results,
         assert stray not in html, stray
     pdf = real_report / "report.pdf"
     n_pages = pdf_page_count(pdf)
-    assert n_pages <= 14
+    assert n_pages <= 15
+    # tables fit their page (issue 41: the member and backtest tables were cut at the margin)
+    assert overflowing_text_boxes(pdf) == []
+    if missing_tool_reason("chromium") is None:
+        found = browser_check(real_report / "report.html")
+        assert (found.page1_images, found.console_errors) == ([1], [])
     for png in pdf_to_pngs(pdf, tmp_path / "pages", dpi=30):
         assert image_stats(png)[1] > 0.02, f"{png.name} is nearly blank"
 

@@ -119,8 +119,8 @@ def test_the_checkers_find_what_they_look_for(tmp_path):
                     "<img src='data:image/png;base64,AAAA'></div>"
                     "<script>console.error('boom')</script></body></html>")
     found = browser_check(page)
-    assert found["page1_images"] == [0]
-    assert len(found["console_errors"]) >= 2      # the logged error and the broken image
+    assert found.page1_images == [0]
+    assert len(found.console_errors) >= 2      # the logged error and the broken image
 
 
 # ----------------------------------------------------------------------------- a real round
@@ -197,7 +197,7 @@ def test_hub_page_one_renders_the_map_and_fan_within_150_words(hub_round, tmp_pa
     assert pdf_page_words(pdf, 1) <= MAX_WORDS
     assert overflowing_text_boxes(pdf) == []
     found = browser_check(files.html_path)
-    assert found == {"page1_images": [1, 1], "console_errors": []}
+    assert (found.page1_images, found.console_errors) == ([1, 1], [])
     text = " ".join(__import__("subprocess").run(
         ["pdftotext", "-f", "1", "-l", "1", str(pdf), "-"], capture_output=True, text=True,
         check=True).stdout.split())
