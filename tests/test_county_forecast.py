@@ -195,6 +195,11 @@ def test_county_run_writes_its_own_hub_file_and_report(county_run):
     content = forecast_report_content(results)
     assert content.title == "Santa Cruz COVID-19 forecast from 2021-10-30"
     assert content.summary.startswith("Nowcast") and "people in Santa Cruz are" in content.summary
+    # page 1 (issue 41): the county's own fan chart, headline and table, its nowcast week marked
+    page = content.page1
+    assert page is not None and len(page.figures) == 1
+    assert page.headline.startswith("Weekly reported cases in Santa Cruz are forecast at")
+    assert any("(nowcast," in label for label in page.table.frame.index)
     series = next(s for s in content.sections if s.key == "sir-series")
     assert series.title == "Santa Cruz S/I/R series"
     assert "Santa Cruz population, derived from CDPH" in series.items[0].caption

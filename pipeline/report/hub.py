@@ -211,7 +211,7 @@ def track_record_table(result: HubRoundsResult) -> pd.DataFrame:
         n = int(np.isfinite(scored.wis).sum())
         row = {f"{h:+d} wk": float(by_horizon[k]) for k, h in enumerate(result.horizons)}
         rows[name] = row | {"50% covered": _mean(scored.covered50),
-                            "95% covered": _mean(scored.covered95), "scored": float(n)}
+                            "95% covered": _mean(scored.covered95), "scored": n}
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("forecaster")
 
 
@@ -355,7 +355,8 @@ def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date
                 "last value reported in the round's data (a point mass), at 0 … 3 the hub "
                 "baseline's forecast — and the share of the scored weeks inside the 50 % and "
                 "95 % intervals. The newest round's week −1 is this round's own data, not yet "
-                "revised, and is not scored."), decimals=3),
+                "revised, and is not scored. At −1 every forecaster is the round's nowcast of "
+                "the week, so the column is the nowcast's."), decimals=3),
             FigureItem(track_record_figure(result), (
                 "The published forecast's relative WIS by round (log scale): horizon −1 "
                 "against the last value reported, horizons 0 … 3 against the hub baseline; "

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import matplotlib
 import matplotlib.dates as mdates
+import matplotlib.ticker as mticker
 import numpy as np
 from matplotlib.cm import ScalarMappable
 from matplotlib.colors import TwoSlopeNorm
@@ -140,11 +141,15 @@ def relative_wis_by_round_figure(references: Sequence[dt.date],
         ax.plot(x[ok], v[ok], "-o", ms=3.5, color=colour, label=label)
     ax.axhline(1.0, color="black", lw=0.9, ls="--")
     ax.set_yscale("log")
+    # plain ratios (0.5, 1, 2), not powers of ten: the axis spans a factor of a few
+    ax.yaxis.set_major_locator(mticker.FixedLocator([0.125, 0.25, 0.5, 0.75, 1, 1.5, 2, 4, 8]))
+    ax.yaxis.set_major_formatter(mticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(mticker.NullFormatter())
     ax.set_ylabel("relative WIS (log scale)")
     ax.text(0.995, 0.02, "below 1: better than the hub's baseline", transform=ax.transAxes,
             ha="right", va="bottom", fontsize=8, color="#5a6370")
     locator = mdates.AutoDateLocator(maxticks=8)
     ax.xaxis.set_major_locator(locator)
     ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
-    ax.legend(loc="upper left", fontsize=8.5, frameon=False)
+    fig.legend(loc="outside lower center", fontsize=8.5, frameon=False, ncols=len(series))
     return _png(fig)
