@@ -4,9 +4,9 @@ The forecast flow passes data only: arrays → ``figures.*`` → PNG bytes → `
 DataFrames → ``TableItem``; both into ``Section``s of a ``ReportContent``; then
 ``write_report(content, out_dir)``.
 """
-from pipeline.report.content import (SECTION_TITLES, FigureItem, Provenance, ReportContent,
-                                     ReportError, Section, SectionKey, TableItem, nll_table,
-                                     paper_vs_ours, stale_data_warning)
+from pipeline.report.content import (SECTION_TITLES, FigureItem, Notice, NoticeKind, PageOne,
+                                     Provenance, ReportContent, ReportError, Section, SectionKey,
+                                     TableItem, nll_table, paper_vs_ours, stale_data_warning)
 from pipeline.report.render import (ReportFiles, render_html, render_pdf, render_reproduction,
                                     write_report, write_reproduction)
 
@@ -14,7 +14,7 @@ from pipeline.report.render import (ReportFiles, render_html, render_pdf, render
 # pipeline.forecast.results, so it is not imported here (the forecast package imports this one).
 
 __all__ = [
-    "SECTION_TITLES", "FigureItem", "Provenance", "ReportContent", "ReportError", "ReportFiles",
+    "SECTION_TITLES", "FigureItem", "Notice", "NoticeKind", "PageOne", "Provenance", "ReportContent", "ReportError", "ReportFiles",
     "Section", "SectionKey", "TableItem", "nll_table", "paper_vs_ours", "render_html",
     "render_pdf", "render_reproduction", "stale_data_warning", "write_report",
     "write_reproduction",

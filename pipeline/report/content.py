@@ -5,8 +5,10 @@ tables (pandas DataFrames) into :class:`Section` objects and hands a :class:`Rep
 :func:`pipeline.report.render.write_report`. Every string here is plain text: the template
 escapes it, so data can never inject markup.
 
-Page 1 is the headline (``ReportContent.headline``: the published forecast's numbers, not a
-numbered section). Sections of the weekly report, in order (:class:`SectionKey`; titles in
+Page 1 is :class:`PageOne` (``ReportContent.page1``: the figure that carries the forecast, the
+headline in one or two sentences, the forecast's table, the :class:`Notice` s of what the round
+left out or held; :mod:`pipeline.report.page1`), then the headline (``ReportContent.headline``:
+the published forecast's numbers in full, not a numbered section). Sections of the weekly report, in order (:class:`SectionKey`; titles in
 ``SECTION_TITLES``): the published 4-week forecast · its real-time backtest against the hub
 baseline · the place's S/I/R series · β, γ and R_t over time · forward/backward state estimates ·
 rollouts (7- and 28-day windows) · NF-seeded SMC · NLL table (paper Table 5 layout) ·

@@ -110,9 +110,11 @@ def fan_chart_figure(week_ends: Sequence[dt.date], observed: NDArray[np.float64]
                 label="reported so far")
     if log:
         ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(mticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
     else:
         ax.set_ylim(bottom=0)
+    # counts with thousands separators, as in the table (shares keep their decimals)
+    ax.yaxis.set_major_formatter(mticker.FuncFormatter(
+        lambda v, _: f"{v:,.0f}" if abs(v) >= 10 or v == 0 else f"{v:g}"))
     ax.set_ylabel(unit + (" (log scale)" if log else ""))
     if title:
         ax.set_title(title, loc="left")
