@@ -142,6 +142,7 @@ def hub_round(tmp_path_factory):
     return root, run
 
 
+@pytest.mark.slow
 def test_horizon_minus_one_is_scored_against_the_last_reported_value(hub_round):
     """The hub's baseline at −1 is a point mass at the round's last reported value: its WIS is
     the absolute error; 0 … 3 are the re-implemented baseline's; the newest round (its week −1
@@ -178,6 +179,7 @@ def test_horizon_minus_one_is_scored_against_the_last_reported_value(hub_round):
     assert table.loc["published", "-1 wk"] != pytest.approx(1.0, abs=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.integration
 def test_hub_page_one_renders_the_map_and_fan_within_150_words(hub_round, tmp_path):
     _tools()
