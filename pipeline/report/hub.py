@@ -307,7 +307,7 @@ def hub_page_one(main: HubRoundsResult, notices: Sequence[Notice]) -> PageOne:
                    "P(rising), %, by state: horizon 1 above last week's nowcast.",
                    "Tile map of the states coloured by the probability that admissions rise, "
                    "each tile labelled with its percentage", width="half"),
-        FigureItem(us_fan_figure(main), "US: last 12 weeks, nowcast and forecast (50%, 95%).",
+        FigureItem(us_fan_figure(main), "The US: nowcast and forecast.",
                    "US weekly admissions: observed weeks, the nowcast and the forecast fan",
                    width="half"))
     table = TableItem(forecast_table(main, US), "", css="headline")
