@@ -200,6 +200,12 @@ def test_county_run_writes_its_own_hub_file_and_report(county_run):
     assert page is not None and len(page.figures) == 1
     assert page.headline.startswith("Weekly reported cases in Santa Cruz are forecast at")
     assert any("(nowcast," in label for label in page.table.frame.index)
+    from pipeline.report.render import write_report
+    from tests.browser import missing_tool_reason, overflowing_text_boxes, pdf_page_words
+
+    if missing_tool_reason("pdftotext") is None:     # the county's tables fit their pages
+        pdf = write_report(content, root / "report").pdf_path
+        assert overflowing_text_boxes(pdf) == [] and pdf_page_words(pdf, 1) <= 150
     series = next(s for s in content.sections if s.key == "sir-series")
     assert series.title == "Santa Cruz S/I/R series"
     assert "Santa Cruz population, derived from CDPH" in series.items[0].caption
