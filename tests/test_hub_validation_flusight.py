@@ -204,3 +204,56 @@ def test_several_round_definitions_each_by_its_own_rules(tasks):
     assert len(validate_model_output_frame(flusight_round(n_samples=50), two)) > 0
     with pytest.raises(HubValidationError, match=r"100 samples .*asks for 50\.\.50"):
         validate_model_output_frame(flusight_round(n_samples=100), two)
+
+
+def _metadata() -> dict:
+    from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID, load_model_metadata
+    return load_model_metadata(REPO / "model-metadata" / f"{CDC_HUB_MODEL_ID}.yml")
+
+
+def test_the_round_follows_flusights_config_not_the_products_constants(tasks, tmp_path):
+    """200 paths of non-integer admissions and an ED-share quantile of 115.7 (the breaks the
+    issue found) are written as FluSight asks: 100 integer paths a location, the share at most
+    1, each change named; the file is valid and read back by hubdata."""
+    import hubdata
+
+    from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID, write_hub_round
+    frame = flusight_round(n_samples=200)
+    samples = (frame.output_type == "sample").to_numpy()
+    frame.loc[samples, "value"] = (frame.loc[samples, "value"].astype(float) + 0.4).map(str)
+    blown = (frame.target == ED) & (frame.output_type_id == "0.99")
+    frame.loc[blown, "value"] = "115.7"
+    root = tmp_path / "hub"
+    shutil.copytree(FLUSIGHT, root / "hub-config")
+    written = write_hub_round(frame, hub_dir=root, model_id=CDC_HUB_MODEL_ID, tasks=tasks,
+                              metadata=_metadata())
+    back = written.frame
+    s = back[back.output_type == "sample"]
+    assert s.groupby("location").output_type_id.nunique().tolist() == [100, 100]
+    # the kept ids are the first 100 of each location, every horizon of each kept
+    assert sorted(s[s.location == "US"].output_type_id.astype(int).unique()) == list(range(100))
+    assert s.groupby("output_type_id").horizon.nunique().eq(5).all()
+    assert (s.value == s.value.round()).all()
+    original = frame[samples & (frame.location == "US") & (frame.output_type_id == "7")]
+    np.testing.assert_array_equal(
+        s[(s.location == "US") & (s.output_type_id == "7")].sort_values("horizon").value,
+        np.round(original.value.astype(float).to_numpy()))
+    ed = back[back.target == ED]
+    assert ed.value.max() == 1.0
+    assert written.notes == (f"{ED}: 10 quantile values above the hub's bound 1 (the largest "
+                             "115.7) set to it",)
+    peak = back[back.target == PEAK]
+    assert peak.horizon.isna().all() and len(peak) == 2 * 23
+    table = hubdata.connect_hub(root).get_dataset().to_table().to_pandas()
+    assert len(table) == len(back) == len(flusight_round(n_samples=100))
+
+
+def test_no_round_off_season_and_no_file(tasks, tmp_path):
+    from pipeline.outputs.hub_conform import NoHubRoundError
+    from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID, write_hub_round
+    root = tmp_path / "hub"
+    with pytest.raises(NoHubRoundError, match=r"takes no round for the reference date "
+                       r"2026-07-04 \(89 rounds, 2023-10-07 … 2026-05-30\): no round written"):
+        write_hub_round(flusight_round().assign(reference_date="2026-07-04"), hub_dir=root,
+                        model_id=CDC_HUB_MODEL_ID, tasks=tasks, metadata=_metadata())
+    assert not root.exists()
