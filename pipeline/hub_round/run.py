@@ -156,7 +156,12 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     targets = disease_targets(config.disease)
-    loaded = load_nhsn(NHSNConfig(disease=config.disease),
+    if config.data_source == "cache":
+        # offline, the ED share where the cache has it (FluSight's data: admissions only);
+        # without admissions every target is asked for, for load_nhsn to name what is missing
+        held = tuple(t for t in targets if cached_weekly_vintages(t))
+        targets = held if any(not is_share(t) for t in held) else targets
+    loaded = load_nhsn(NHSNConfig(disease=config.disease, targets=targets),
                        offline=config.data_source == "cache")
     for provenance in loaded.provenance.values():     # its notes: pipeline.data.hub.nhsn logs them
         if provenance.skipped:
