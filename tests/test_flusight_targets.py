@@ -100,3 +100,31 @@ def test_peak_joins_the_observed_weeks_the_paths_and_the_tail():
     assert pmf[5] == pytest.approx(2.1 / (4 + 0.1 * SEASON_WEEKS))
     assert observed_peak(np.r_[known[:3], np.zeros(SEASON_WEEKS - 3)]) == (400.0, 1)
     assert observed_peak(known)[1] == -1
+
+
+def test_a_share_nowcast_stays_a_share():
+    """A week first released as 0 and revised to 90 % (the issue's ED share whose newest weeks
+    were released as 0): the revision ratios reach far beyond 1, the nowcast's quantiles of a
+    share never do."""
+    from pipeline.nowcast.revisions import nowcast_weeks
+    from pipeline.panels.history import WeeklyHistory
+    from pipeline.panels.hub import ED_VISITS_SCALE
+    from pipeline.panels.panel import Panel
+    from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+
+    weeks = pd.date_range("2025-01-04", periods=30, freq="7D")
+    final = np.full(30, 0.9 * ED_VISITS_SCALE)
+
+    def vintage(n: int, newest: float) -> Panel:
+        values = final[:n].copy()
+        values[-1] = newest
+        return Panel({p: WeeklyHistory(weeks[:n], values, ED_VISITS_SCALE, "wk inc flu prop ed "
+                                       "visits", depletes=False) for p in ("06", "36")},
+                     name="share", as_of=weeks[n - 1] + pd.Timedelta(days=4))
+
+    earlier = [vintage(n, 0.0) for n in range(10, 29)]          # every newest week a 0
+    now = vintage(30, 0.5 * ED_VISITS_SCALE)
+    nowcast = nowcast_weeks(now, earlier, np.asarray(HUB_QUANTILE_LEVELS))
+    q = nowcast.quantiles["06"]
+    assert np.isfinite(q).all() and q.max() == ED_VISITS_SCALE      # a share of at most 1
+    assert (nowcast.panel.histories["06"].cases <= ED_VISITS_SCALE).all()
