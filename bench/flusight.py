@@ -204,8 +204,9 @@ def _rate_h(targets: Any, k: int) -> dict[str, float]:
 
 
 def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, float, float]:
-    """Every round in real time: the published members, the flow alone, the published
-    members with the hub baseline; seconds to build the members and to forecast."""
+    """Every round in real time: the published members, and as variants the flow alone and
+    the published members with the hub baseline or growth-qr, or the refitted flow with
+    growth-qr; seconds to build the members and to forecast."""
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import CombineConfig
@@ -221,8 +222,11 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     t_members = time.perf_counter() - started
     reach = CombineConfig(beyond_reach="reachable-members")
     names = [m.name for m in members.published]
+    refit = "nf-real" if "nf-real" in names else "nf-weekly"
     variants = (Variant("v-flow-alone", reach, ("nf-weekly",)),
-                Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")))
+                Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
+                Variant("v-flow+growth-qr", reach, (refit, "growth-qr")),
+                Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=seed),
                             references=members.references)
@@ -267,6 +271,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"{len(rounds)} rounds forecast in {t_backtest:.0f} s", flush=True)
 
     truth = read_target_data(hub / "time-series.parquet", HOSP_FLU)
+    truth = truth[truth["value"].notna()]      # weeks the latest release leaves empty
     teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
         hub / "hub-forecasts.parquet", targets=[HOSP_FLU])), truth.assign(target=HOSP_FLU))
     team_rounds = set(pd.to_datetime(teams["reference_date"]))

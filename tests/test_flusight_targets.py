@@ -68,12 +68,16 @@ def test_the_pmf_comes_from_joint_paths():
     rng = np.random.default_rng(1)
     base = rng.uniform(100, 400, size=500)
     paths = np.stack([base, base + 10, base + 30, base + 30, base + 30], axis=1)[None]
-    pmf = rate_change_pmf(paths, (-1, 0, 1, 2, 3), np.array([740_133.0]), RULE_2024)
+    pmf = rate_change_pmf(paths, (-1, 0, 1, 2, 3), np.array([740_133.0]), RULE_2024,
+                          pseudo_count=0.0)
     assert pmf.shape == (1, 4, 5)
     np.testing.assert_array_equal(pmf[0, 0], [0, 0, 0, 1, 0])        # +10 ≥ 10: increase
     np.testing.assert_array_equal(pmf[0, 1], [0, 0, 0, 0, 1])        # +30 > 22.2 (3/100k)
     np.testing.assert_array_equal(pmf[0, 3], [0, 0, 0, 1, 0])        # +30 < 37 (5/100k)
     assert np.isclose(pmf.sum(axis=-1), 1.0).all()
+    # a half path of every category (Jeffreys): no category at 0, the sure one at 500.5/502.5
+    smoothed = rate_change_pmf(paths, (-1, 0, 1, 2, 3), np.array([740_133.0]), RULE_2024)
+    np.testing.assert_allclose(smoothed[0, 0], np.array([0.5, 0.5, 0.5, 500.5, 0.5]) / 502.5)
 
 
 def test_peak_joins_the_observed_weeks_the_paths_and_the_tail():

@@ -34,6 +34,7 @@ RATE_CHANGE_CATEGORIES: tuple[str, ...] = ("large_decrease", "decrease", "stable
 MIN_COUNT_CHANGE = 9.5          # a change of < 10 admissions is stable (FluSight)
 SEASON_WEEKS = 27               # Saturdays of a season's peak-week categories
 PER = 100_000.0
+PSEUDO_COUNT = 0.5              # of a path, given to every category of a pmf (Jeffreys)
 
 
 @dataclass(frozen=True)
@@ -83,15 +84,20 @@ def categorize(value: NDArray[np.float64], edges: NDArray[np.float64]) -> NDArra
 
 def rate_change_pmf(paths: NDArray[np.float64], horizons: Sequence[int],
                     population: NDArray[np.float64], rule: RateChangeRule,
-                    rate_horizons: Sequence[int] = (0, 1, 2, 3)) -> NDArray[np.float64]:
+                    rate_horizons: Sequence[int] = (0, 1, 2, 3),
+                    pseudo_count: float = PSEUDO_COUNT) -> NDArray[np.float64]:
     """``(C, len(rate_horizons), 5)`` the pmf of each location's change from its paths
-    ``(C, n, H)`` at hub ``horizons`` (the base: each path's horizon −1)."""
+    ``(C, n, H)`` at hub ``horizons`` (the base: each path's horizon −1), every category given
+    ``pseudo_count`` of a path (a finite number of paths leaves a rare category at 0, and a
+    category given 0 that happens scores an infinite log score)."""
     base = paths[:, :, list(horizons).index(-1)]
     out = np.empty((paths.shape[0], len(rate_horizons), len(RATE_CHANGE_CATEGORIES)))
     for k, h in enumerate(rate_horizons):
         edges = category_edges(base, np.asarray(population)[:, None], h, rule)
         cats = categorize(paths[:, :, list(horizons).index(h)], edges)
-        out[:, k] = (cats[..., None] == np.arange(len(RATE_CHANGE_CATEGORIES))).mean(axis=1)
+        counts = (cats[..., None] == np.arange(len(RATE_CHANGE_CATEGORIES))).sum(axis=1)
+        out[:, k] = (counts + pseudo_count) / (counts.sum(axis=-1, keepdims=True)
+                                               + pseudo_count * len(RATE_CHANGE_CATEGORIES))
     return out
 
 
@@ -186,7 +192,8 @@ def peak_draws(known: NDArray[np.float64], paths: NDArray[np.float64], path_week
     return PeakForecast(filled.max(axis=1), filled.argmax(axis=1).astype(np.int64))
 
 
-def peak_week_pmf(week: NDArray[np.int64], pseudo_count: float = 0.1) -> NDArray[np.float64]:
+def peak_week_pmf(week: NDArray[np.int64], pseudo_count: float = PSEUDO_COUNT
+                  ) -> NDArray[np.float64]:
     """``(W,)`` the pmf of the peak week from its draws, every week given ``pseudo_count`` of a
     draw (so that no week the data could still make the peak has probability 0)."""
     counts = np.bincount(week[week >= 0], minlength=SEASON_WEEKS).astype(np.float64)
