@@ -257,3 +257,38 @@ def test_no_round_off_season_and_no_file(tasks, tmp_path):
         write_hub_round(flusight_round().assign(reference_date="2026-07-04"), hub_dir=root,
                         model_id=CDC_HUB_MODEL_ID, tasks=tasks, metadata=_metadata())
     assert not root.exists()
+
+
+def test_derived_targets_rows_are_flusights(tasks, tmp_path):
+    """The rate change and the peak of a round as derive_targets lays them out: valid for
+    FluSight's config in 2025-26, whose peak-week categories are that season's weeks; a round
+    of an earlier season writes no peak (the config has no category for its weeks)."""
+    from pipeline.outputs.derived_round import DerivedTargets, derived_round_frame
+    from pipeline.outputs.derived_targets import season_weeks
+    from pipeline.outputs.hub_tasks import task_values
+    from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID, write_hub_round
+
+    def targets(reference: str) -> DerivedTargets:
+        ref = pd.Timestamp(reference)
+        levels = np.asarray(HUB_QUANTILE_LEVELS)
+        return DerivedTargets(
+            places=LOCATIONS, references=(ref,), levels=levels,
+            rate=np.full((2, 1, 4, 5), 0.2), rate_climatology=np.full((2, 1, 4, 5), 0.2),
+            rate_observed=np.zeros((2, 1, 4), dtype=np.int64),
+            peak=np.tile(300 * np.exp(norm.ppf(levels)), (2, 1, 1)),
+            peak_climatology=np.full((2, 1, 23), np.nan), peak_observed=np.full((2, 1), np.nan),
+            peak_week=np.full((2, 1, 27), 1 / 27), peak_week_climatology=np.full((2, 1, 27),
+                                                                                 np.nan),
+            peak_week_observed=np.full((2, 1), -1), seasons=(season_weeks(ref),))
+
+    model_task = next(t for t in tasks["rounds"][0]["model_tasks"]
+                      if t["task_ids"]["target"]["optional"] == [PEAK_WEEK])
+    weeks = [str(v) for v in task_values(model_task["output_type"]["pmf"]["output_type_id"])]
+    frame = derived_round_frame(targets(REFERENCE), 0, weeks)
+    assert frame.groupby("target").size().to_dict() == {RATE: 2 * 4 * 5, PEAK: 2 * 23,
+                                                        PEAK_WEEK: 2 * 27}
+    written = write_hub_round(frame, hub_dir=tmp_path, model_id=CDC_HUB_MODEL_ID, tasks=tasks,
+                              metadata=_metadata())
+    assert written.frame[written.frame.target == PEAK].horizon.isna().all()
+    earlier = derived_round_frame(targets("2024-12-07"), 0, weeks)
+    assert set(earlier.target) == {RATE}
