@@ -150,57 +150,57 @@ def validate_round_files(result: Any, targets: Any, hub: Path) -> dict[str, Any]
             "notes": sorted(notes)}
 
 
+CLIMATOLOGY = ("climatology of the earlier seasons in the round's vintage (the hub data hold "
+               "no team's pmf or peak forecast, FluSight-baseline's included)")
+
+
 def derived_scores(targets: Any) -> dict[str, Any]:
-    """Rate change (RPS, log score) and peak (WIS, log score), ours and the climatology's, over
-    the location-rounds observed; per season too."""
+    """Rate change (RPS, log score) and peak (WIS of the intensity, log score of the week),
+    ours with the climatology's as ``baseline``, over the location-rounds observed; by season
+    (and, for the rate change, by horizon)."""
     import numpy as np
 
     from pipeline.evaluation.categorical import log_score, ranked_probability_score
     from pipeline.evaluation.summary import score_cells
 
     seasons = np.array([season(r) for r in targets.references])
+    every = np.ones(len(seasons), dtype=bool)
 
-    def rate(mask: Any) -> dict[str, Any]:
-        obs = np.where(mask[None, :, None], targets.rate_observed, -1)
-        out: dict[str, Any] = {"n": int((obs >= 0).sum())}
-        for name, pmf in (("flowcast", targets.rate), ("climatology", targets.rate_climatology)):
-            ok = obs >= 0
-            out[name] = {"rps": float(np.nanmean(ranked_probability_score(pmf, obs)[ok])),
-                         "log_score": float(np.nanmean(log_score(pmf, obs)[ok]))}
-        return out
+    def rate(mask: Any, k: Any = slice(None)) -> dict[str, Any]:
+        obs = np.where(mask[None, :, None], targets.rate_observed, -1)[:, :, k]
+        ok = obs >= 0
+
+        def scores(pmf: Any) -> dict[str, float]:
+            return {"rps": float(np.mean(ranked_probability_score(pmf[:, :, k], obs)[ok])),
+                    "log_score": float(np.mean(log_score(pmf[:, :, k], obs)[ok]))}
+
+        return scores(targets.rate) | {"baseline": scores(targets.rate_climatology),
+                                       "n": int(ok.sum())}
 
     def peak(mask: Any) -> dict[str, Any]:
         seen = mask[None, :] & np.isfinite(targets.peak_observed) & \
             (targets.peak_week_observed >= 0) & np.isfinite(targets.peak_climatology).all(-1)
-        out: dict[str, Any] = {"n": int(seen.sum())}
-        obs_week = np.where(seen, targets.peak_week_observed, -1)
-        for name, q, pmf in (("flowcast", targets.peak, targets.peak_week),
-                             ("climatology", targets.peak_climatology,
-                              targets.peak_week_climatology)):
+        week = np.where(seen, targets.peak_week_observed, -1)
+
+        def scores(q: Any, pmf: Any) -> dict[str, float]:
             wis = score_cells(q, np.where(seen, targets.peak_observed, np.nan),
                               targets.levels).wis
-            week_pmf = np.where(seen[..., None], pmf, 1.0 / pmf.shape[-1])
-            out[name] = {"wis": float(np.nanmean(wis[seen])),
-                         "log_score": float(np.mean(log_score(week_pmf, obs_week)[seen]))}
-        return out
+            usable = np.where(seen[..., None], pmf, 1.0 / pmf.shape[-1])
+            return {"wis": float(np.mean(wis[seen])),
+                    "log_score": float(np.mean(log_score(usable, week)[seen]))}
 
-    everything = np.ones(len(seasons), dtype=bool)
-    return {"rate_change": rate(everything) | {
-                s: rate(seasons == s) for s in sorted(set(seasons))} | {
-                f"h{h}": _rate_h(targets, k) for k, h in enumerate((0, 1, 2, 3))},
-            "peak": peak(everything) | {s: peak(seasons == s) for s in sorted(set(seasons))}}
+        return scores(targets.peak, targets.peak_week) | {
+            "baseline": scores(targets.peak_climatology, targets.peak_week_climatology),
+            "n": int(seen.sum())}
 
-
-def _rate_h(targets: Any, k: int) -> dict[str, float]:
-    import numpy as np
-
-    from pipeline.evaluation.categorical import ranked_probability_score
-
-    obs = targets.rate_observed[:, :, k]
-    ok = obs >= 0
-    return {name: float(np.mean(ranked_probability_score(pmf[:, :, k], obs)[ok]))
-            for name, pmf in (("flowcast_rps", targets.rate),
-                              ("climatology_rps", targets.rate_climatology))}
+    return {"rate_change": rate(every) | {
+                "baseline_is": CLIMATOLOGY,
+                "by_season": {s: rate(seasons == s) for s in sorted(set(seasons))},
+                "by_horizon": {f"h{h}": rate(every, k) for k, h in enumerate((0, 1, 2, 3))}},
+            "peak": peak(every) | {
+                "baseline_is": CLIMATOLOGY, "rounds": "every round, scored once its season is "
+                "complete in the latest release",
+                "by_season": {s: peak(seasons == s) for s in sorted(set(seasons))}}}
 
 
 def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, float, float]:
@@ -328,7 +328,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"coverage {out['coverage50']:.3f}/{out['coverage95']:.3f}; validation "
           f"{validation['n_files']} files, {validation['n_errors']} errors, hubdata "
           f"{validation['hubdata']['rows_read']} rows")
-    print(f"rate change {json.dumps(derived['rate_change'])}\npeak {json.dumps(derived['peak'])}")
+    for name in ("rate_change", "peak"):
+        part = derived[name]
+        print(f"{name}: " + ", ".join(f"{k} {part[k]:.4g} (baseline {part['baseline'][k]:.4g})"
+                                      for k in part["baseline"]) + f", n {part['n']}")
     for name, m in per_model.items():
         print(f"  {name:40s} all {m['all']}  " + " ".join(
             f"{k}={v:.3f}" for k, v in m.items() if k.startswith("h") and v is not None))
