@@ -84,3 +84,27 @@ def test_no_round_off_season_and_rsv_refused_by_name(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match=r"the rsv hub's tasks.json is needed .* none is in "
                        r"the project's reach .* no RSV round is written"):
         require_hub_config(HubRunConfig(disease="rsv"))
+
+
+def test_the_flow_ends_off_season_without_a_round_and_refuses_rsv(prefect_harness, tmp_path,
+                                                                  monkeypatch):
+    """The deployment's flow on an off-season week: no round, said by name, a result and not a
+    failure (rc 0 from the command line); RSV refused before any work."""
+    from flows.hub_forecast import hub_forecast
+    from pipeline.data.hub.target_import import import_hub_time_series
+    from pipeline.errors import ConfigError
+
+    series = pd.read_parquet(FLUSIGHT / "time-series.parquet")
+    as_of = pd.to_datetime(series["as_of"])
+    series[as_of >= pd.Timestamp("2025-06-04")].to_parquet(tmp_path / "time-series.parquet")
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
+    import_hub_time_series(tmp_path / "time-series.parquet", accept_revisions=True)
+    result = hub_forecast(disease="flu", data_source="cache", output_dir=str(tmp_path / "out"),
+                          preset="tiny")
+    assert result["model_output"] is None and result["reference_date"] == "2025-06-21"
+    assert "takes no round for the reference date 2025-06-21" in str(result["no_round"])
+    assert not list((tmp_path / "out").rglob("*.csv"))
+    monkeypatch.delenv("FLOWCAST_HUB_CONFIG", raising=False)
+    with pytest.raises(ConfigError, match="no RSV round is written"):
+        hub_forecast(disease="rsv", data_source="cache", output_dir=str(tmp_path / "out"),
+                     preset="tiny")
