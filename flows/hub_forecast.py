@@ -45,7 +45,8 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
             only the cache (offline).
         output_dir: The reports folder on the worker's machine.
         hub_config: The hub's hub-config folder (its tasks.json validates the file). Empty:
-            $FLOWCAST_HUB_CONFIG or ../shared/data/nhsn/hub-config beside the checkout.
+            $FLOWCAST_HUB_CONFIG or the disease's beside the checkout (../shared/data/nhsn
+            or ../shared/data/flusight hub-config; none for RSV: refused by name).
         seed: Seed of every random step.
         preset: default: the product's members; tiny: a small flow and few draws, a
             seconds-long smoke run.
