@@ -132,6 +132,9 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
                              hub_config=str(hub_config) if hub_config else None, seed=seed,
                              preset=preset, return_state=True)
     result = _outcome(state, "the hub round")
+    if result.get("no_round"):        # e.g. FluSight off season: said clearly, rc 0
+        typer.echo(f"no hub round: {result['no_round']}")
+        return
     typer.echo(f"hub round {result['reference_date']}: {result['model_output']}")
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:

@@ -1,5 +1,7 @@
-"""Serve the deployments: ``weekly_forecast/sf-weekly`` (Mondays 06:00 America/Los_Angeles)
-and ``hub_forecast/hub-covid-weekly`` (the hub round, Wednesdays 15:00 America/New_York).
+"""Serve the deployments: ``weekly_forecast/sf-weekly`` (Mondays 06:00 America/Los_Angeles),
+``hub_forecast/hub-covid-weekly`` (the COVID-19 hub round, Wednesdays 15:00 America/New_York)
+and ``hub_forecast/hub-flu-weekly`` (FluSight's round, the Wednesdays of October … May 15:00
+America/New_York; no round where FluSight's config lists none).
 
 Two ways to run the deployments, with the same schedules, parameters and tags:
 
@@ -72,7 +74,18 @@ HUB_COVID_WEEKLY = DeploymentSpec(
     tags=("flowcast", "forecast-hub", "covid", "weekly"),
     description="This week's CDC COVID-19 Forecast Hub round: NHSN admissions and the ED "
                 "share for the US and every state.")
-DEPLOYMENTS = (SF_WEEKLY, HUB_COVID_WEEKLY)
+# FluSight's rounds are due Wednesdays (its submissions window: reference date − 6 … − 3) in
+# season only: its tasks.json lists rounds due from October to May. The schedule runs on
+# the Wednesdays of October … May; a Wednesday the hub's config lists no round for ends with
+# "no round" (rc 0, nothing written: pipeline.outputs.hub_conform).
+HUB_FLU_WEEKLY = DeploymentSpec(
+    name="hub-flu-weekly", flow_name="hub_forecast",
+    entrypoint="flows/hub_forecast.py:hub_forecast",
+    cron="0 15 * 10,11,12,1,2,3,4,5 3", timezone="America/New_York",  # in-season Wednesdays
+    tags=("flowcast", "forecast-hub", "flu", "weekly"),
+    description="This week's CDC FluSight round (in season): NHSN influenza admissions, their "
+                "rate change and peak, for the US and every state.")
+DEPLOYMENTS = (SF_WEEKLY, HUB_COVID_WEEKLY, HUB_FLU_WEEKLY)
 
 def deployment_parameters(args: argparse.Namespace) -> dict[str, object]:
     """The sf-weekly deployment's stored parameters (a triggered run may override any)."""
@@ -83,9 +96,9 @@ def deployment_parameters(args: argparse.Namespace) -> dict[str, object]:
     return params
 
 
-def hub_parameters(args: argparse.Namespace) -> dict[str, object]:
-    """The hub-covid-weekly deployment's stored parameters."""
-    return {"disease": "covid", "data_source": args.data_source,
+def hub_parameters(args: argparse.Namespace, disease: str = "covid") -> dict[str, object]:
+    """A hub deployment's stored parameters (hub-covid-weekly, hub-flu-weekly)."""
+    return {"disease": disease, "data_source": args.data_source,
             "output_dir": args.output_dir, "seed": args.seed}
 
 
@@ -93,7 +106,8 @@ def serve(args: argparse.Namespace) -> None:
     """Register the chosen deployments and run them until stopped (``--limit`` concurrent runs:
     runs share one model cache and one output folder, so they should not overlap)."""
     flows = {SF_WEEKLY.name: (weekly_forecast, deployment_parameters(args)),
-             HUB_COVID_WEEKLY.name: (hub_forecast, hub_parameters(args))}
+             HUB_COVID_WEEKLY.name: (hub_forecast, hub_parameters(args)),
+             HUB_FLU_WEEKLY.name: (hub_forecast, hub_parameters(args, "flu"))}
     chosen = [spec for spec in DEPLOYMENTS if spec.name in args.deployments]
     serve_deployments(*[flows[spec.name][0].to_deployment(
         name=spec.name, schedules=[spec.schedule()], parameters=flows[spec.name][1],

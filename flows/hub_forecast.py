@@ -21,8 +21,9 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
-from pipeline.hub_round.publish import publish_hub_round
+from pipeline.hub_round.publish import publish_hub_round, require_hub_config
 from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.progress import LogProgress
 
 FLOW_NAME = "hub_forecast"
@@ -44,7 +45,8 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
             only the cache (offline).
         output_dir: The reports folder on the worker's machine.
         hub_config: The hub's hub-config folder (its tasks.json validates the file). Empty:
-            $FLOWCAST_HUB_CONFIG or ../shared/data/nhsn/hub-config beside the checkout.
+            $FLOWCAST_HUB_CONFIG or the disease's beside the checkout (../shared/data/nhsn
+            or ../shared/data/flusight hub-config; none for RSV: refused by name).
         seed: Seed of every random step.
         preset: default: the product's members; tiny: a small flow and few draws, a
             seconds-long smoke run.
@@ -54,11 +56,18 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                           hub_config=hub_config, seed=seed,
                           members=hub_members_preset(preset))
     config = dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
+    require_hub_config(config)        # no hub config (RSV): refused by name before any work
     run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False,
                retries=1, retry_delay_seconds=30)(run_hub_round)(
         config, LogProgress(logger, "rounds", 2000))
-    published = task(name="publish-round", cache_policy=NO_CACHE, persist_result=False)(
-        publish_hub_round)(run)
+    try:
+        published = task(name="publish-round", cache_policy=NO_CACHE, persist_result=False)(
+            publish_hub_round)(run)
+    except NoHubRoundError as error:           # FluSight off season: no round, not a failure
+        logger.info("%s", error)
+        return {"reference_date": str(run.reference_date), "no_round": str(error),
+                "output_dir": None, "model_output": None, "files": [],
+                "data_stale": run.stale, "seconds": run.seconds}
     stale = "; ".join(f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes)
     create_markdown_artifact(
         f"Hub round {published.reference_date} ({disease}): `{published.model_output}`"
@@ -87,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         result = hub_forecast(disease=args.disease, data_source=args.data_source,
                               output_dir=args.output_dir, hub_config=args.hub_config,
                               seed=args.seed)
-    print(f"hub round: {result['model_output']}")
+    print(result["no_round"] if result.get("no_round") else
+          f"hub round: {result['model_output']}")
     return 0
 
 

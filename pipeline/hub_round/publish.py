@@ -3,8 +3,11 @@
 replaces the last good round):
 
 * ``model-output/<model>/<reference date>-<model>.csv`` and ``model-metadata/<model>.yml``: the
-  round as the hub takes it, every location × target × horizon −1 … 3, 23 quantiles and 200
-  sample trajectories per location × target, validated against the hub's ``tasks.json``;
+  round as the hub's ``tasks.json`` asks for it (:mod:`pipeline.outputs.hub_conform`: its
+  sample count, integer values, bounds; no round where the hub has none, e.g. FluSight off
+  season), every location × target × horizon −1 … 3, 23 quantiles and the sample
+  trajectories per location × target, and the targets FluSight derives from the admissions'
+  joint paths (rate change, peak); validated against the hub's ``tasks.json``;
 * ``track_record_scores.csv``: every forecaster's scores over the earlier rounds;
   ``summary.json``: the round's facts and the track record per target × horizon;
 * ``report.html`` and ``report.pdf`` (:mod:`pipeline.report.hub`).
@@ -13,17 +16,25 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
+from pipeline.backtest.hub_rounds import HubRoundsResult
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.core.cache import utc_now
+from pipeline.data.hub.locations import POPULATION
+from pipeline.data.hub.nhsn_vintages import HOSP_FLU
 from pipeline.errors import ConfigError
-from pipeline.hub_round.run import HubRun
+from pipeline.hub_round.run import HubRun, HubRunConfig
 from pipeline.io import atomic_write_json, atomic_write_text
+from pipeline.outputs.derived_round import (PEAK_WEEK, RATE_CHANGE, derive_targets,
+                                            derived_round_frame)
+from pipeline.outputs.hub_conform import require_round
+from pipeline.outputs.hub_tasks import target_model_task, task_values
 from pipeline.outputs.hubverse_round import (compound_sample_ids, load_model_metadata,
                                              write_hub_round)
 from pipeline.outputs.hubverse_validation import load_tasks_config
@@ -43,13 +54,53 @@ class PublishedRound:
     model_output: Path
 
 
-def round_frame(run: HubRun) -> pd.DataFrame:
+def round_frame(run: HubRun, tasks: Mapping[str, Any] | None = None) -> pd.DataFrame:
     """The newest round of every target in the hubverse format, sample ids unique per
-    location × target (one id a trajectory across the horizons)."""
+    location × target (one id a trajectory across the horizons); with the hub's ``tasks``,
+    the targets it derives from the weekly admissions' joint paths (FluSight's rate change and
+    peak: :func:`derived_frame`)."""
     frames = [result.round_frame(len(result.rounds) - 1) for result in run.results.values()]
     reference = max(f["reference_date"].iloc[0] for f in frames)
     kept = [f for f in frames if f["reference_date"].iloc[0] == reference]
+    if tasks is not None:
+        kept += [derived_frame(result, tasks) for result in run.results.values()
+                 if result.rounds[-1].reference == pd.Timestamp(reference)
+                 and _asks_derived(tasks, result)]
     return compound_sample_ids(pd.concat(kept, ignore_index=True))
+
+
+def _asks_derived(tasks: Mapping[str, Any], result: HubRoundsResult) -> bool:
+    """Does the hub's round ask for targets derived from this result's paths (the rate change
+    of FluSight's weekly admissions)?"""
+    day = result.rounds[-1].reference.date()
+    return (result.target == HOSP_FLU and result.samples is not None
+            and target_model_task(tasks, day, RATE_CHANGE) is not None)
+
+
+def derived_frame(result: HubRoundsResult, tasks: Mapping[str, Any]) -> pd.DataFrame:
+    """The newest round's derived targets (:mod:`pipeline.outputs.derived_round`): the rate
+    change, and the peak when the hub's peak-week categories are the round's season weeks."""
+    last = len(result.rounds) - 1
+    targets = derive_targets(result, result.rounds[-1].panel, POPULATION)
+    peak = target_model_task(tasks, result.rounds[-1].reference.date(), PEAK_WEEK)
+    weeks = None if peak is None else [
+        str(v) for v in task_values(peak["output_type"]["pmf"]["output_type_id"])]
+    return derived_round_frame(targets, last, weeks)
+
+
+def require_hub_config(config: HubRunConfig) -> Path:
+    """The hub's config folder, or a :class:`ConfigError` naming what is missing: a round is
+    never written unvalidated (RSV: no hub config is in the project's reach)."""
+    hub_config = config.hub_config_dir()
+    if hub_config is None:
+        where = {"covid": "the CDC hub's, github.com/CDCgov/covid19-forecast-hub",
+                 "flu": "FluSight's, github.com/cdcepi/FluSight-forecast-hub",
+                 "rsv": "the RSV hub's: none is in the project's reach (../shared holds the "
+                        "COVID-19 and FluSight hubs only), so no RSV round is written"}
+        raise ConfigError(f"the {config.disease} hub's tasks.json is needed to validate the "
+                          "round file: pass --hub-config DIR or set FLOWCAST_HUB_CONFIG to the "
+                          f"hub's hub-config folder ({where[config.disease]})")
+    return hub_config
 
 
 def summary(run: HubRun) -> dict[str, Any]:
@@ -72,24 +123,22 @@ def summary(run: HubRun) -> dict[str, Any]:
 def publish_hub_round(run: HubRun) -> PublishedRound:
     """Write the round's files and report (module docstring) and promote them."""
     config = run.config
-    hub_config = config.hub_config_dir()
-    if hub_config is None:
-        raise ConfigError("the hub's tasks.json is needed to validate the round file: pass "
-                          "--hub-config DIR or set FLOWCAST_HUB_CONFIG to the hub's hub-config "
-                          "folder (the CDC hub's, github.com/CDCgov/covid19-forecast-hub)")
-    tasks = load_tasks_config(hub_config / "tasks.json")
+    tasks = load_tasks_config(require_hub_config(config) / "tasks.json")
+    # off season FluSight has no round: nothing is written, said by name (NoHubRoundError)
+    require_round(tasks, pd.Timestamp(run.reference_date), f"the {config.disease} hub")
     metadata = load_model_metadata(METADATA_DIR / f"{config.model_id}.yml")
     reference = str(run.reference_date)
     outputs = RunOutputs(Path(config.output_dir) / f"hub-{config.disease}",
                          place=f"CDC hub ({config.disease})")
     with outputs.staged(reference) as staging:
-        written = write_hub_round(round_frame(run), hub_dir=staging, model_id=config.model_id,
-                                  tasks=tasks, metadata=metadata)
+        written = write_hub_round(round_frame(run, tasks), hub_dir=staging,
+                                  model_id=config.model_id, tasks=tasks, metadata=metadata)
         scores = pd.concat([r.scores() for r in run.results.values()], ignore_index=True)
         atomic_write_text(staging / "track_record_scores.csv",
                           scores.to_csv(index=False, float_format="%.6g"))
         atomic_write_json(staging / "summary.json", summary(run))
-        notes = [f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes]
+        notes = [f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes] + \
+            list(written.notes)
         vintage = "; ".join(f"{p.target}: as of {p.as_of} ({p.source_kind}"
                             f"{', cache' if p.from_cache else ''})"
                             for p in run.provenance.values())

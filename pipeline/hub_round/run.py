@@ -44,9 +44,13 @@ from pipeline.training.model_store import default_store_root
 
 log = logging.getLogger(__name__)
 HUB_CONFIG_ENV = "FLOWCAST_HUB_CONFIG"
-DEFAULT_HUB_CONFIG = Path(__file__).resolve().parents[3] / "shared" / "data" / "nhsn" / \
-    "hub-config"
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+DEFAULT_HUB_CONFIG = SHARED_DATA / "nhsn" / "hub-config"
 Disease = Literal["covid", "flu", "rsv"]
+# each disease's hub config beside the checkout: the CDC COVID-19 hub's, FluSight's; none of
+# the RSV hub is in reach, so an RSV round is refused by name (no unvalidated file)
+DEFAULT_HUB_CONFIGS: dict[str, Path] = {"covid": DEFAULT_HUB_CONFIG,
+                                        "flu": SHARED_DATA / "flusight" / "hub-config"}
 HubPreset = Literal["default", "tiny"]
 HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
     "default": HubMembersConfig(),
@@ -88,10 +92,12 @@ class HubRunConfig:
             raise ConfigError(f"data source {self.data_source!r}: use live or cache")
 
     def hub_config_dir(self) -> Path | None:
-        """The hub's ``hub-config`` folder: the option, ``$FLOWCAST_HUB_CONFIG``, or the shared
-        hub data's beside the checkout; None when none is there."""
+        """The hub's ``hub-config`` folder: the option, ``$FLOWCAST_HUB_CONFIG``, or the
+        disease's hub data beside the checkout (:data:`DEFAULT_HUB_CONFIGS`); None when none
+        is there."""
+        default = DEFAULT_HUB_CONFIGS.get(self.disease)
         for candidate in (self.hub_config, os.environ.get(HUB_CONFIG_ENV),
-                          str(DEFAULT_HUB_CONFIG)):
+                          str(default) if default else None):
             if candidate and (Path(candidate) / "tasks.json").is_file():
                 return Path(candidate)
         return None
@@ -150,19 +156,31 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     targets = disease_targets(config.disease)
-    loaded = load_nhsn(NHSNConfig(disease=config.disease),
+    if config.data_source == "cache":
+        # offline, the ED share where the cache has it (FluSight's data: admissions only);
+        # without admissions every target is asked for, for load_nhsn to name what is missing
+        held = tuple(t for t in targets if cached_weekly_vintages(t))
+        targets = held if any(not is_share(t) for t in held) else targets
+    loaded = load_nhsn(NHSNConfig(disease=config.disease, targets=targets),
                        offline=config.data_source == "cache")
     for provenance in loaded.provenance.values():     # its notes: pipeline.data.hub.nhsn logs them
         if provenance.skipped:
             log.warning("%s: locations left out: %s", provenance.target,
                         "; ".join(f"{p} ({why})" for p, why in provenance.skipped.items()))
     vintages = {t: load_vintages(t) for t in targets}
+    if all(vintages[t] for t in targets if not is_share(t)):
+        # the ED share where the data have it (FluSight's data hold no influenza ED vintage)
+        for target in [t for t, v in vintages.items() if not v and is_share(t)]:
+            log.warning("%s: no cached vintage; the round is made without it", target)
+            del vintages[target]
     if not all(vintages.values()):
         raise OfflineError(f"no cached vintage of {[t for t, v in vintages.items() if not v]}: "
                            "import the hub's target data with `flowcast data import <hub "
                            "folder>` or fetch it with `flowcast data fetch --source nhsn`")
     seconds["data"] = time.perf_counter() - started
-    climatology = next(v for t, v in vintages.items() if is_share(t))
+    # the ED share's vintages are the seasonal member's climatology; without them it reads the
+    # admissions' own earlier seasons
+    climatology = next((v for t, v in vintages.items() if is_share(t)), [])
     results: dict[str, HubRoundsResult] = {}
     model_key, reused = "", True
     for target, target_vintages in vintages.items():

@@ -109,7 +109,10 @@ def nowcast_weeks(panel: Panel, earlier: Sequence[Panel], levels: NDArray[np.flo
         q = np.empty((config.lags, levels.size))
         for lag, end in enumerate(ends):
             reported = weeks_ending(history, end, 1)[0]
-            q[lag] = (np.maximum(np.expm1(_g(np.array(reported)) + spread[lag][group]), 0.0)
+            # a week's final value is at most what it is counted in: a share at most every
+            # visit (a week first released as 0 has revision ratios that reach far beyond it)
+            q[lag] = (np.clip(np.expm1(_g(np.array(reported)) + spread[lag][group]), 0.0,
+                              float(history.population))
                       if np.isfinite(reported) else np.nan)
             index = len(history) - 1 - lag
             if index >= 0 and history.dates[index] == end and np.isfinite(q[lag, mid]):

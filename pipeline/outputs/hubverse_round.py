@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.io import atomic_write_text, sha256_bytes
+from pipeline.outputs.hub_conform import conform_round
 from pipeline.outputs.hubverse import (HUBVERSE_TASK_IDS, MODEL_OUTPUT_COLUMNS, hub_csv_text,
                                       model_output_path)
 from pipeline.outputs.hubverse_validation import (HubFormatError, HubValidationError,
@@ -43,6 +44,7 @@ class RoundFile:
     frame: pd.DataFrame
     reference_date: dt.date
     sha256: str
+    notes: tuple[str, ...] = ()     # what following the hub's config changed or left out
 
 
 def compound_sample_ids(frame: pd.DataFrame,
@@ -100,7 +102,8 @@ def _round_text_frame(frame: pd.DataFrame, source: object) -> pd.DataFrame:
     out = pd.DataFrame({
         "reference_date": dates["reference_date"].to_numpy(),
         "target": frame["target"].astype(str).to_numpy(),
-        "horizon": frame["horizon"].astype(np.int64).to_numpy(),
+        # a peak target has no horizon: NA, written as an empty cell
+        "horizon": pd.to_numeric(frame["horizon"]).astype("Int64").to_numpy(dtype=object),
         "location": frame["location"].astype(str).to_numpy(),
         "target_end_date": dates["target_end_date"].to_numpy(),
         "output_type": kind, "output_type_id": text, "value": values})
@@ -148,8 +151,10 @@ def write_hub_round(frame: pd.DataFrame, *, hub_dir: str | os.PathLike[str], mod
     reference date; sample ids unique per compound task, see :func:`compound_sample_ids`) and
     ``<hub_dir>/model-metadata/<model_id>.yml`` from ``metadata``.
 
-    The file's text is validated against the hub's ``tasks`` (and the metadata against
-    ``metadata_schema``) before anything is written; both files are then replaced atomically,
+    The round first follows the hub's config (:func:`~pipeline.outputs.hub_conform.
+    conform_round`: no file for a date the hub has no round for, its sample count, integer
+    values, bounds); the file's text is validated against the hub's ``tasks`` (and the
+    metadata against ``metadata_schema``) before anything is written; both files are then replaced atomically,
     so a refused round leaves the last good files as they were."""
     import yaml
 
@@ -162,7 +167,8 @@ def write_hub_round(frame: pd.DataFrame, *, hub_dir: str | os.PathLike[str], mod
         raise HubValidationError(f"a round file holds one reference_date, got {rounds}")
     reference_date = rounds[0]
     path = model_output_path(hub_dir, reference_date, model_id)
-    text = hub_csv_text(_round_text_frame(frame, path))
+    conformed = conform_round(frame, tasks)
+    text = hub_csv_text(_round_text_frame(conformed.frame, path))
     typed = validate_model_output_frame(frame_from_text(text, path), tasks, source=path)
     validate_model_metadata(metadata, model_id, metadata_schema)
     metadata_path = Path(hub_dir) / "model-metadata" / f"{model_id}.yml"
@@ -170,4 +176,5 @@ def write_hub_round(frame: pd.DataFrame, *, hub_dir: str | os.PathLike[str], mod
     atomic_write_text(metadata_path, yaml.safe_dump(dict(metadata), sort_keys=False,
                                                     allow_unicode=True, width=100))
     return RoundFile(path=path, metadata_path=metadata_path, frame=typed,
-                    reference_date=reference_date, sha256=sha256_bytes(text.encode("utf-8")))
+                     reference_date=reference_date, sha256=sha256_bytes(text.encode("utf-8")),
+                     notes=conformed.notes)

@@ -1,15 +1,28 @@
 """A hubverse model-output file checked against its hub's ``tasks.json`` (no Prefect, no torch).
 
-The validator (:func:`validate_model_output`) is generic over a hubverse v5 ``tasks.json`` of one
-round definition and one model task: allowed task-id values (targets, horizons, locations, dates),
-output types, quantile levels and sample-id text, finite values within the declared bounds,
-``target_end_date = reference_date + 7·horizon``, complete non-decreasing quantile sets, sample
-counts per compound task, sample ids owned by one compound task, no duplicated row. It works
-column by column (each distinct task-id value checked once, values vectorized), so a round of
-118,000 rows validates in well under a second.
+Real hubs (the CDC COVID-19 Forecast Hub, FluSight) have several round definitions and several
+model tasks in a round, each with its own output types and rules. The validator
+(:func:`validate_model_output`) finds the file's round from its round-id column
+(``reference_date``: a date outside every round is refused, naming the hub's rounds), gives
+each row to the model task whose task-id values it holds (a row that fits none is refused by
+the closest task's first broken rule), and checks each model task by its own rules:
 
-The writers (:mod:`pipeline.outputs.hubverse`, :mod:`pipeline.outputs.hubverse_round`) validate
-the text they are about to write here, so a refused file never replaces a good one.
+* the exact columns of the hub (``hubdata.create_hub_schema``, the hubverse's own reader);
+* every cell against its output type's row schema (JSON Schema via ``jsonschema``): allowed
+  task-id values (targets, horizons, locations, reference and target end dates; a task id the
+  task declares no value for must be ``NA``), output types, output-type ids, the value's type
+  (``integer`` or ``double``) and bounds;
+* required task-id values present for required output types;
+* ``target_end_date = reference_date + 7·horizon`` for step-ahead tasks;
+* complete, non-decreasing quantile sets; complete pmfs summing to 1;
+* ``min``/``max_samples_per_task`` per ``compound_taskid_set``, a sample id owned by one
+  compound task and covering every task of it; no duplicated row.
+
+It works column by column (each distinct task-id value checked once, values vectorized), so a
+round of 118,000 rows validates in about a second. The writers (:mod:`pipeline.outputs.hubverse`,
+:mod:`pipeline.outputs.hubverse_round`) validate the text they are about to write here, so a
+refused file never replaces a good one. :mod:`pipeline.outputs.hub_tasks` reads what a round
+must follow from the same config (sample counts, value types, bounds, the hub's rounds).
 """
 from __future__ import annotations
 
@@ -17,25 +30,25 @@ import io
 import json
 import os
 import re
-from collections.abc import Hashable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from pipeline.errors import FlowcastError
+from pipeline.outputs.hub_tasks import (NA_TEXT, HubFormatError, HubValidationError,
+                                        describe_rounds, find_round, hub_round_ids,
+                                        round_id_column, task_values)
+from pipeline.outputs.hubverse_task_checks import (check_dates, check_duplicates, check_pmfs,
+                                                   check_quantile_sets, check_required_values,
+                                                   check_sample_counts, file_row,
+                                                   task_id_columns)
 
-_QUANTILE_TOL = 1e-12
+__all__ = ["HubFormatError", "HubValidationError", "frame_from_text", "frame_id_text",
+           "hub_columns", "load_tasks_config", "validate_model_output",
+           "validate_model_output_frame"]
 
-
-class HubFormatError(FlowcastError):
-    """A forecast or a hub file that does not meet the hub format (levels, NaN, dates...)."""
-
-
-
-class HubValidationError(HubFormatError):
-    """A model-output file that breaks the hub's ``tasks.json`` rules (names file, row, rule)."""
 
 
 def load_tasks_config(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -52,23 +65,17 @@ def frame_from_text(text: str, source: object) -> pd.DataFrame:
         raise HubValidationError(f"{source}: not a readable CSV ({exc})") from exc
 
 
-def _round_for(tasks: Mapping[str, Any], source: object) -> Mapping[str, Any]:
-    rounds = tasks.get("rounds") or []
-    if len(rounds) != 1 or len(rounds[0].get("model_tasks", [])) != 1:
-        raise HubValidationError(f"{source}: this validator handles hubs with one round "
-                                 "definition holding one model task")
-    return rounds[0]["model_tasks"][0]
-
-
-def _task_values(spec: Mapping[str, Any]) -> list[Any]:
-    return list(spec.get("required") or []) + list(spec.get("optional") or [])
+def _task_values(spec: Mapping[str, Any] | None) -> list[Any]:
+    return task_values(spec)
 
 
 def _row_schema(model_task: Mapping[str, Any], output_type: str) -> dict[str, Any]:
     """A JSON Schema (draft 2020-12) for one model-output row of ``output_type``."""
     spec = model_task["output_type"][output_type]
+    # a task id the model task gives no value (a peak target's horizon) must be NA
     properties: dict[str, Any] = {
-        name: {"enum": _task_values(values)} for name, values in model_task["task_ids"].items()}
+        name: {"enum": _task_values(values)} if _task_values(values) else {"type": "null"}
+        for name, values in model_task["task_ids"].items()}
     properties["output_type"] = {"const": output_type}
     if "output_type_id" in spec:
         properties["output_type_id"] = {"enum": _task_values(spec["output_type_id"])}
@@ -102,24 +109,30 @@ def _numbers(cells: pd.Series, column: str, kind: str, source: object) -> np.nda
         literal = cells.astype(str).str.strip().str.lower().isin(
             ["nan", "inf", "+inf", "-inf", "infinity", "-infinity"])
         row = int(np.flatnonzero((parsed.isna() & ~literal).to_numpy())[0])
-        raise HubValidationError(f"{source} row {row + 2}: column {column!r} must be {kind}, "
-                                 f"got {cells.iloc[row]!r}") from None
+        raise HubValidationError(f"{source} row {file_row(cells.to_frame(), row)}: column "
+                                 f"{column!r} must be {kind}, got {cells.iloc[row]!r}") from None
 
 
 def _typed_columns(frame: pd.DataFrame, model_task: Mapping[str, Any],
                    source: object) -> pd.DataFrame:
     """The CSV's text cells in the types the tasks config declares, column by column: integer
-    task ids as int64, ``value`` as float64, a quantile's ``output_type_id`` as its level (text
-    that is no number stays text, for the level check to name it), a sample's as text."""
+    task ids as int64, a task id the task gives no value as None (its ``NA``), ``value`` as
+    float64, a quantile's ``output_type_id`` as its level (text that is no number stays text,
+    for the level check to name it), a sample's as text. The frame's row labels are kept (they
+    are the file's rows, for the messages)."""
     int_ids = _int_task_ids(model_task)
-    typed = frame.reset_index(drop=True).copy()
+    typed = frame.copy()
+    for column, spec in model_task["task_ids"].items():
+        if column in typed.columns and not _task_values(spec):
+            cells = typed[column].astype(object)
+            typed[column] = cells.where(~cells.isin(NA_TEXT), None)
     for column in int_ids & set(frame.columns):
         numbers = _numbers(typed[column], column, "an integer", source)
         fractional = ~np.isfinite(numbers) | (numbers != np.round(numbers))
         if fractional.any():
-            row = int(np.flatnonzero(fractional)[0])
-            raise HubValidationError(f"{source} row {row + 2}: column {column!r} must be an "
-                                     f"integer, got {typed[column].iloc[row]!r}")
+            k = int(np.flatnonzero(fractional)[0])
+            raise HubValidationError(f"{source} row {file_row(typed, k)}: column {column!r} must "
+                                     f"be an integer, got {typed[column].iloc[k]!r}")
         typed[column] = numbers.astype(np.int64)
     typed["value"] = _numbers(typed["value"], "value", "a number", source)
     ids = typed["output_type_id"].to_numpy(dtype=object).copy()
@@ -169,7 +182,7 @@ def _cell_errors(typed: pd.DataFrame, schemas: Mapping[str, Mapping[str, Any]],
     if found:
         row = min(r for r, _ in found)
         message = min(m for r, m in found if r == row)
-        raise HubValidationError(f"{source} row {row + 2}: {message}")
+        raise HubValidationError(f"{source} row {file_row(typed, row)}: {message}")
 
 
 def _value_errors(values: np.ndarray, rows: np.ndarray,
@@ -241,11 +254,18 @@ def _check_file_name(path: Path, frame: pd.DataFrame) -> None:
                                  f"name's {match.group(1)}")
 
 
+def hub_columns(tasks: Mapping[str, Any]) -> list[str]:
+    """A model-output file's columns, as the hubverse's own reader (``hubdata``) builds its
+    schema from the config: every task id of every round, then the output columns."""
+    from hubdata import create_hub_schema
+
+    return list(create_hub_schema(dict(tasks), partitions=None).names)
+
+
 def validate_model_output_frame(frame: pd.DataFrame, tasks: Mapping[str, Any], *,
                                 source: object = "model output") -> pd.DataFrame:
     """:func:`validate_model_output` on a frame of text cells (as read with ``dtype=str``)."""
-    model_task = _round_for(tasks, source)
-    expected = [*model_task["task_ids"], "output_type", "output_type_id", "value"]
+    expected = hub_columns(tasks)
     if sorted(frame.columns) != sorted(expected):
         missing = sorted(set(expected) - set(frame.columns))
         extra = sorted(set(frame.columns) - set(expected))
@@ -253,130 +273,104 @@ def validate_model_output_frame(frame: pd.DataFrame, tasks: Mapping[str, Any], *
                                  f"unexpected {extra}")
     if frame.empty:
         raise HubValidationError(f"{source}: no rows")
-    typed = _typed_columns(frame, model_task, source)
-    _cell_errors(typed, {name: _row_schema(model_task, name)
-                         for name in model_task["output_type"]}, source)
-    _check_dates(typed, source)
-    _check_duplicates(typed, source)
-    if "quantile" in model_task["output_type"]:
-        _check_quantile_sets(typed, model_task, source)
-    if "sample" in model_task["output_type"]:
-        _check_sample_counts(typed, model_task, source)
-    return typed
+    frame = frame.reset_index(drop=True)
+    round_def = _round_of(frame, tasks, source)
+    model_tasks = list(round_def["model_tasks"])
+    owner = _model_task_of_rows(frame, model_tasks, source)
+    typed_parts = []
+    for k, model_task in enumerate(model_tasks):
+        part = frame[owner == k]
+        if part.empty:
+            continue
+        typed = _typed_columns(part, model_task, source)
+        _cell_errors(typed, {name: _row_schema(model_task, name)
+                             for name in model_task["output_type"]}, source)
+        check_required_values(typed, model_task, source)
+        check_dates(typed, source)
+        check_duplicates(typed, source)
+        kinds = model_task["output_type"]
+        if "quantile" in kinds:
+            check_quantile_sets(typed, model_task, source)
+        if "pmf" in kinds:
+            check_pmfs(typed, model_task, source)
+        if "sample" in kinds:
+            check_sample_counts(typed, model_task, source)
+        typed_parts.append(typed)
+    return _typed_frame(typed_parts, model_tasks)
 
 
-def _check_dates(frame: pd.DataFrame, source: object) -> None:
-    if not {"reference_date", "target_end_date", "horizon"} <= set(frame.columns):
-        return
-    ref = pd.to_datetime(frame["reference_date"])
-    end = pd.to_datetime(frame["target_end_date"])
-    bad = ((end - ref).dt.days != 7 * frame["horizon"].astype(int)).to_numpy()
-    if bad.any():
-        row = int(np.flatnonzero(bad)[0])
-        raise HubValidationError(f"{source} row {row + 2}: target_end_date "
-                                 f"{frame['target_end_date'].iloc[row]} is not reference_date "
-                                 f"{frame['reference_date'].iloc[row]} + 7·horizon "
-                                 f"({frame['horizon'].iloc[row]})")
+def _round_of(frame: pd.DataFrame, tasks: Mapping[str, Any],
+              source: object) -> Mapping[str, Any]:
+    """The round definition of the file's round: the one whose round-id column (``reference_
+    date``) holds the file's value. A hub without rounds from a variable has one definition."""
+    rounds = list(tasks.get("rounds") or [])
+    if not rounds:
+        raise HubValidationError(f"{source}: the hub's tasks config has no round")
+    column = round_id_column(rounds[0])
+    if column is None:
+        if len(rounds) != 1:
+            raise HubValidationError(f"{source}: the hub names its rounds by id, not by a "
+                                     "column of the file; give a hub with rounds from a variable")
+        return rounds[0]
+    values = pd.unique(frame[column].astype(str))
+    round_def = find_round(tasks, str(values[0]))
+    if round_def is None:
+        raise HubValidationError(
+            f"{source} row 2: column {column!r}: {values[0]!r} is not a round of the hub "
+            f"({describe_rounds(hub_round_ids(tasks))})")
+    return round_def
 
 
-def _task_id_columns(frame: pd.DataFrame) -> list[str]:
-    return [c for c in frame.columns if c not in ("output_type", "output_type_id", "value")]
+def _canonical_text(cells: pd.Series) -> np.ndarray:
+    """An integer task id's text as the config's values print: ``1.0`` reads ``1``."""
+    text = cells.astype(str).to_numpy(dtype=object)
+    looks_numeric = pd.Series(text).str.fullmatch(r"[+-]?\d+(\.0*)?").to_numpy(dtype=bool)
+    if looks_numeric.any():
+        text[looks_numeric] = [str(int(float(v))) for v in text[looks_numeric]]
+    return text
 
 
-def _check_duplicates(frame: pd.DataFrame, source: object) -> None:
-    keys = [*_task_id_columns(frame), "output_type", "output_type_id"]
-    dup = frame.duplicated(subset=keys, keep=False).to_numpy()
-    if dup.any():
-        row = int(np.flatnonzero(dup)[0])
-        raise HubValidationError(f"{source} row {row + 2}: duplicated row "
-                                 f"{frame.iloc[row][keys].to_dict()}")
+def _model_task_of_rows(frame: pd.DataFrame, model_tasks: list[Mapping[str, Any]],
+                        source: object) -> np.ndarray:
+    """Each row's model task (index into ``model_tasks``): the one whose task-id values and
+    output types the row holds. A row that fits none is refused with the first broken rule
+    of the task it comes closest to (the most of its cells allowed)."""
+    columns = task_id_columns(frame)
+    integer: set[str] = set().union(*(_int_task_ids(t) for t in model_tasks))
+    text = {c: _canonical_text(frame[c]) if c in integer else frame[c].astype(str).to_numpy()
+            for c in columns}
+    fits = np.zeros((len(model_tasks), len(frame)), dtype=np.int64)
+    for k, task in enumerate(model_tasks):
+        for column in columns:
+            allowed = [str(v) for v in _task_values(task["task_ids"].get(column))] or \
+                list(NA_TEXT)
+            fits[k] += np.isin(text[column], allowed)
+        fits[k] += np.isin(frame["output_type"].to_numpy(dtype=object),
+                           list(task["output_type"]))
+    full = fits == len(columns) + 1
+    owner = np.where(full.any(axis=0), np.argmax(full, axis=0), -1)
+    unmatched = np.flatnonzero(owner < 0)
+    if unmatched.size:
+        row = int(unmatched[0])
+        closest = model_tasks[int(np.argmax(fits[:, row]))]
+        typed = _typed_columns(frame.iloc[[row]], closest, source)   # raises for a broken rule
+        _cell_errors(typed, {name: _row_schema(closest, name)
+                             for name in closest["output_type"]}, source)
+        raise HubValidationError(f"{source} row {row + 2}: "
+                                 f"{frame.iloc[row][columns].to_dict()} fits no model task "
+                                 "of the round")
+    return owner
 
 
-def _task_codes(frame: pd.DataFrame) -> np.ndarray:
-    """One integer per distinct task (the task-id columns' values)."""
-    return frame.groupby(_task_id_columns(frame), sort=False, dropna=False).ngroup() \
-        .to_numpy(dtype=np.int64)
+def _typed_frame(parts: list[pd.DataFrame], model_tasks: list[Mapping[str, Any]]
+                 ) -> pd.DataFrame:
+    """The model tasks' typed rows in the file's order; an integer task id that some task
+    leaves NA (a peak target's horizon) as pandas' nullable ``Int64``."""
+    typed = pd.concat(parts).sort_index()
+    ints: set[str] = set().union(*(_int_task_ids(t) for t in model_tasks))
+    for column in ints & set(typed.columns):
+        cells = typed[column]
+        typed[column] = cells.astype(np.int64) if cells.notna().all() else cells.astype("Int64")
+    return typed.reset_index(drop=True)
 
 
-def _check_quantile_sets(frame: pd.DataFrame, model_task: Mapping[str, Any],
-                         source: object) -> None:
-    levels = sorted(float(v) for v in
-                    _task_values(model_task["output_type"]["quantile"]["output_type_id"]))
-    required = sorted(float(v) for v in
-                      model_task["output_type"]["quantile"]["output_type_id"].get("required")
-                      or [])
-    q = frame[(frame["output_type"] == "quantile").to_numpy()]
-    if q.empty:
-        return
-    task = _task_codes(q)
-    level = q["output_type_id"].astype(np.float64).to_numpy()
-    # rows are unique by now (duplicates were refused): counting required levels per task finds
-    # an incomplete set, and values sorted by level within each task find a crossing
-    n_required = np.bincount(task, weights=np.isin(level, required), minlength=task.max() + 1)
-    short = np.flatnonzero(n_required < len(required))
-    if short.size:
-        rows = task == short[0]
-        found = sorted(level[rows].tolist())
-        absent = [lv for lv in required if lv not in found]
-        label = _task_label(frame, tuple(q[rows].iloc[0][_task_id_columns(frame)]))
-        raise HubValidationError(f"{source}: quantile task {label} lacks the levels {absent} "
-                                 f"(incomplete quantile set: {len(found)} of {len(levels)})")
-    order = np.lexsort((level, task))
-    values = q["value"].to_numpy(dtype=np.float64)[order]
-    same_task = task[order][1:] == task[order][:-1]
-    falling = same_task & (np.diff(values) < -_QUANTILE_TOL)
-    if falling.any():
-        first = q.iloc[order[int(np.flatnonzero(falling)[0])]]
-        label = _task_label(frame, tuple(first[_task_id_columns(frame)]))
-        raise HubValidationError(f"{source}: quantile task {label} has values that decrease as "
-                                 "the level rises (crossing quantiles)")
-
-
-def _check_sample_counts(frame: pd.DataFrame, model_task: Mapping[str, Any],
-                         source: object) -> None:
-    params = model_task["output_type"]["sample"]["output_type_id_params"]
-    samples = frame[(frame["output_type"] == "sample").to_numpy()]
-    if samples.empty:
-        return
-    compound = list(params.get("compound_taskid_set") or _task_id_columns(frame))
-    low = int(params.get("min_samples_per_task", 1))
-    high = int(params.get("max_samples_per_task", 10**9))
-    ids = samples["output_type_id"].astype(str)
-    per_compound = samples.assign(_id=ids).groupby(compound, sort=True)["_id"].nunique()
-    outside = per_compound[(per_compound < low) | (per_compound > high)]
-    if not outside.empty:
-        key, count = outside.index[0], int(outside.iloc[0])
-        raise HubValidationError(f"{source}: {count} samples for compound task "
-                                 f"{dict(zip(compound, _as_tuple(key), strict=True))}; "
-                                 f"the hub asks for {low}..{high}")
-    # one id is one joint draw of one compound task: the same id in two compound tasks
-    # would join draws the hub declares independent
-    owner = samples.groupby(compound, sort=True, dropna=False).ngroup().to_numpy()
-    spread = pd.Series(owner).groupby(ids.to_numpy(), sort=True).nunique()
-    if (spread > 1).any():
-        first = spread.index[(spread > 1).to_numpy()][0]
-        keys = samples[(ids == first).to_numpy()][compound].drop_duplicates()
-        pair = [tuple(k) for k in keys.itertuples(index=False)][:2]
-        raise HubValidationError(f"{source}: sample id {first!r} is used in two compound "
-                                 f"tasks ({pair[0]} and {pair[1]})")
-    per_task = samples.assign(_id=ids).groupby(_task_id_columns(frame), sort=True)["_id"] \
-        .nunique().rename("_count").reset_index()
-    expected = per_compound.rename("_want").reset_index()
-    check = per_task.merge(expected, on=compound, how="left")
-    wrong = check[check["_count"] != check["_want"]]
-    if not wrong.empty:
-        row = wrong.iloc[0]
-        label = _task_label(frame, tuple(row[_task_id_columns(frame)]))
-        raise HubValidationError(f"{source}: sample task {label} has {int(row['_count'])} "
-                                 f"samples, its compound task has {int(row['_want'])}: each "
-                                 "sample must cover every target and horizon")
-
-
-def _as_tuple(key: Hashable) -> tuple[Hashable, ...]:
-    """A groupby key as a tuple (pandas gives a scalar when grouping by one column)."""
-    return key if isinstance(key, tuple) else (key,)
-
-
-def _task_label(frame: pd.DataFrame, task: Hashable) -> str:
-    names = _task_id_columns(frame)
-    return ", ".join(f"{n}={v}" for n, v in zip(names, _as_tuple(task), strict=True))
