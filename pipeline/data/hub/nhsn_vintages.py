@@ -143,10 +143,10 @@ def gate_rules(spec: TargetSpec, column: str, *, percent: bool = False) -> GateR
     if spec.kind == "admissions":
         return GateRules(source=f"NHSN {spec.target}", places=HUB_PLACES,
                          counts=(admissions_bound(column),), step_days=7, weekday=SATURDAY,
-                         jump=WEEKLY)
+                         jump=WEEKLY, missing_weeks=True)
     return GateRules(source=f"NSSP {spec.target}", places=HUB_PLACES,
                      shares=(ShareBound(column, ED_SHARE_MAX * (100.0 if percent else 1.0)),),
-                     step_days=7, weekday=SATURDAY)
+                     step_days=7, weekday=SATURDAY, missing_weeks=True)
 
 
 def _weeks(text: pd.Series) -> pd.Series:
