@@ -168,6 +168,8 @@ def gate(frame: pd.DataFrame, rules: GateRules, *, source: str,
     """Check ``frame`` (``place``, ``date`` (datetime64, NaT where unreadable), the rules'
     columns as the payload wrote them) against ``rules``; see the module doc."""
     known = rules.places.populations
+    if frame.empty:
+        raise GateError(f"{source}: empty payload (no rows); refused")
     names = frame["place"].astype("string").fillna("").to_numpy(dtype=object)
     unknown = sorted({str(p) for p in names} - set(known))
     skipped = {p: f"{p!r} is not {rules.places.describe()} ({rules.source})" for p in unknown}
