@@ -186,7 +186,7 @@ def _holds_opened(cache: DatasetCache, vintage: WeeklyVintage) -> str:
               if h.since == since]
     if not opened:
         return ""
-    return (f"live; held for review, their cached series kept: "
+    return (f"held for review, their cached series kept: "
             f"{', '.join(h.location for h in opened)} ({opened[0].reason})")
 
 
