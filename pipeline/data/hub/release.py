@@ -69,7 +69,7 @@ def stale_reason(as_of: pd.Timestamp, last_week: pd.Timestamp, *,
     if lag <= max_lag_days:
         return None
     return (f"stale release: its newest week ends {pd.Timestamp(last_week).date()}, {lag} days "
-            f"({lag / 7:.0f} weeks) before its date {pd.Timestamp(as_of).date()}; the source's "
+            f"({lag // 7} weeks) before its date {pd.Timestamp(as_of).date()}; the source's "
             f"usual lag is 4-11 days (at most {max_lag_days} accepted)")
 
 
