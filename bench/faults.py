@@ -439,12 +439,13 @@ def future_last_date(rows: Rows, years: int = 10) -> Rows:
 
 
 def revised_settled_days(rows: Rows) -> Rows:
-    """Days 300..309 (settled: a year before the end) multiplied by ten; cumulative kept
-    consistent so only the revision policy can object."""
+    """Days 300..309 (settled: a year before the end) multiplied by three; cumulative kept
+    consistent so only the revision policy can object (tenfold, the gate's growth rule refuses
+    the series itself: 19,670 cases in 7 days after 1,623)."""
     changed = [dict(r) for r in rows]
     total = 0
     for i, row in enumerate(changed):
-        new = int(row["new_cases"]) * (10 if 300 <= i < 310 else 1)
+        new = int(row["new_cases"]) * (3 if 300 <= i < 310 else 1)
         total = (int(rows[0]["cumulative_cases"]) - int(rows[0]["new_cases"]) if i == 0
                  else total) + new
         row["new_cases"], row["cumulative_cases"] = str(new), str(total)
@@ -475,6 +476,16 @@ def ramp(rows: Rows) -> Rows:
     Francisco a day, each under the old 10 %-a-day limit)."""
     changed = [dict(r) for r in rows]
     for row, value in zip(changed[-3:], ("2800", "56000", "89000"), strict=True):
+        row["new_cases"] = value
+    return changed
+
+
+def slow_ramp(rows: Rows) -> Rows:
+    """Issue 39's slow ramp: 2,000 and then 12,000 cases a day for six days (1.4 % of the city a
+    day, 8.2 % in the week: under both population bounds, and each day under 20× its
+    history)."""
+    changed = [dict(r) for r in rows]
+    for row, value in zip(changed[-7:], ("2000",) + ("12000",) * 6, strict=True):
         row["new_cases"] = value
     return changed
 
@@ -559,6 +570,9 @@ def _faults() -> list[Fault]:
               "population 873,965 (2020 Census) in one day", issue=32),
         Fault("gzip-bomb-404-mib", lambda rows, _: gzipped(gzip_bomb()),
               "body larger than 2,097,152 bytes (after decoding); refused", issue=32),
+        Fault("slow-ramp-under-both-population-bounds", s(slow_ramp),
+              "implausible growth of 'new_cases': 14,366 in the 7 days ending 2022-03-11 after "
+              "698 in the 7 days before, more than 11×", issue=39),
     ]
 
 

@@ -47,7 +47,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.data.core.plausibility import JumpRule, describe_jump, history_bounds
+from pipeline.data.core.plausibility import (GrowthRule, JumpRule, describe_jump, growth_sums,
+                                             history_bounds)
 from pipeline.errors import ValidationError
 
 
@@ -104,6 +105,7 @@ class GateRules:
     population_tolerance: float = 0.25
     max_skipped_share: float = 0.25
     missing_weeks: bool = False           # an empty or NA cell is a missing week, not a bad place
+    growth: GrowthRule | None = None      # a slow ramp beyond real growth (daily cases)
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -269,6 +271,8 @@ def _checks(rows: _Rows, as_of: pd.Timestamp | None) -> list[tuple[NDArray[np.bo
     checks += _bound_checks(rows)
     if rules.jump is not None:
         checks += _jump_checks(rows, rules.jump, clean)
+    if rules.growth is not None:
+        checks += _growth_checks(rows, rules.growth, clean)
     return checks
 
 
@@ -432,6 +436,38 @@ def _jump_checks(rows: _Rows, rule: JumpRule, clean: NDArray[np.bool_]
                     f"{describe_jump(series[seen], int(seen[:d].sum()), rule)}")
 
         checks.append((beyond, jumped))
+    return checks
+
+
+def _growth_checks(rows: _Rows, rule: GrowthRule, clean: NDArray[np.bool_]
+                   ) -> list[tuple[NDArray[np.bool_], Message]]:
+    """Counts whose ``rule.days``-row sum grew beyond ``rule`` over the sum before, on a
+    (places × dates) grid of the clean rows."""
+    checks: list[tuple[NDArray[np.bool_], Message]] = []
+    ok = clean & ~np.asarray(rows.date.isna())
+    if not ok.any():
+        return checks
+    places, place_code = np.unique(rows.place[ok].astype(str), return_inverse=True)
+    dates, date_code = np.unique(rows.date[ok].values, return_inverse=True)
+    for column in rule.columns:
+        grid = np.full((len(places), len(dates)), np.nan)
+        grid[place_code, date_code] = rows.value[column][ok]
+        now, before = growth_sums(grid, rule)
+        at_now, at_before = now[place_code, date_code], before[place_code, date_code]
+        beyond = np.zeros(len(rows.frame), dtype=bool)
+        beyond[ok] = at_now > rule.factor * (at_before + rule.floor)
+        full_now = np.full(len(rows.frame), np.nan)
+        full_before = np.full(len(rows.frame), np.nan)
+        full_now[ok], full_before[ok] = at_now, at_before
+
+        def grew(i: int, c: str = column, n: NDArray[np.float64] = full_now,
+                 b: NDArray[np.float64] = full_before) -> str:
+            return (f"implausible growth of '{c}': {count(n[i])} in the {rule.days} days ending "
+                    f"{rows.day(i)} after {count(b[i])} in the {rule.days} days before, more than "
+                    f"{rule.factor:g}× (the earlier count + {rule.floor:g}); the fastest real "
+                    f"growth, in the CDPH vintages, is 5.5×")
+
+        checks.append((beyond, grew))
     return checks
 
 
