@@ -38,7 +38,7 @@ from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
 from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
 from pipeline.data.hub.locations import (JURISDICTION_LOCATION, NAME_LOCATION,
-                                         NOT_HUB_JURISDICTIONS, POPULATION, hub_location)
+                                         NOT_HUB_JURISDICTIONS, POPULATION, US, hub_location)
 from pipeline.data.hub.release import refuse_future, refuse_implausible
 from pipeline.data.core.plausibility import JumpRule
 from pipeline.data.core.vintages import Committed, Older, VintageArchive, manifest_as_of
@@ -126,6 +126,7 @@ class WeeklyVintage:
     frame: pd.DataFrame
     skipped: Mapping[str, str] = field(default_factory=dict)
     source: str = ""
+    derived: Mapping[str, str] = field(default_factory=dict)   # location -> how it was made
 
     @property
     def locations(self) -> tuple[str, ...]:
@@ -225,12 +226,39 @@ def parse_vintage(spec: TargetSpec, data: bytes, *, suffix: str, as_of: date,
                               "location": gated.frame["place"].astype(str).to_numpy(),
                               "value": value}).sort_values(
             ["target_end_date", "location"], ignore_index=True)
+        frame, derived = _national_from_states(frame, spec, dict(gated.skipped))
         if len(_PARSED) >= _PARSED_LIMIT:
             _PARSED.pop(next(iter(_PARSED)))
         _PARSED[key] = WeeklyVintage(spec.target, pd.Timestamp(as_of), frame,
-                                     dict(gated.skipped))
+                                     dict(gated.skipped), derived=derived)
     parsed = _PARSED[key]
-    return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source)
+    return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source,
+                         parsed.derived)
+
+
+def _national_from_states(frame: pd.DataFrame, spec: TargetSpec, skipped: Mapping[str, str]
+                          ) -> tuple[pd.DataFrame, dict[str, str]]:
+    """A release of admissions without a national row (or whose national row the gate
+    skipped): the US is the sum of the 52 states, on every week all of them report (issue 39,
+    problem 6: every round failed). On the real releases the states sum to the US row within
+    0.2 % (COVID-19, every week of the release of 2025-09-24; median 0.03 %). A share (the ED
+    visits) cannot be summed, nor a week with a state missing: the US is then left out, and
+    the revision policy names it."""
+    states = [loc for loc in POPULATION if loc != US]
+    if spec.kind != "admissions" or US in set(frame["location"]):
+        return frame, {}
+    wide = frame.pivot_table(index="target_end_date", columns="location", values="value")
+    if not set(states) <= set(wide.columns):
+        return frame, {}
+    total = wide[states].dropna().sum(axis=1)
+    if total.empty:
+        return frame, {}
+    national = pd.DataFrame({"target_end_date": total.index.to_numpy("datetime64[ns]"),
+                             "location": US, "value": total.to_numpy(np.float64)})
+    why = skipped.get(US, "no national row in the release")
+    note = f"{why}: the national value is the sum of the 52 states ({len(total)} weeks)"
+    return (pd.concat([frame, national], ignore_index=True).sort_values(
+        ["target_end_date", "location"], ignore_index=True), {US: note})
 
 
 def canonical_csv(frame: pd.DataFrame) -> bytes:
@@ -352,7 +380,7 @@ def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
         loc: f"{loc}: revision held for review since the release of {h.since} (its series of "
              f"{h.reference} kept): {h.reason}" for loc, h in held.items()}}
     return WeeklyVintage(vintage.target, vintage.as_of, frame, dict(sorted(skipped.items())),
-                         vintage.source)
+                         vintage.source, vintage.derived)
 
 
 # ------------------------------------------------------------------------------ the cache
@@ -462,9 +490,11 @@ def accept_location_revisions(target: str, locations: Sequence[str],
 
 
 def skipped_note(vintage: WeeklyVintage) -> tuple[str, ...]:
+    derived = tuple(f"{vintage.target} vintage of {vintage.as_of.date()}: {loc}: {how}"
+                    for loc, how in vintage.derived.items())
     if not vintage.skipped:
-        return ()
-    return (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
+        return derived
+    return derived + (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
             f"{vintage.target} vintage of {vintage.as_of.date()}: "
             + "; ".join(vintage.skipped.values()),)
 
