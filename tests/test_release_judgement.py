@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -183,3 +184,43 @@ def test_flusight_holds_the_revised_locations_alone_and_keeps_its_na_states(tmp_
     assert "22" in by_date["2024-05-01"].locations and "22" not in by_date["2024-11-20"].locations
     assert all({"25", "27", "54"} <= set(v.locations) for v in vintages)
     assert [len(v.locations) for v in vintages[-1:]] == [49]
+
+
+def test_a_release_without_a_national_row_takes_the_states_sum(tmp_path):
+    data = tmp_path / "data"
+    frame = release("2025-09-24")
+    us = frame[frame["location"] == "US"].set_index("target_end_date")["value"]
+    done = import_target_csv(write(frame[frame["location"] != "US"], tmp_path, "no-us"),
+                             target=HOSP_COVID, as_of="2025-09-24", data_dir=data).vintages[0]
+    assert done.action == "live"
+    [vintage] = cached_weekly_vintages(HOSP_COVID, data)
+    assert vintage.derived == {"US": "no national row in the release: the national value is "
+                                     "the sum of the 52 states (46 weeks)"}
+    derived = vintage.frame[vintage.frame["location"] == "US"].set_index("target_end_date")
+    ratio = derived["value"] / us.set_axis(pd.to_datetime(us.index))
+    assert 0.998 <= ratio.min() and ratio.max() <= 1.0   # measured: 0.9983 … 1.0
+
+
+def test_a_slow_ramp_is_refused_against_the_fastest_real_growth():
+    from pipeline.data.core.plausibility import GrowthRule, growth_sums
+    steady = np.array([[100.0] * 14 + [2000.0] + [12000.0] * 6])
+    now, before = growth_sums(steady, GrowthRule(columns=("x",)))
+    assert now[0, 14] == 2600 and before[0, 14] == 700          # 6 × 100 + 2,000 after 7 × 100
+    assert now[0, 15] > 11 * (before[0, 15] + 100)              # 14,500 > 11 × 800
+    # real series pass: the CDPH vintages (tests/test_gate.py), San Francisco's cases (3.5×)
+
+
+def test_hub_options_are_checked_before_any_work(tmp_path):
+    from pipeline.cli.hub_options import hub_config_folder, writable_output_dir
+    from pipeline.errors import ConfigError
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ConfigError, match=r"--hub-config .*empty: no tasks.json in the folder"):
+        hub_config_folder(tmp_path / "empty")
+    (tmp_path / "list").mkdir()
+    (tmp_path / "list" / "tasks.json").write_text("[]")
+    with pytest.raises(ConfigError, match=r"not a hubverse tasks config .*got list"):
+        hub_config_folder(tmp_path / "list")
+    assert hub_config_folder(NHSN.parent / "hub-config") == NHSN.parent / "hub-config"
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ConfigError, match=r"--output-dir .*file is a file"):
+        writable_output_dir(tmp_path / "file")
