@@ -224,3 +224,12 @@ def test_hub_options_are_checked_before_any_work(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(ConfigError, match=r"--output-dir .*file is a file"):
         writable_output_dir(tmp_path / "file")
+
+
+def test_the_national_total_is_never_spread_over_a_subset_of_the_states():
+    from pipeline.combine.reconcile import reconcilable
+    from pipeline.data.hub.locations import POPULATION
+    every = list(POPULATION)
+    assert reconcilable(every, "US", POPULATION)
+    assert not reconcilable([p for p in every if p not in ("25", "27", "54")], "US", POPULATION)
+    assert not reconcilable([p for p in every if p != "US"], "US", POPULATION)
