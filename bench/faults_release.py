@@ -336,6 +336,7 @@ def _case(name: str, check: Callable[[Path], tuple[bool, str]]) -> Callable[[Pat
             passed, note = False, f"raised {type(exc).__name__}: {exc}"
         return CaseResult(name, passed, time.monotonic() - started, 0, note, source="import",
                           issue=39)
+    run.__name__ = name
     return run
 
 
