@@ -146,7 +146,9 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
     typer.echo(f"hub round {result['reference_date']}: {result['model_output']}")
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:
-        typer.secho("warning: data.cdc.gov could not be reached; the round used cached data",
+        typer.secho("warning: the round used cached data for a target (data.cdc.gov "
+                    "unreachable, its release refused or held, or the cache lock held); the "
+                    "report's data notes say which and why",
                     fg=typer.colors.YELLOW, err=True)
 
 

@@ -233,3 +233,15 @@ def test_the_national_total_is_never_spread_over_a_subset_of_the_states():
     assert reconcilable(every, "US", POPULATION)
     assert not reconcilable([p for p in every if p not in ("25", "27", "54")], "US", POPULATION)
     assert not reconcilable([p for p in every if p != "US"], "US", POPULATION)
+
+
+def test_missing_weeks_are_said_on_the_vintage(tmp_path):
+    from pipeline.data.hub.nhsn_vintages import skipped_note
+    frame = release("2025-09-24")
+    ma = (frame["location"] == "25") & (frame["target_end_date"].astype(str) == "2025-05-17")
+    frame.loc[ma, "value"] = float("nan")
+    import_target_csv(write(frame, tmp_path, "na"), target=HOSP_COVID, as_of="2025-09-24",
+                      data_dir=tmp_path / "data")
+    [vintage] = cached_weekly_vintages(HOSP_COVID, tmp_path / "data")
+    assert vintage.missing == {"25": ("2025-05-17",)} and "25" in vintage.locations
+    assert "25 1 week(s) from 2025-05-17" in skipped_note(vintage)[0]

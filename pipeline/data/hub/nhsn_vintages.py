@@ -127,6 +127,7 @@ class WeeklyVintage:
     skipped: Mapping[str, str] = field(default_factory=dict)
     source: str = ""
     derived: Mapping[str, str] = field(default_factory=dict)   # location -> how it was made
+    missing: Mapping[str, tuple[str, ...]] = field(default_factory=dict)  # NA weeks, by place
 
     @property
     def locations(self) -> tuple[str, ...]:
@@ -230,10 +231,11 @@ def parse_vintage(spec: TargetSpec, data: bytes, *, suffix: str, as_of: date,
         if len(_PARSED) >= _PARSED_LIMIT:
             _PARSED.pop(next(iter(_PARSED)))
         _PARSED[key] = WeeklyVintage(spec.target, pd.Timestamp(as_of), frame,
-                                     dict(gated.skipped), derived=derived)
+                                     dict(gated.skipped), derived=derived,
+                                     missing=dict(gated.missing))
     parsed = _PARSED[key]
     return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source,
-                         parsed.derived)
+                         parsed.derived, parsed.missing)
 
 
 def _national_from_states(frame: pd.DataFrame, spec: TargetSpec, skipped: Mapping[str, str]
@@ -380,7 +382,7 @@ def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
         loc: f"{loc}: revision held for review since the release of {h.since} (its series of "
              f"{h.reference} kept): {h.reason}" for loc, h in held.items()}}
     return WeeklyVintage(vintage.target, vintage.as_of, frame, dict(sorted(skipped.items())),
-                         vintage.source, vintage.derived)
+                         vintage.source, vintage.derived, vintage.missing)
 
 
 # ------------------------------------------------------------------------------ the cache
@@ -492,6 +494,11 @@ def accept_location_revisions(target: str, locations: Sequence[str],
 def skipped_note(vintage: WeeklyVintage) -> tuple[str, ...]:
     derived = tuple(f"{vintage.target} vintage of {vintage.as_of.date()}: {loc}: {how}"
                     for loc, how in vintage.derived.items())
+    if vintage.missing:
+        derived += (f"{vintage.target} vintage of {vintage.as_of.date()}: weeks without a value "
+                    f"(those weeks left out, the locations kept): "
+                    + "; ".join(f"{loc} {len(d)} week(s) from {d[0]}"
+                                for loc, d in vintage.missing.items()),)
     if not vintage.skipped:
         return derived
     return derived + (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
