@@ -245,3 +245,21 @@ def test_missing_weeks_are_said_on_the_vintage(tmp_path):
     [vintage] = cached_weekly_vintages(HOSP_COVID, tmp_path / "data")
     assert vintage.missing == {"25": ("2025-05-17",)} and "25" in vintage.locations
     assert "25 1 week(s) from 2025-05-17" in skipped_note(vintage)[0]
+
+
+def test_holds_open_end_and_are_accepted_one_location_at_a_time():
+    from pipeline.data.hub.held_locations import Holds
+    from pipeline.errors import ConfigError
+    holds = Holds().opened({"22": "r22", "39": "r39"}, since="2024-11-20", reference="2024-05-01")
+    holds = holds.opened({"22": "again", "39": "again"}, since="2024-12-04",
+                         reference="2024-11-20")
+    assert {h.location: (h.since, h.reference, h.reason) for h in holds.entries} == {
+        "22": ("2024-11-20", "2024-05-01", "r22"), "39": ("2024-11-20", "2024-05-01", "r39")}
+    holds = holds.accepted(("22",), live="2024-12-04")
+    holds = holds.opened({}, since="2024-12-11", reference="2024-12-04")   # 39 taken back
+    assert holds.waiting() == {}
+    assert [(h.location, h.until) for h in holds.entries] == [("22", "2024-12-04"),
+                                                              ("39", "2024-12-11")]
+    assert list(holds.at("2024-11-27")) == ["22", "39"] and holds.at("2024-12-11") == {}
+    with pytest.raises(ConfigError, match="no revision waits for 22; waiting: none"):
+        holds.accepted(("22",), live="2024-12-11")

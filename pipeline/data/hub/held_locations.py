@@ -71,7 +71,7 @@ class Holds:
         """These holds after a release of ``since`` judged ``found`` (location -> why) beyond
         the policy: new holds opened (against ``reference``), holds no longer breaking ended."""
         waiting = self.waiting()
-        ended = [replace(h, until=since) if h.location not in found else h
+        ended = [replace(h, until=since) if h.until is None and h.location not in found else h
                  for h in self.entries]
         new = [Hold(loc, since, reference, why) for loc, why in sorted(found.items())
                if loc not in waiting]
