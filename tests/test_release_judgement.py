@@ -263,3 +263,22 @@ def test_holds_open_end_and_are_accepted_one_location_at_a_time():
     assert list(holds.at("2024-11-27")) == ["22", "39"] and holds.at("2024-12-11") == {}
     with pytest.raises(ConfigError, match="no revision waits for 22; waiting: none"):
         holds.accepted(("22",), live="2024-12-11")
+
+
+def test_a_future_dated_live_vintage_left_by_an_older_flowcast_blocks_nothing(tmp_path):
+    """Issue 39, problem 8: a live vintage dated 2031-01-01 (imported before releases from the
+    future were refused) used to refuse or archive every later release."""
+    from pipeline.data.core.cache import DatasetCache
+    from pipeline.data.hub.nhsn_vintages import canonical_csv, commit_weekly, parse_vintage
+    from datetime import date
+    data, spec = tmp_path / "data", TARGETS[HOSP_COVID]
+    frame = release("2025-09-17").assign(target_end_date=lambda f: pd.to_datetime(
+        f["target_end_date"]))
+    payload = canonical_csv(frame)
+    future = parse_vintage(spec, payload, suffix="csv", as_of=date(2031, 1, 1), source="old")
+    commit_weekly(DatasetCache.default(data), future, payload, suffix="csv",
+                  source_kind="csv-import", source="old", older="archive",
+                  today=date(2031, 1, 2), accept_revisions=True)   # as an older flowcast did
+    done = import_target_csv(write(release("2025-09-24"), tmp_path, "new"), target=HOSP_COVID,
+                             as_of="2025-09-24", data_dir=data).vintages[0]
+    assert done.action == "live", done.note

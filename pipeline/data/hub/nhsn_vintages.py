@@ -412,7 +412,8 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
     revised beyond the policy held one by one (:mod:`pipeline.data.hub.held_locations`), the
     release live for the others."""
     spec = target_spec(vintage.target)
-    refuse_future(vintage.as_of.date(), today or utc_now().date(), source=source)
+    day = today or utc_now().date()
+    refuse_future(vintage.as_of.date(), day, source=source)
     folder = cache.directory(spec)
     holds = read_holds(folder)
     found: dict[str, str] = {}
@@ -426,6 +427,10 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
         if live is None:
             return
         cached = _cached(cache, spec, live)
+        if cached is not None and cached.as_of.date() > day:
+            log.warning("the cached %s vintage is dated %s, after today: no reference, replaced",
+                        spec.target, cached.as_of.date())   # stored by an older flowcast
+            cached = None
         if cached is not None:
             found.update(check_weekly_successor(vintage, cached, policy_of(spec),
                                                 references=_references(cache, spec, holds)))
