@@ -101,7 +101,8 @@ def test_release_dates_staleness_and_whole_release_events():
         implausible_event(zero, counts=True))
     fall = frame.copy()
     fall.loc[last & (fall["location"] == "US"), "value"] *= 0.2
-    assert "the national value falls 80%" in str(implausible_event(fall, counts=True))
+    assert "the national value falls 82% in the week ending 2025-09-20 (9,990 -> 1,768.8)" in \
+        str(implausible_event(fall, counts=True))
 
 
 def test_future_stale_and_unreadable_releases_are_refused_by_name(tmp_path):
