@@ -607,6 +607,7 @@ class CaseResult:
     note: str
     source: str = "datasf"
     issue: int = 15
+    detail: dict[str, object] = field(default_factory=dict)   # e.g. a round's published/dropped
 
 
 def run_fault(fault: Fault, rows: Rows, data_dir: Path) -> CaseResult:
@@ -774,30 +775,34 @@ def _totals(results: list[CaseResult]) -> dict[str, int]:
 
 
 SOURCES = ("datasf", "cdph", "nhsn", "hub_round", "import")
-# Issue 39 asks for round cases (round_published, dropped per case); the hub round's member and
-# target isolation is issue 37's work on another branch, so none is run here.
-HUB_ROUND_NOTE = ("no hub-round case in this catalogue: a round that publishes without a target "
-                  "depends on issue 37's failure isolation (another branch); the data-layer "
-                  "faults a round would meet are the nhsn and import cases")
+# Issue 39's round cases (round_published, dropped per case, bench.faults_round); a round that
+# must publish without a target depends on issue 37's failure isolation (another branch).
+HUB_ROUND_NOTE = ("rounds on the tiny preset from the cache after a faulted newer admissions "
+                  "release; round-stale-release-held fails here: the round file then holds no "
+                  "admissions and names nothing (problem 7), which issue 37's failure isolation "
+                  "(another branch) is to mend")
 
 
 def main() -> int:
     """The whole catalogue: DataSF, CDPH (CKAN) and NHSN (data.cdc.gov), every case."""
     import logging
 
-    from bench import faults_cdph, faults_nhsn, faults_release
+    from bench import faults_cdph, faults_nhsn, faults_release, faults_round
 
     logging.basicConfig(level=logging.ERROR)
     started = time.monotonic()
     results: list[CaseResult] = []
-    for run in (run_all, faults_cdph.run_all, faults_nhsn.run_all, faults_release.run_all):
+    for run in (run_all, faults_cdph.run_all, faults_nhsn.run_all, faults_release.run_all,
+                faults_round.run_all):
         with _scratch() as tmp:
             results += run(tmp)
     sources = sorted({r.source for r in results} | set(SOURCES))
     summary = {
         **_totals(results),
         "by_source": {s: _totals([r for r in results if r.source == s]) for s in sources},
-        "hub_round": HUB_ROUND_NOTE,
+        "hub_round": {"note": HUB_ROUND_NOTE, "rounds": [
+            {"name": r.name, "passed": r.passed, **r.detail} for r in results
+            if r.source == "hub_round"]},
         "by_issue": {str(i): _totals([r for r in results if r.issue == i])
                      for i in sorted({r.issue for r in results})},
         "seconds": round(time.monotonic() - started, 1),
