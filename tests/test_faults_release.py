@@ -7,6 +7,8 @@ from __future__ import annotations
 import pytest
 
 from bench.faults_release import import_cases, newer_faults, run_newer
+from pipeline.data.hub.nhsn import HOSP_COVID
+
 
 @pytest.mark.parametrize("fault", newer_faults(), ids=lambda f: f.name)
 def test_a_fault_in_a_newer_release(fault, tmp_path):
@@ -19,3 +21,16 @@ def test_a_fault_in_a_newer_release(fault, tmp_path):
 def test_an_import_fault(case, tmp_path):
     result = case(tmp_path)
     assert result.passed, f"{result.name}: {result.note}"
+
+
+@pytest.mark.slow
+def test_a_round_after_a_release_that_revises_one_location_publishes_without_it(tmp_path):
+    """The hub round (tiny preset, from the cache) after a newer release that revised
+    California's settled week tenfold: published, California left out and named."""
+    from bench.faults_round import round_faults, run_round_fault
+    fault = next(f for f in round_faults() if f.name == "round-location-revised-held-alone")
+    result = run_round_fault(fault, tmp_path / "round", tmp_path / "models")
+    assert result.passed, result.note
+    assert result.detail["round_published"] is True
+    dropped = result.detail["dropped"]
+    assert isinstance(dropped, dict) and list(dropped[HOSP_COVID]) == ["06"]
