@@ -14,9 +14,9 @@ of 2025-09-24 with one fault, fetched a week later. Each case states what must b
 
 The import cases (``source="import"``) run :func:`pipeline.data.hub.target_import` and the CLI
 on files built from the real releases (``../shared/data/nhsn``, ``../shared/data/flusight``).
-Each of issue 39's problems that lives in the data layer is a case (``issue39-problem`` in the
-name's note); problems 6, 7, 10, 11 and 13 (the hub round, the hub config, the slow ramp) are
-not in this catalogue.
+Each of issue 39's problems that lives in the data layer is a case (docs/data.md lists which);
+the round's are :mod:`bench.faults_round`, the slow ramp DataSF's and CDPH's catalogues, the
+hub config (problems 10 and 11) ``tests/test_release_judgement.py``.
 """
 from __future__ import annotations
 
