@@ -106,6 +106,22 @@ def ramp(frame: pd.DataFrame, area: str = "San Francisco") -> pd.DataFrame:
     return frame
 
 
+def x_county(frame: pd.DataFrame) -> pd.DataFrame:
+    """Every county written "X County" (issue 39: no known place used to crash the gate with
+    numpy's "inhomogeneous shape", with no cache fallback)."""
+    county = frame["area_type"] == "County"
+    return frame.assign(area=frame["area"].where(~county, frame["area"] + " County"))
+
+
+def slow_ramp(frame: pd.DataFrame, area: str = "San Francisco") -> pd.DataFrame:
+    """Issue 39's slow ramp: the county's last seven days at 2,000 and then 12,000 cases a day
+    (under both population bounds)."""
+    days = sorted(d for d in frame.loc[frame["area"] == area, "date"].unique() if d)[-7:]
+    for day, value in zip(days, ("2000",) + ("12000",) * 6, strict=True):
+        frame = with_cell(frame, area, day, "cases", value)
+    return frame
+
+
 def with_county(frame: pd.DataFrame, name: str = "Atlantis",
                 population: str = "1500000") -> pd.DataFrame:
     """A made-up county: a copy of Alameda's rows under another name and population."""
@@ -305,6 +321,10 @@ def faults() -> list[Fault]:
         Fault("ramp-under-the-old-daily-limit", "San Francisco: implausible count 56,000 in "
               "'cases' on 2021-11-03: more than 5% of the population 873,965",
               download=lambda s, o: body(edited(ramp)), issue=32),
+        Fault("slow-ramp-under-both-population-bounds", "San Francisco: implausible growth of "
+              "'cases'", download=lambda s, o: body(edited(slow_ramp)), issue=39),
+        Fault("counties-written-x-county", "no row names one of the 58 known California county "
+              "names", download=lambda s, o: body(edited(x_county)), issue=39),
         Fault("made-up-county", "'Atlantis' is not one of the 58 known California county "
               "names (CDPH)", download=lambda s, o: body(edited(with_county)),
               skipped="Atlantis", issue=32),

@@ -62,8 +62,10 @@ def forecast_command(
         _hub_round(hub, value(data_source), value(preset), output_dir, seed, hub_config)
         return
 
-    try:  # a misspelt county fails here, before Prefect starts
+    from pipeline.cli.hub_options import writable_output_dir
+    try:  # a misspelt county or an unwritable --output-dir fails here, before Prefect starts
         county = california_county(county) if county is not None else None
+        writable_output_dir(output_dir)
     except ConfigError as error:
         typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from None
@@ -118,6 +120,15 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
                     f"or tiny (got {preset!r}); hub data are imported with `flowcast data "
                     "import <hub folder>`", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2)
+    from pipeline.cli.hub_options import hub_config_folder, writable_output_dir
+    from pipeline.errors import ConfigError
+    try:  # every option checked before Prefect starts (issue 39)
+        writable_output_dir(output_dir)
+        if hub_config is not None:
+            hub_config_folder(hub_config)
+    except ConfigError as error:
+        typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1) from None
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
     from flows.server_guard import start_temporary_server
@@ -138,7 +149,9 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
     typer.echo(f"hub round {result['reference_date']}: {result['model_output']}")
     typer.echo(f"report: {result['output_dir']}")
     if result["data_stale"]:
-        typer.secho("warning: data.cdc.gov could not be reached; the round used cached data",
+        typer.secho("warning: the round used cached data for a target (data.cdc.gov "
+                    "unreachable, its release refused or held, or the cache lock held); the "
+                    "report's data notes say which and why",
                     fg=typer.colors.YELLOW, err=True)
 
 

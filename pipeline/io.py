@@ -87,8 +87,8 @@ def file_lock(path: str | os.PathLike[str], *, timeout_s: float = LOCK_TIMEOUT_S
               what: str = "") -> Iterator[None]:
     """Hold the exclusive lock file ``path`` for the block; error naming it after ``timeout_s``.
 
-    The holder's pid is written beside the lock (``<path>.owner``) only to name it in the
-    error; the lock itself is the kernel's.
+    The lock is the kernel's; the error names the pid holding it as the kernel reports it
+    (:func:`lock_holder`), or no pid when that cannot be verified.
     """
     import filelock  # local: only writers need it
 
@@ -98,22 +98,32 @@ def file_lock(path: str | os.PathLike[str], *, timeout_s: float = LOCK_TIMEOUT_S
     try:
         lock.acquire()
     except filelock.Timeout as exc:
-        owner = _read_owner(lock_path)
+        owner = lock_holder(lock_path)
+        holder = f"pid {owner}" if owner is not None else "a process that cannot be named here"
         raise LockTimeoutError(f"{what or lock_path}: still locked after {timeout_s:.0f} s by "
-                               f"{owner or 'another process'} ({lock_path})") from exc
+                               f"{holder} ({lock_path})") from exc
     try:
-        with contextlib.suppress(OSError):
-            Path(f"{lock_path}.owner").write_text(f"pid {os.getpid()}\n", encoding="utf-8")
         yield
     finally:
         lock.release()
 
 
-def _read_owner(lock_path: Path) -> str:
+def lock_holder(lock_path: Path) -> int | None:
+    """The pid the kernel says holds ``lock_path``'s lock (``/proc/locks``, by the file's
+    device and inode), or None when it cannot be verified (issue 39: the message used to name
+    the pid written at the last import, not the process holding the lock)."""
     try:
-        return Path(f"{lock_path}.owner").read_text(encoding="utf-8").strip()
+        stat = lock_path.stat()
+        table = Path("/proc/locks").read_text(encoding="utf-8")
     except OSError:
-        return ""
+        return None
+    inode = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}:{stat.st_ino}"
+    for line in table.splitlines():
+        fields = line.split()
+        # "1: FLOCK  ADVISORY  WRITE 4242 08:01:1234 0 EOF" (a "->" marks a waiter)
+        if len(fields) >= 6 and "->" not in fields[1] and fields[5] == inode:
+            return int(fields[4]) if fields[4].isdigit() else None
+    return None
 
 
 def sweep_stale(directory: str | os.PathLike[str], patterns: tuple[str, ...], *,

@@ -88,7 +88,7 @@ def test_revision_beyond_policy_is_held_for_review_and_accepted_on_request(rows,
         held = [p for p in (DatasetCache(data_dir).directory(CASES) / "held").iterdir()
                 if not p.name.endswith(".reason.json")]
         assert len(held) == 1 and f"payload held in {held[0]}" in provenance.notes[0]
-        assert "e.g. 2020-12-28 398 -> 3,980; held for review" in provenance.notes[0]
+        assert "e.g. 2020-12-28 398 -> 1,194; held for review" in provenance.notes[0]
         assert bytes_lost(before, cache_bytes(data_dir)) == 0
         # After review, --accept-revisions takes it.
         _, accepted = load_dataset(CASES, replace(_config(server, data_dir),

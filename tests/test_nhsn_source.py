@@ -16,11 +16,12 @@ import pytest
 from typer.testing import CliRunner
 
 from bench.faults import bytes_lost, cache_bytes
-from bench.faults_nhsn import (HRD_ORDER, NHSN, FakeCDC, edited, faults, held_files, hrd_rows,
+from bench.faults_nhsn import (HRD_ORDER, NHSN, RELEASE_NOW, FakeCDC, edited, faults, held_files, hrd_rows,
                                hub_vintage, nhsn_config, revised_settled, run_concurrent_imports,
                                run_fault, send_pages, write_target_csv)
 from pipeline.cli.data import data_app
 from pipeline.data.hub.locations import BY_LOCATION, HUB_LOCATIONS, hub_location
+from pipeline.data.hub.nhsn_vintages import accept_location_revisions
 from pipeline.data.hub.nhsn import (ED_COVID, HOSP_COVID, NHSNConfig, cached_weekly_vintages,
                                     import_hub_time_series, import_target_csv, load_nhsn,
                                     vintage_as_of)
@@ -137,7 +138,8 @@ def test_a_target_csv_imports_one_vintage_by_abbreviation_or_code(data_dir, tmp_
 
 def test_the_socrata_client_pages_in_a_total_order_and_maps_jurisdictions(data_dir):
     with FakeCDC() as cdc:
-        loaded = load_nhsn(nhsn_config(cdc.url, data_dir, HOSP_COVID, page_size=500))
+        loaded = load_nhsn(nhsn_config(cdc.url, data_dir, HOSP_COVID, page_size=500),
+                           now=RELEASE_NOW)
         queries = [{k: v[0] for k, v in parse_qs(urlsplit(s.path).query).items()}
                    for s in cdc.http.seen]
     rows = hrd_rows()
@@ -157,36 +159,41 @@ def test_the_socrata_client_pages_in_a_total_order_and_maps_jurisdictions(data_d
 
 def test_the_ed_share_is_the_states_own_rows_over_100(data_dir):
     with FakeCDC() as cdc:
-        loaded = load_nhsn(nhsn_config(cdc.url, data_dir, ED_COVID))
+        loaded = load_nhsn(nhsn_config(cdc.url, data_dir, ED_COVID), now=RELEASE_NOW)
     real = hub_vintage(ED_COVID)
     frame = loaded[ED_COVID].frame
     assert len(frame) == len(real)   # the sub-state (county != All) rows left out
     assert frame["value"].to_numpy() == pytest.approx(real["observation"].to_numpy(), abs=5e-5)
 
 
-def test_a_revised_settled_week_is_held_by_the_policy_and_taken_after_review(data_dir):
+def test_a_revised_settled_week_holds_that_location_alone_until_accepted(data_dir):
+    """Issue 37, item 4: California's settled week times ten holds California alone (its cached
+    series kept, named); the other 52 locations go live; the operator accepts California."""
     with FakeCDC() as cdc:
-        load_nhsn(nhsn_config(cdc.url, data_dir))
-        before = cache_bytes(data_dir)
+        load_nhsn(nhsn_config(cdc.url, data_dir), now=RELEASE_NOW)
+        vintages = {p.name: p.read_bytes() for p in (data_dir / "nhsn" / "wk-inc-covid-hosp" /
+                                                       "vintages").iterdir()}
         cdc.hrd = send_pages(edited(hrd_rows(), revised_settled), HRD_ORDER)
-        held = load_nhsn(nhsn_config(cdc.url, data_dir))
-        note = held.provenance[HOSP_COVID].notes[0]
-        assert held.provenance[HOSP_COVID].from_cache
-        assert ("revision beyond policy: 'value' changed on 1 settled week(s) (on or "
-                "before 2025-08-23) by more than max(100, 200%), e.g. 06 week ending "
-                "2025-06-07 ") in note
-        [payload] = held_files(data_dir, HOSP_COVID)
-        assert f"payload held in {payload}" in note
-        assert bytes_lost(before, cache_bytes(data_dir)) == 0
-        config = nhsn_config(cdc.url, data_dir)
-        taken = load_nhsn(NHSNConfig(targets=config.targets, client=config.client,
-                                     data_dir=data_dir, accept_revisions=True))
-    frame = taken[HOSP_COVID].frame
+        held = load_nhsn(nhsn_config(cdc.url, data_dir),
+                         now=RELEASE_NOW + pd.Timedelta(days=1))
+    provenance, vintage = held.provenance[HOSP_COVID], held[HOSP_COVID]
+    assert not provenance.from_cache and len(vintage.locations) == 52
+    assert "06" not in vintage.locations
+    assert list(provenance.held) == ["06"]
+    assert ("revision beyond policy: 'value' changed on 1 settled week(s) (on or before "
+            "2025-08-23) by more than max(100, 200%), e.g. 06 week ending 2025-06-07 594 -> "
+            "5,940 (against its series in the release of 2025-09-24)") in provenance.held["06"]
+    assert vintage.skipped["06"].startswith("06: revision held for review since the release "
+                                            "of 2025-09-25 (its series of 2025-09-24 kept)")
+    assert held_files(data_dir, HOSP_COVID) == []
+    folder = data_dir / "nhsn" / "wk-inc-covid-hosp" / "vintages"
+    assert all((folder / name).read_bytes() == data for name, data in vintages.items())
+    accept_location_revisions(HOSP_COVID, ["06"], data_dir)
+    frame = load_nhsn(NHSNConfig(targets=(HOSP_COVID,), data_dir=data_dir), offline=True
+                      )[HOSP_COVID].frame
     week = frame[(frame["location"] == "06")
                  & (frame["target_end_date"] == pd.Timestamp("2025-06-07"))]["value"].iloc[0]
-    real = hub_vintage(HOSP_COVID)
-    assert week == 10 * real.loc[(real["location"] == "06") & (
-        real["target_end_date"].astype(str) == "2025-06-07"), "observation"].iloc[0]
+    assert week == 5940
 
 
 def test_offline_uses_the_cache_and_without_one_names_the_import(data_dir):
@@ -241,8 +248,10 @@ def test_cli_fetch_from_a_mirror(data_dir):
     with FakeCDC() as cdc:
         done = CliRunner().invoke(data_app, ["fetch", "--source", "nhsn", "--nhsn-base-url",
                                              cdc.url])
-    assert done.exit_code == 0, done.output
-    assert "wk inc covid hosp from data.cdc.gov: vintage of" in done.output
-    assert "53 locations, weeks 2024-11-09 … 2025-09-20" in done.output
+    # fetched today, the mirror's release of 2025-09-24 is stale (its newest week over a year
+    # old): held by name, never stored as today's vintage (issue 39)
+    assert done.exit_code == 1, done.output
+    assert "wk inc covid hosp: stale release: its newest week ends 2025-09-20" in done.output
+    assert "(at most 21 accepted)" in done.output
     bad = CliRunner().invoke(data_app, ["fetch", "--source", "nhsn", "--disease", "measles"])
     assert bad.exit_code == 1 and "disease must be one of covid, flu, rsv" in bad.output

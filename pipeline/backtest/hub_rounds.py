@@ -30,13 +30,14 @@ from pipeline.backtest.backtest import BacktestConfig, Variant, Vintages, run_ba
 from pipeline.backtest.result import BacktestResult
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
-from pipeline.combine.reconcile import median_gap, top_down
+from pipeline.combine.reconcile import median_gap, reconcilable, top_down
 from pipeline.evaluation.hub_leaderboard import SCORED_HORIZONS
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.evaluation.summary import regime_masks, score_cells, summarize_forecaster
 from pipeline.members.base import Member
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.nowcast.revisions import RevisionNowcastConfig, WeekNowcast, nowcast_weeks
+from pipeline.data.hub.locations import POPULATION
 from pipeline.panels.hub import HUB_HORIZONS, US, HubRound, is_share, target_scale
 from pipeline.panels.panel import Panel, weeks_ending
 from pipeline.panels.targets import DAYS_PER_WEEK, HUB_QUANTILE_LEVELS, format_level
@@ -197,7 +198,7 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
     seconds = {"nowcast_and_backtest": time.perf_counter() - started}
     count = result.forecasts[target]
     gap = None
-    if config.reconcile and not is_share(target) and US in places:
+    if config.reconcile and not is_share(target) and reconcilable(places, US, POPULATION):
         gap = median_gap(count[PUBLISHED], places, US, levels)
         count[UNRECONCILED] = count[PUBLISHED]
         for name in (PUBLISHED, UNCALIBRATED, *(v.name for v in config.variants)):

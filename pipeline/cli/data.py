@@ -84,7 +84,13 @@ def import_command(
     from pipeline.data.california.cdph_source import (is_cdph_export, peek_columns,
                                                       store_cdph_exports, validate_cdph_exports)
     from pipeline.data.sf.csv_import import import_csv_exports
+    from pipeline.data.hub.release import release_date
     from pipeline.data.hub.target_import import is_hub_time_series, is_target_csv
+    if as_of is not None:     # a bad date is one named error before any file is read
+        try:
+            release_date(as_of, where="--as-of")
+        except FlowcastError as exc:
+            _fail(exc)
     hub = [f for f in files if is_hub_time_series(f)]
     dirs = [f for f in files if f.is_dir() and f not in hub]
     if dirs:
@@ -292,7 +298,8 @@ def _status_chhs(cache: DatasetCache, now: datetime) -> None:
 
 
 def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
-    from pipeline.data.hub.nhsn_vintages import CACHE_FOLDER, TARGETS, held_count, vintages_folder
+    from pipeline.data.hub.nhsn_vintages import (CACHE_FOLDER, TARGETS, held_count,
+                                                 revisions_waiting, vintages_folder)
     from pipeline.data.core.vintages import VintageArchive
     typer.echo(f"cache: {cache.root.resolve() / CACHE_FOLDER}")
     if not any(cache.has(spec) for spec in TARGETS.values()):
@@ -313,6 +320,30 @@ def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
         if held:
             typer.echo(f"  {held} payload(s) held for review in "
                        f"{cache.directory(spec) / 'held'}")
+        for location, hold in revisions_waiting(target, cache.root).items():
+            typer.echo(f"  {location}: revision waiting since the release of {hold.since} "
+                       f"(`flowcast data accept-revisions --target '{target}' {location}`): "
+                       f"{hold.reason}")
+
+
+@data_app.command("accept-revisions")
+def accept_revisions_command(
+    locations: list[str] = typer.Argument(..., help="Hub locations (codes such as 22, or "
+                                                    "postal abbreviations such as LA) whose "
+                                                    "waiting revision you have reviewed."),
+    target: str = typer.Option(..., "--target", metavar="TARGET",
+                               help="The hub target, e.g. 'wk inc flu hosp'."),
+) -> None:
+    """Accept the revised history of these locations alone (held by the revision policy while
+    the rest of each release went live): from the live vintage on, they are read again."""
+    from pipeline.data.hub.nhsn_vintages import accept_location_revisions
+    try:
+        ended = accept_location_revisions(target, locations)
+    except FlowcastError as exc:
+        _fail(exc)
+    for location, hold in ended.items():
+        typer.echo(f"accepted {target} {location}: its revision held since the release of "
+                   f"{hold.since} is live from the current vintage on")
 
 
 @data_app.command("counties")

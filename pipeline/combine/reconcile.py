@@ -11,12 +11,19 @@ state keep their shape (a common factor), so they stay ordered and non-negative.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.combine.average import EnsembleError
+
+
+def reconcilable(places: Sequence[str], total: str, parts: Iterable[str]) -> bool:
+    """Whether ``places`` hold the total and every one of its ``parts``: the total is never
+    spread over a subset (issue 39: with three states missing, the other 49 were scaled up to
+    the whole US median although the three carry about 5 % of US admissions)."""
+    return total in places and set(parts) - {total} <= set(places)
 
 
 def median_gap(quantiles: NDArray[np.float64], places: Sequence[str], total: str,

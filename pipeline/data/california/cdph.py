@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from pipeline.data.california.counties import COUNTY_POPULATION_2020
 from pipeline.data.core.decoding import PayloadRejectedError, decode_boundary
 from pipeline.data.core.gate import GateRules, Places, cases_bound, deaths_bound, gate
-from pipeline.data.core.plausibility import DAILY
+from pipeline.data.core.plausibility import DAILY, GrowthRule
 from pipeline.data.core.sir_counts import DEFAULT_INFECTIOUS_PERIOD_DAYS, proportions, sir_counts
 from pipeline.errors import ValidationError
 from pipeline.io import atomic_write_bytes
@@ -67,7 +67,10 @@ CDPH_GATE = GateRules(
     # never on episode or death dates
     counts=(cases_bound("cases"), deaths_bound("deaths"),
             cases_bound("reported_cases", negative_ok=True)),
-    step_days=1, jump=DAILY, population_column="population")
+    step_days=1, jump=DAILY, population_column="population",
+    # a slow ramp against the fastest growth of the real vintages (reported cases carry
+    # CDPH's negative corrections, so only episode-date cases are held to it)
+    growth=GrowthRule(columns=("cases",)))
 
 
 class CDPHFormatError(ValidationError):

@@ -18,7 +18,11 @@ checks, vectorized over every row:
 * **plausible news**: each count against its own series' history
   (:mod:`pipeline.data.core.plausibility`);
 * **dates**: readable, on the source's weekday for weekly data, not after the vintage's date,
-  one row per place and date, no gap, every place ending on the payload's last date;
+  one row per place and date, no gap (a source whose empty cells are missing weeks,
+  ``missing_weeks``, may have gaps: the week is dropped, the place stays), every place ending
+  on the payload's last date. That date is the one most places end on (ties: the later), never
+  one place's odd row: a place with rows after it is skipped alone (issue 39: one state's row
+  for a later week used to set the date and refuse all 53 locations);
 * **a reported population** (CDPH writes one on every row): a finite whole number, the same on
   every row, within ``population_tolerance`` of the known table's figure.
 
@@ -26,22 +30,25 @@ A place whose rows fail any check is **skipped**: dropped from the result and na
 first failure, in :attr:`Gated.skipped`, so a one-cell poisoning of one place never stops other
 places (the loaded vintage carries ``skipped`` for the run's log and report). Only what no place
 can survive is **one named error** (:class:`GateError`, a
-:class:`~pipeline.errors.ValidationError`, so the caller keeps its cache): no place left, or more
-than ``max_skipped_share`` of the known places failing at once (a broken payload, not a broken
-place). The bounds and their measured margins are in docs/data.md ("The validation gate").
+:class:`~pipeline.errors.ValidationError`, so the caller keeps its cache): no known place at all
+(full state names where codes belong: that used to crash with numpy's "inhomogeneous shape"),
+no place left, or more than ``max_skipped_share`` of the known places failing at once, unknown
+names counted among the failures (a broken payload, not a broken place: a flu fetch with postal
+codes in NSSP's place column used to be stored with the US alone). The bounds and their measured margins are in docs/data.md ("The validation gate").
 """
 from __future__ import annotations
 
 import calendar
 import hashlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.data.core.plausibility import JumpRule, describe_jump, history_bounds
+from pipeline.data.core.plausibility import (GrowthRule, JumpRule, describe_jump, growth_sums,
+                                             history_bounds)
 from pipeline.errors import ValidationError
 
 
@@ -97,6 +104,8 @@ class GateRules:
     population_column: str | None = None  # a population the payload reports on every row
     population_tolerance: float = 0.25
     max_skipped_share: float = 0.25
+    missing_weeks: bool = False           # an empty or NA cell is a missing week, not a bad place
+    growth: GrowthRule | None = None      # a slow ramp beyond real growth (daily cases)
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -110,10 +119,12 @@ class GateRules:
 @dataclass(frozen=True, eq=False)
 class Gated:
     """The rows of the places that passed (``place``, ``date``, the measures typed: int64 counts,
-    float64 shares; sorted by place and date) and the places skipped, each with why."""
+    float64 shares; sorted by place and date), the places skipped, each with why, and (sources
+    with ``missing_weeks``) the dates each kept place left empty."""
 
     frame: pd.DataFrame
     skipped: Mapping[str, str]
+    missing: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 def pct(share: float) -> str:
@@ -159,30 +170,64 @@ def gate(frame: pd.DataFrame, rules: GateRules, *, source: str,
     """Check ``frame`` (``place``, ``date`` (datetime64, NaT where unreadable), the rules'
     columns as the payload wrote them) against ``rules``; see the module doc."""
     known = rules.places.populations
-    unknown = sorted({str(p) for p in frame["place"].unique()} - set(known))
+    if frame.empty:
+        raise GateError(f"{source}: empty payload (no rows); refused")
+    names = frame["place"].astype("string").fillna("").to_numpy(dtype=object)
+    unknown = sorted({str(p) for p in names} - set(known))
     skipped = {p: f"{p!r} is not {rules.places.describe()} ({rules.source})" for p in unknown}
-    rows = _Rows(frame[frame["place"].isin(list(known))], rules)
+    ours = frame[np.isin(names, list(known))]
+    if ours.empty:
+        raise GateError(f"{source}: no row names {rules.places.describe()} ({len(unknown)} "
+                        f"unknown name(s), e.g. {', '.join(repr(p) for p in unknown[:3])}); "
+                        f"refused")
+    ours, missing = _missing_weeks(ours, rules)
+    rows = _Rows(ours, rules)
     for mask, message in _checks(rows, as_of):
         new = mask & ~np.isin(rows.place, list(skipped))
         for i in _first_per_place(rows.place, new):
             skipped[str(rows.place[i])] = f"{rows.place[i]}: {message(i)}"
     kept = rows.frame[~np.isin(rows.place, list(skipped))]
     _refuse_if_too_many(skipped, known, kept, rules, source)
-    return Gated(_typed(kept, rules), dict(sorted(skipped.items())))
+    return Gated(_typed(kept, rules), dict(sorted(skipped.items())),
+                 {p: d for p, d in missing.items() if p not in skipped})
+
+
+MISSING_TEXT = ("", "na", "nan", "null", "none", "<na>")
+
+
+def _missing_weeks(frame: pd.DataFrame, rules: GateRules
+                   ) -> tuple[pd.DataFrame, dict[str, tuple[str, ...]]]:
+    """Rows whose every measure is empty or ``NA`` dropped (sources with ``missing_weeks``): a
+    week the source left empty costs that week, not the place (FluSight's Massachusetts,
+    Minnesota and West Virginia in the 2024 off-season). Other sources: unchanged."""
+    if not rules.missing_weeks or not rules.columns:
+        return frame, {}
+    empty = np.logical_and.reduce([
+        frame[c].astype("string").str.strip().str.lower().fillna("").isin(MISSING_TEXT)
+        .to_numpy(bool) for c in rules.columns])
+    gone = frame[empty]
+    dates = pd.DatetimeIndex(gone["date"])
+    missing: dict[str, list[str]] = {}
+    for place, day in zip(gone["place"].astype(str), dates, strict=True):
+        missing.setdefault(place, []).append("an unreadable date" if pd.isna(day)
+                                             else str(day.date()))
+    return frame[~empty], {p: tuple(d) for p, d in sorted(missing.items())}
 
 
 def _refuse_if_too_many(skipped: Mapping[str, str], known: Mapping[str, int],
                         kept: pd.DataFrame, rules: GateRules, source: str) -> None:
-    failed_known = [p for p in skipped if p in known]
+    failed = len(skipped)      # unknown names count: a payload of misnamed places is broken
     first = next(iter(skipped.values()), "")
     if kept.empty and len(known) == 1:   # one place (San Francisco): its failure is the error
         raise GateError(f"{source}: {first.split(': ', 1)[-1]}; refused")
     if kept.empty:
         raise GateError(f"{source}: no {rules.places.kind} passes the validation gate "
                         f"({len(skipped)} skipped; e.g. {first}); refused")
-    if len(failed_known) > rules.max_skipped_share * len(known):
-        raise GateError(f"{source}: {len(failed_known)} of the {len(known)} {rules.places.kind}s "
-                        f"fail the validation gate (more than {pct(rules.max_skipped_share)}: a "
+    if failed > rules.max_skipped_share * len(known):
+        unknown = sum(p not in known for p in skipped)
+        names = f", {unknown} of them unknown names" if unknown else ""
+        raise GateError(f"{source}: {failed} of the {len(known)} {rules.places.kind}s fail the "
+                        f"validation gate{names} (more than {pct(rules.max_skipped_share)}: a "
                         f"broken payload, not a broken place); e.g. {first}; refused")
 
 
@@ -226,6 +271,8 @@ def _checks(rows: _Rows, as_of: pd.Timestamp | None) -> list[tuple[NDArray[np.bo
     checks += _bound_checks(rows)
     if rules.jump is not None:
         checks += _jump_checks(rows, rules.jump, clean)
+    if rules.growth is not None:
+        checks += _growth_checks(rows, rules.growth, clean)
     return checks
 
 
@@ -277,17 +324,34 @@ def _date_checks(rows: _Rows, as_of: pd.Timestamp | None
     days[unreadable] = np.nan
     step = np.concatenate([[np.nan], np.diff(days)])
     duplicate = same_place & (step == 0)
-    gap = same_place & (step > rules.step_days)
     checks.append((duplicate, lambda i: f"two rows for {rows.day(i)}"))
-    checks.append((gap, lambda i: f"a gap of {int(step[i]) // rules.step_days - 1} "
-                                  f"{'day' if rules.step_days == 1 else 'week'}(s) before "
-                                  f"{rows.day(i)}"))
+    if not rules.missing_weeks:
+        gap = same_place & (step > rules.step_days)
+        checks.append((gap, lambda i: f"a gap of {int(step[i]) // rules.step_days - 1} "
+                                      f"{'day' if rules.step_days == 1 else 'week'}(s) before "
+                                      f"{rows.day(i)}"))
     last_of_place = np.concatenate([rows.place[1:] != rows.place[:-1], [True]])
-    end = np.nanmax(days) if np.isfinite(days).any() else np.nan
+    end = payload_end(rows.place, days, last_of_place)
+    beyond = np.isfinite(days) & (days > end)
     short = last_of_place & (days < end)
+    checks.append((beyond, lambda i: f"a row for {rows.day(i)}, after the payload's last "
+                                           f"date {pd.Timestamp(end, unit='D').date()} (the "
+                                           f"date most places end on)"))
     checks.append((short, lambda i: f"ends on {rows.day(i)}, the payload on "
                                     f"{pd.Timestamp(end, unit='D').date()}"))
     return checks
+
+
+def payload_end(place: NDArray[np.object_], days: NDArray[np.float64],
+                last_of_place: NDArray[np.bool_]) -> float:
+    """The payload's last date (days since the epoch): the last date most places end on (ties:
+    the later), so one place's odd later row never sets it."""
+    ends = days[last_of_place]
+    ends = ends[np.isfinite(ends)]
+    if ends.size == 0:
+        return np.nan
+    values, counts = np.unique(ends, return_counts=True)
+    return float(values[counts == counts.max()].max())
 
 
 def _population_checks(rows: _Rows, column: str) -> list[tuple[NDArray[np.bool_], Message]]:
@@ -372,6 +436,38 @@ def _jump_checks(rows: _Rows, rule: JumpRule, clean: NDArray[np.bool_]
                     f"{describe_jump(series[seen], int(seen[:d].sum()), rule)}")
 
         checks.append((beyond, jumped))
+    return checks
+
+
+def _growth_checks(rows: _Rows, rule: GrowthRule, clean: NDArray[np.bool_]
+                   ) -> list[tuple[NDArray[np.bool_], Message]]:
+    """Counts whose ``rule.days``-row sum grew beyond ``rule`` over the sum before, on a
+    (places × dates) grid of the clean rows."""
+    checks: list[tuple[NDArray[np.bool_], Message]] = []
+    ok = clean & ~np.asarray(rows.date.isna())
+    if not ok.any():
+        return checks
+    places, place_code = np.unique(rows.place[ok].astype(str), return_inverse=True)
+    dates, date_code = np.unique(rows.date[ok].values, return_inverse=True)
+    for column in rule.columns:
+        grid = np.full((len(places), len(dates)), np.nan)
+        grid[place_code, date_code] = rows.value[column][ok]
+        now, before = growth_sums(grid, rule)
+        at_now, at_before = now[place_code, date_code], before[place_code, date_code]
+        beyond = np.zeros(len(rows.frame), dtype=bool)
+        beyond[ok] = at_now > rule.factor * (at_before + rule.floor)
+        full_now = np.full(len(rows.frame), np.nan)
+        full_before = np.full(len(rows.frame), np.nan)
+        full_now[ok], full_before[ok] = at_now, at_before
+
+        def grew(i: int, c: str = column, n: NDArray[np.float64] = full_now,
+                 b: NDArray[np.float64] = full_before) -> str:
+            return (f"implausible growth of '{c}': {count(n[i])} in the {rule.days} days ending "
+                    f"{rows.day(i)} after {count(b[i])} in the {rule.days} days before, more than "
+                    f"{rule.factor:g}× (the earlier count + {rule.floor:g}); the fastest real "
+                    f"growth, in the CDPH vintages, is 5.5×")
+
+        checks.append((beyond, grew))
     return checks
 
 

@@ -7,6 +7,13 @@ total of a count over the cells both payloads hold may not fall by more than
 ``max_total_drop``. A payload beyond either is refused and held for review
 (:class:`~pipeline.data.core.cache.RevisionRefusedError` with ``hold=True``): the cached copy is
 kept, and ``--accept-revisions`` takes it after review.
+
+A source of many places (the hub's 53 locations) judges each place on its own
+(:func:`settled_breaks`, per cell; the caller holds the places that break, issue 39), and with
+``backfill_ok`` a settled cell that read 0 and becomes positive is a **backfill** (late reports
+of a week first published empty), not a revision: the gate still bounds the value against the
+place's population and history, the policy does not. A settled count that changes tenfold is a
+revision and is held.
 """
 from __future__ import annotations
 
@@ -35,6 +42,7 @@ class RevisionPolicy:
     settled_abs: float = 50.0
     settled_rel: float = 0.25
     max_total_drop: float | None = 0.02
+    backfill_ok: bool = False
 
     def __post_init__(self) -> None:
         if (self.open_days < 0 or self.settled_abs < 0 or self.settled_rel < 0
@@ -47,38 +55,50 @@ class RevisionPolicy:
         return pd.Timestamp(last) - pd.Timedelta(days=self.open_days)
 
 
+def settled_breaks(before: NDArray[np.number], after: NDArray[np.number],
+                   dates: NDArray[np.datetime64], *, policy: RevisionPolicy,
+                   last: pd.Timestamp) -> NDArray[np.bool_]:
+    """Per cell both copies hold: does it break ``policy`` (a settled cell changed beyond
+    max(``settled_abs``, ``settled_rel`` × |before|); with ``backfill_ok`` a cell that read 0
+    may become anything)? ``last``: the cached copy's last date."""
+    before, after = np.asarray(before, np.float64), np.asarray(after, np.float64)
+    settled = np.asarray(dates, dtype="datetime64[ns]") <= \
+        policy.settled_until(last).to_datetime64()
+    allowed = np.maximum(policy.settled_abs, policy.settled_rel * np.abs(before))
+    if policy.backfill_ok:
+        allowed = np.where((before == 0) & (after > 0), np.inf, allowed)
+    return settled & (np.abs(after - before) > allowed)
+
+
+def describe_breaks(key: str, label: str, before: NDArray[np.number],
+                    after: NDArray[np.number], breaks: NDArray[np.bool_], *,
+                    policy: RevisionPolicy, last: pd.Timestamp, cells: str,
+                    example: Callable[[int], str]) -> str:
+    """The policy's message for the cells ``breaks`` marks (as :func:`refuse_revisions` says
+    it, without the consequence)."""
+    i = int(np.flatnonzero(breaks)[0])
+    until = policy.settled_until(last)
+    return (f"{key}: revision beyond policy: '{label}' changed on {int(breaks.sum())} settled "
+            f"{cells}(s) (on or before {until.date()}) by more than max({policy.settled_abs:g}, "
+            f"{policy.settled_rel:.0%}), e.g. {example(i)} {_number(before[i])} -> "
+            f"{_number(after[i])}")
+
+
 def refuse_revisions(key: str, label: str, before: NDArray[np.number],
                      after: NDArray[np.number], dates: NDArray[np.datetime64], *,
                      policy: RevisionPolicy, last: pd.Timestamp, cells: str, over: str,
                      example: Callable[[int], str]) -> None:
     """Both checks of ``policy`` on one column of the cells both copies hold (their ``dates``;
-    ``last``: the cached copy's last date). ``cells``, ``over`` and ``example``: as in
-    :func:`_refuse_settled_changes` and :func:`_refuse_total_drop`."""
-    until = policy.settled_until(last)
-    _refuse_settled_changes(key, label, before, after,
-                           np.asarray(dates, dtype="datetime64[ns]") <= until.to_datetime64(),
-                           settled_abs=policy.settled_abs, settled_rel=policy.settled_rel,
-                           cells=cells, until=f"on or before {until.date()}", example=example)
+    ``last``: the cached copy's last date). ``cells`` (what a cell is: ``day``, ``county-day``, ``week``), ``over`` and ``example`` (cell
+    ``i`` named): as in :func:`describe_breaks` and :func:`_refuse_total_drop`."""
+    breaks = settled_breaks(before, after, dates, policy=policy, last=last)
+    if breaks.any():
+        raise RevisionRefusedError(describe_breaks(key, label, before, after, breaks,
+                                                   policy=policy, last=last, cells=cells,
+                                                   example=example) + f"; {HELD}", hold=True)
     if policy.max_total_drop is not None:
         _refuse_total_drop(key, label, before, after, max_total_drop=policy.max_total_drop,
                           over=over)
-
-
-def _refuse_settled_changes(key: str, label: str, before: NDArray[np.number],
-                           after: NDArray[np.number], settled: NDArray[np.bool_], *,
-                           settled_abs: float, settled_rel: float, cells: str, until: str,
-                           example: Callable[[int], str]) -> None:
-    """Refuse when a settled cell of ``label`` changed beyond the policy. ``cells``: what a
-    cell is (``day``, ``county-day``, ``week``); ``until``: the settled span in words;
-    ``example(i)``: cell ``i`` named, for the message."""
-    allowed = np.maximum(settled_abs, settled_rel * np.abs(before))
-    breaks = settled & (np.abs(after - before) > allowed)
-    if breaks.any():
-        i = int(np.flatnonzero(breaks)[0])
-        raise RevisionRefusedError(
-            f"{key}: revision beyond policy: '{label}' changed on {int(breaks.sum())} settled "
-            f"{cells}(s) ({until}) by more than max({settled_abs:g}, {settled_rel:.0%}), e.g. "
-            f"{example(i)} {_number(before[i])} -> {_number(after[i])}; {HELD}", hold=True)
 
 
 def _refuse_total_drop(key: str, label: str, before: NDArray[np.number],

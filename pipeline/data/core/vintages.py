@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pipeline.data.core.cache import (CacheDamagedError, CachedPayload, CacheManifest, CacheSpec,
-                                      CommitCheck, DatasetCache, RevisionRefusedError)
+                                      CommitCheck, DatasetCache, RevisionRefusedError, utc_now)
 from pipeline.io import atomic_write_bytes, sha256_bytes
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,9 @@ class VintageArchive:
         def guarded(live: CachedPayload | None) -> None:
             if live is not None and older == "archive":
                 live_date = manifest_as_of(live.manifest)
-                if as_of < live_date:
+                # a live vintage dated after today (stored by an older flowcast, issue 39) is
+                # no reason to archive a real one: every later release would be archived
+                if as_of < live_date <= utc_now().date():
                     raise _OlderThanLive(live_date)
             if check is not None:
                 check(live)

@@ -48,7 +48,8 @@ from pipeline.data.hub.nhsn_vintages import (ED_COVID, ED_FLU, ED_RSV, FIRST_WEE
                                              NSSP, TARGETS, TargetSpec, WeeklyVintage,
                                              cached_weekly_vintages, commit_weekly, disease_targets,
                                              parse_vintage, skipped_note, target_spec,
-                                             vintage_as_of)
+                                             vintage_as_of, with_holds)
+from pipeline.data.hub.held_locations import read_holds
 from pipeline.data.core.soda import SodaClient, SodaConfig
 from pipeline.errors import ConfigError
 
@@ -128,6 +129,7 @@ class NHSNProvenance:
     final_url: str | None = None
     notes: tuple[str, ...] = ()
     skipped: Mapping[str, str] = field(default_factory=dict)
+    held: Mapping[str, str] = field(default_factory=dict)   # revisions waiting, per location
 
 
 @dataclass(frozen=True)
@@ -146,7 +148,8 @@ class NHSNLoad:
 
 
 def _provenance(manifest: CacheManifest, vintage: WeeklyVintage, *, from_cache: bool,
-                stale_days: float, notes: tuple[str, ...]) -> NHSNProvenance:
+                stale_days: float, notes: tuple[str, ...], cache: DatasetCache) -> NHSNProvenance:
+    waiting = read_holds(cache.directory(target_spec(vintage.target))).waiting()
     return NHSNProvenance(
         target=vintage.target, dataset_id=manifest.dataset_id,
         source_kind=manifest.source_kind, source=manifest.source,
@@ -154,7 +157,8 @@ def _provenance(manifest: CacheManifest, vintage: WeeklyVintage, *, from_cache: 
         as_of=str(vintage.as_of.date()), first_week=manifest.first_date,
         last_week=manifest.last_date, from_cache=from_cache, stale_days=stale_days,
         final_url=manifest.final_url, notes=notes + skipped_note(vintage),
-        skipped=dict(vintage.skipped))
+        skipped=dict(vintage.skipped),
+        held={loc: f"since the release of {h.since}: {h.reason}" for loc, h in waiting.items()})
 
 
 def _from_cache(cache: DatasetCache, spec: TargetSpec, now: datetime,
@@ -164,15 +168,17 @@ def _from_cache(cache: DatasetCache, spec: TargetSpec, now: datetime,
         raise no_cache_error(f"NHSN data for {spec.target!r}", cache.directory(spec), why,
                              fetch="flowcast data fetch --source nhsn", otherwise=IMPORT_HINT)
     as_of = date.fromisoformat(str(cached.manifest.data_as_of)[:10])
-    vintage = parse_vintage(spec, cached.payload, suffix=cached.path.suffix.lstrip("."),
-                            as_of=as_of, source=str(cached.path))
+    vintage = with_holds(parse_vintage(spec, cached.payload,
+                                       suffix=cached.path.suffix.lstrip("."), as_of=as_of,
+                                       source=str(cached.path)),
+                         read_holds(cache.directory(spec)))
     stale = cached.manifest.age_days(now)
     notes = ((why,) if why else ()) + (
         f"using cache: the vintage of {as_of}, fetched {stale:.0f} days ago (its last week "
         f"ends {cached.manifest.last_date})",)
     log.warning("NHSN %s: %s", spec.target, "; ".join(notes))
     return vintage, _provenance(cached.manifest, vintage, from_cache=True, stale_days=stale,
-                                notes=notes)
+                                notes=notes, cache=cache)
 
 
 def _query(spec: TargetSpec, config: NHSNConfig) -> tuple[str, tuple[str, ...], tuple[str, ...],
@@ -200,11 +206,12 @@ def _fetch_live(cache: DatasetCache, spec: TargetSpec, config: NHSNConfig,
     committed = commit_weekly(cache, vintage, got.payload, suffix="json", source_kind="api",
                               source=got.url, older="refuse", final_url=got.final_url,
                               accept_revisions=config.accept_revisions,
-                              lock_timeout_s=config.lock_timeout_s)
+                              lock_timeout_s=config.lock_timeout_s, today=now.date())
     assert committed.manifest is not None  # older="refuse": live or refused, never archived
+    vintage = with_holds(vintage, read_holds(cache.directory(spec)))
     notes = (f"{resource}: {len(got.rows):,} rows in {got.pages} page(s)",)
     return vintage, _provenance(committed.manifest, vintage, from_cache=False, stale_days=0.0,
-                                notes=notes)
+                                notes=notes, cache=cache)
 
 
 def load_nhsn(config: NHSNConfig | None = None, *, offline: bool = False,

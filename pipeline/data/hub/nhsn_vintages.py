@@ -30,15 +30,18 @@ import numpy as np
 import pandas as pd
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
-                                      RevisionRefusedError)
-from pipeline.data.core.revision_policy import RevisionPolicy, refuse_revisions
+                                      RevisionRefusedError, utc_now)
+from pipeline.data.core.revision_policy import (HELD, RevisionPolicy, describe_breaks,
+                                                settled_breaks)
 from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
+from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
 from pipeline.data.hub.locations import (JURISDICTION_LOCATION, NAME_LOCATION,
-                                         NOT_HUB_JURISDICTIONS, POPULATION)
+                                         NOT_HUB_JURISDICTIONS, POPULATION, US, hub_location)
+from pipeline.data.hub.release import refuse_future, refuse_implausible
 from pipeline.data.core.plausibility import JumpRule
-from pipeline.data.core.vintages import Committed, Older, VintageArchive
+from pipeline.data.core.vintages import Committed, Older, VintageArchive, manifest_as_of
 from pipeline.errors import ConfigError, DataSourceError, ValidationError
 from pipeline.io import sha256_bytes
 
@@ -123,6 +126,8 @@ class WeeklyVintage:
     frame: pd.DataFrame
     skipped: Mapping[str, str] = field(default_factory=dict)
     source: str = ""
+    derived: Mapping[str, str] = field(default_factory=dict)   # location -> how it was made
+    missing: Mapping[str, tuple[str, ...]] = field(default_factory=dict)  # NA weeks, by place
 
     @property
     def locations(self) -> tuple[str, ...]:
@@ -143,10 +148,10 @@ def gate_rules(spec: TargetSpec, column: str, *, percent: bool = False) -> GateR
     if spec.kind == "admissions":
         return GateRules(source=f"NHSN {spec.target}", places=HUB_PLACES,
                          counts=(admissions_bound(column),), step_days=7, weekday=SATURDAY,
-                         jump=WEEKLY)
+                         jump=WEEKLY, missing_weeks=True)
     return GateRules(source=f"NSSP {spec.target}", places=HUB_PLACES,
                      shares=(ShareBound(column, ED_SHARE_MAX * (100.0 if percent else 1.0)),),
-                     step_days=7, weekday=SATURDAY)
+                     step_days=7, weekday=SATURDAY, missing_weeks=True)
 
 
 def _weeks(text: pd.Series) -> pd.Series:
@@ -222,12 +227,40 @@ def parse_vintage(spec: TargetSpec, data: bytes, *, suffix: str, as_of: date,
                               "location": gated.frame["place"].astype(str).to_numpy(),
                               "value": value}).sort_values(
             ["target_end_date", "location"], ignore_index=True)
+        frame, derived = _national_from_states(frame, spec, dict(gated.skipped))
         if len(_PARSED) >= _PARSED_LIMIT:
             _PARSED.pop(next(iter(_PARSED)))
         _PARSED[key] = WeeklyVintage(spec.target, pd.Timestamp(as_of), frame,
-                                     dict(gated.skipped))
+                                     dict(gated.skipped), derived=derived,
+                                     missing=dict(gated.missing))
     parsed = _PARSED[key]
-    return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source)
+    return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source,
+                         parsed.derived, parsed.missing)
+
+
+def _national_from_states(frame: pd.DataFrame, spec: TargetSpec, skipped: Mapping[str, str]
+                          ) -> tuple[pd.DataFrame, dict[str, str]]:
+    """A release of admissions without a national row (or whose national row the gate
+    skipped): the US is the sum of the 52 states, on every week all of them report (issue 39,
+    problem 6: every round failed). On the real releases the states sum to the US row within
+    0.2 % (COVID-19, every week of the release of 2025-09-24; median 0.03 %). A share (the ED
+    visits) cannot be summed, nor a week with a state missing: the US is then left out, and
+    the revision policy names it."""
+    states = [loc for loc in POPULATION if loc != US]
+    if spec.kind != "admissions" or US in set(frame["location"]):
+        return frame, {}
+    wide = frame.pivot_table(index="target_end_date", columns="location", values="value")
+    if not set(states) <= set(wide.columns):
+        return frame, {}
+    total = wide[states].dropna().sum(axis=1)
+    if total.empty:
+        return frame, {}
+    national = pd.DataFrame({"target_end_date": total.index.to_numpy("datetime64[ns]"),
+                             "location": US, "value": total.to_numpy(np.float64)})
+    why = skipped.get(US, "no national row in the release")
+    note = f"{why}: the national value is the sum of the 52 states ({len(total)} weeks)"
+    return (pd.concat([frame, national], ignore_index=True).sort_values(
+        ["target_end_date", "location"], ignore_index=True), {US: note})
 
 
 def canonical_csv(frame: pd.DataFrame) -> bytes:
@@ -248,20 +281,50 @@ def canonical_csv(frame: pd.DataFrame) -> bytes:
 # ending 2024-11-09), and Puerto Rico's 13 → 107 (lag 74 days): a revision of a settled week
 # beyond 3× its value (or 100 admissions) is held for review. Totals are not checked: a state's
 # settled week may legitimately fall by more than any small share.
+# Judged location by location (check_weekly_successor); a settled week that read 0 and becomes
+# positive is a backfill, not a revision (backfill_ok): FluSight's real releases have 6 such
+# settled weeks (at most 0 -> 9), the COVID-19 hub's none; settled non-zero weeks changing beyond
+# the policy: Ohio (11 -> 218, 9 -> 117) and Louisiana (39 -> 170) on 2024-11-20, Arizona
+# (48 -> 187) on 2025-02-05, Puerto Rico (30 -> 655, 79 -> 342) on 2025-03-19: each held alone.
 ADMISSIONS_POLICY = RevisionPolicy(open_days=28, settled_abs=100.0, settled_rel=2.0,
-                                   max_total_drop=None)
+                                   max_total_drop=None, backfill_ok=True)
 # NSSP shares: the largest settled revision in the 15 real vintages is 0.0008 (0.08 points)
-ED_POLICY = RevisionPolicy(open_days=28, settled_abs=0.005, settled_rel=0.5, max_total_drop=None)
+ED_POLICY = RevisionPolicy(open_days=28, settled_abs=0.005, settled_rel=0.5, max_total_drop=None,
+                           backfill_ok=True)
 
 
 def policy_of(spec: TargetSpec) -> RevisionPolicy:
     return ADMISSIONS_POLICY if spec.kind == "admissions" else ED_POLICY
 
 
-def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
-                           policy: RevisionPolicy) -> None:
-    """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (held for
-    review when it revises settled weeks beyond ``policy``)."""
+def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: RevisionPolicy,
+                           *, references: Mapping[str, WeeklyVintage] | None = None
+                           ) -> dict[str, str]:
+    """The locations of ``new`` to hold for review (location -> why), judged one by one: each
+    against ``cached`` (the live vintage), or a held location against its reference vintage
+    (``references``). Raise :class:`RevisionRefusedError` unless ``new`` may replace
+    ``cached`` at all: older, shrinking, a location dropped, a location failing the gate in a
+    payload of the same date, or more than a quarter of the locations revised beyond
+    ``policy`` (a broken payload, held whole)."""
+    _refuse_shape(new, cached)
+    held = {loc: why for loc, why in (_location_revised(new, (references or {}).get(loc, cached),
+                                                        loc, policy)
+                                      for loc in new.locations) if why is not None}
+    if len(held) > MAX_HELD_SHARE * len(POPULATION):
+        first = next(iter(held.values()))
+        raise RevisionRefusedError(f"{new.target}: {len(held)} of the {len(POPULATION)} "
+                                   f"locations revise settled weeks beyond the policy (more than "
+                                   f"{MAX_HELD_SHARE:.0%}: the release is held whole); e.g. "
+                                   f"{first}; {HELD}", hold=True)
+    return held
+
+
+MAX_HELD_SHARE = 0.25
+
+
+def _refuse_shape(new: WeeklyVintage, cached: WeeklyVintage) -> None:
+    """What no location-by-location judgement can mend (the first lines of
+    :func:`check_weekly_successor`)."""
     t = new.target
     if new.as_of < cached.as_of:
         raise RevisionRefusedError(f"{t}: vintage date moves backwards: new {new.as_of.date()}, "
@@ -286,14 +349,40 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage,
                                    f"vintage of {cached.as_of.date()} but fails it in a new "
                                    f"payload of the same date ({new.skipped[worse[0]]}); cached "
                                    f"copy kept")
-    common = cached.frame.merge(new.frame, on=["target_end_date", "location"],
-                                suffixes=("", "_new"))
-    refuse_revisions(
-        t, "value", common["value"].to_numpy(), common["value_new"].to_numpy(),
-        common["target_end_date"].to_numpy(), policy=policy, last=cached.last_week,
-        cells="week", over="the common location-weeks",
-        example=lambda i: (f"{common['location'].iloc[i]} week ending "
-                           f"{pd.Timestamp(common['target_end_date'].iloc[i]).date()}"))
+
+
+def _location_revised(new: WeeklyVintage, reference: WeeklyVintage, location: str,
+                      policy: RevisionPolicy) -> tuple[str, str | None]:
+    """(``location``, why its settled weeks in ``new`` break ``policy`` against
+    ``reference``, or None)."""
+    mine = new.frame[new.frame["location"] == location]
+    theirs = reference.frame[reference.frame["location"] == location]
+    common = theirs.merge(mine, on="target_end_date", suffixes=("", "_new"))
+    before, after = common["value"].to_numpy(), common["value_new"].to_numpy()
+    breaks = settled_breaks(before, after, common["target_end_date"].to_numpy(), policy=policy,
+                            last=reference.last_week)
+    if not breaks.any():
+        return location, None
+    return location, describe_breaks(
+        new.target, "value", before, after, breaks, policy=policy, last=reference.last_week,
+        cells="week", example=lambda i: (f"{location} week ending "
+                                         f"{pd.Timestamp(common['target_end_date'].iloc[i]).date()}"
+                                         )) + (f" (against its series in the release of "
+                                               f"{reference.as_of.date()})")
+
+
+def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
+    """``vintage`` without the locations held at its release date, each named in ``skipped``
+    ("revision held for review since …")."""
+    held = holds.at(str(vintage.as_of.date()))
+    if not held:
+        return vintage
+    frame = vintage.frame[~vintage.frame["location"].isin(list(held))].reset_index(drop=True)
+    skipped = {**vintage.skipped, **{
+        loc: f"{loc}: revision held for review since the release of {h.since} (its series of "
+             f"{h.reference} kept): {h.reason}" for loc, h in held.items()}}
+    return WeeklyVintage(vintage.target, vintage.as_of, frame, dict(sorted(skipped.items())),
+                         vintage.source, vintage.derived, vintage.missing)
 
 
 # ------------------------------------------------------------------------------ the cache
@@ -316,19 +405,39 @@ def _cached(cache: DatasetCache, spec: TargetSpec, live: CachedPayload) -> Weekl
 def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *,
                   suffix: str, source_kind: SourceKind, source: str, older: Older,
                   final_url: str | None = None, accept_revisions: bool = False,
-                  lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S) -> Committed:
-    """Store a gated vintage: live, archived (older, imports) or refused/held (module doc)."""
+                  lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S,
+                  today: date | None = None) -> Committed:
+    """Store a gated vintage: live, archived (older, imports) or refused/held (module doc). A
+    release dated after ``today`` is refused; a stale or implausible one held; locations
+    revised beyond the policy held one by one (:mod:`pipeline.data.hub.held_locations`), the
+    release live for the others."""
     spec = target_spec(vintage.target)
+    day = today or utc_now().date()
+    refuse_future(vintage.as_of.date(), day, source=source)
+    folder = cache.directory(spec)
+    holds = read_holds(folder)
+    found: dict[str, str] = {}
+    reference: list[str] = []
 
     def check(live: CachedPayload | None) -> None:
-        if live is None or accept_revisions:
+        if accept_revisions:
+            return
+        refuse_implausible(vintage.frame, vintage.as_of, vintage.last_week,
+                           target=vintage.target, counts=spec.kind == "admissions")
+        if live is None:
             return
         cached = _cached(cache, spec, live)
+        if cached is not None and cached.as_of.date() > day:
+            log.warning("the cached %s vintage is dated %s, after today: no reference, replaced",
+                        spec.target, cached.as_of.date())   # stored by an older flowcast
+            cached = None
         if cached is not None:
-            check_weekly_successor(vintage, cached, policy_of(spec))
+            found.update(check_weekly_successor(vintage, cached, policy_of(spec),
+                                                references=_references(cache, spec, holds)))
+            reference.append(str(cached.as_of.date()))
 
     frame = vintage.frame
-    return archive(cache, spec).commit(
+    committed = archive(cache, spec).commit(
         payload, as_of=vintage.as_of.date(), suffix=suffix,
         older=older if not accept_revisions else "refuse", check=check,
         accept_hint="`flowcast data fetch --source nhsn --accept-revisions` (or `flowcast data "
@@ -337,12 +446,67 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
         first_date=str(frame["target_end_date"].min().date()),
         last_date=str(vintage.last_week.date()), data_as_of=str(vintage.as_of.date()),
         final_cumulative=None, final_url=final_url, lock_timeout_s=lock_timeout_s)
+    if committed.action == "live":
+        as_of = str(vintage.as_of.date())
+        after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accept_revisions else
+                 holds.opened(found, since=as_of, reference=reference[0] if reference else as_of))
+        if after != holds:
+            write_holds(folder, after)
+    return committed
+
+
+def _references(cache: DatasetCache, spec: TargetSpec, holds: Holds) -> dict[str, WeeklyVintage]:
+    """Each waiting location's reference vintage (its last accepted series), from the
+    archive."""
+    waiting = holds.waiting()
+    if not waiting:
+        return {}
+    kept = archive(cache, spec)
+    by_date = {str(as_of): path for as_of, path in kept.listing()}
+    out = {}
+    for loc, hold in waiting.items():
+        path = by_date.get(hold.reference)
+        if path is not None:
+            out[loc] = parse_vintage(spec, kept.read(path), suffix=path.suffix.lstrip("."),
+                                     as_of=date.fromisoformat(hold.reference), source=str(path))
+    return out
+
+
+def revisions_waiting(target: str, data_dir: str | os.PathLike[str] | None = None
+                      ) -> dict[str, Hold]:
+    """The locations of ``target`` whose revision waits for review (what the report shows),
+    each with its hold (since, reference, reason)."""
+    return read_holds(DatasetCache.default(data_dir).directory(target_spec(target))).waiting()
+
+
+def accept_location_revisions(target: str, locations: Sequence[str],
+                              data_dir: str | os.PathLike[str] | None = None) -> dict[str, Hold]:
+    """The operator accepts the waiting revision of each of ``locations`` (hub codes or postal
+    abbreviations) alone: from the live vintage on, they read from the revised series. Returns
+    the holds ended."""
+    spec = target_spec(target)
+    cache = DatasetCache.default(data_dir)
+    manifest = cache.read_manifest(spec)
+    if manifest is None:
+        raise ConfigError(f"no cached {target} vintage: nothing to accept")
+    codes = tuple(hub_location(loc).location for loc in locations)
+    folder = cache.directory(spec)
+    holds = read_holds(folder)
+    write_holds(folder, holds.accepted(codes, live=str(manifest_as_of(manifest))))
+    return {c: holds.waiting()[c] for c in codes}
 
 
 def skipped_note(vintage: WeeklyVintage) -> tuple[str, ...]:
+    derived = tuple(f"{vintage.target} vintage of {vintage.as_of.date()}: {loc}: {how}"
+                    for loc, how in vintage.derived.items())
+    if vintage.missing:
+        derived += (f"{vintage.target} vintage of {vintage.as_of.date()}: weeks without a value "
+                    f"(those weeks left out, the locations kept): "
+                    + "; ".join(f"{loc} {len(d)} week(s) from {d[0]}"
+                                for loc, d in vintage.missing.items()),)
     if not vintage.skipped:
-        return ()
-    return (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
+        return derived
+    return derived + (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
             f"{vintage.target} vintage of {vintage.as_of.date()}: "
             + "; ".join(vintage.skipped.values()),)
 
@@ -352,9 +516,11 @@ def cached_weekly_vintages(target: str, data_dir: str | os.PathLike[str] | None 
     """Every vintage of ``target`` the cache holds, oldest first (one per date), each through
     the gate (its skipped locations named on it); each file checked against its hash."""
     spec = target_spec(target)
-    kept = archive(DatasetCache.default(data_dir), spec)
-    return [parse_vintage(spec, kept.read(path), suffix=path.suffix.lstrip("."), as_of=as_of,
-                          source=str(path)) for as_of, path in kept.listing()]
+    cache = DatasetCache.default(data_dir)
+    kept, holds = archive(cache, spec), read_holds(cache.directory(spec))
+    return [with_holds(parse_vintage(spec, kept.read(path), suffix=path.suffix.lstrip("."),
+                                     as_of=as_of, source=str(path)), holds)
+            for as_of, path in kept.listing()]
 
 
 def vintage_as_of(vintages: Sequence[WeeklyVintage], when: date | datetime | str | pd.Timestamp

@@ -32,7 +32,9 @@ import pandas as pd
 
 from pipeline.data.core.cache import DatasetCache, RevisionRefusedError
 from pipeline.data.core.decoding import PayloadRejectedError, decode_boundary, decode_csv_frame
+from pipeline.data.hub.held_locations import read_holds
 from pipeline.data.hub.locations import JURISDICTION_LOCATION
+from pipeline.data.hub.release import ReleaseDateError, release_date
 from pipeline.data.hub.nhsn_vintages import (MAX_CSV_BYTES, TARGETS, WeeklyVintage, canonical_csv,
                                              commit_weekly, parse_vintage, skipped_note,
                                              target_spec)
@@ -164,14 +166,28 @@ def _store(checked: Sequence[_Checked], *, source: str, data_dir: str | os.PathL
                 action, note = done.action, ""
                 if done.action == "archived":
                     note = f"older than the live vintage of {done.live_as_of}: archived"
+                note = "; ".join(filter(None, (note, _holds_opened(cache, v))))
             except RevisionRefusedError as exc:
                 action, note = ("held" if exc.hold else "refused"), str(exc)
+            except ReleaseDateError as exc:
+                action, note = "refused", str(exc)
             note = "; ".join(filter(None, (note, *skipped_note(v))))
         frame = v.frame
         out.append(VintageImport(v.target, str(v.as_of.date()), action, len(frame),
                                  str(frame["target_end_date"].min().date()),
                                  str(v.last_week.date()), note))
     return out
+
+
+def _holds_opened(cache: DatasetCache, vintage: WeeklyVintage) -> str:
+    """The locations this release left held for review (the others went live)."""
+    since = str(vintage.as_of.date())
+    opened = [h for h in read_holds(cache.directory(target_spec(vintage.target))).entries
+              if h.since == since]
+    if not opened:
+        return ""
+    return (f"held for review, their cached series kept: "
+            f"{', '.join(h.location for h in opened)} ({opened[0].reason})")
 
 
 def import_hub_time_series(path: str | os.PathLike[str],
@@ -182,13 +198,19 @@ def import_hub_time_series(path: str | os.PathLike[str],
     doc). A file without ``as_of`` holds one vintage, dated ``as_of``."""
     file = hub_time_series_file(path)
     table = read_hub_time_series(file)
+    if table.empty:
+        raise ValidationError(f"{file}: an empty time series (no rows); nothing imported")
     if "as_of" not in table.columns:
         if as_of is None:
             raise ValidationError(f"{file} has no as_of column: give the vintage's date "
                                   f"(`flowcast data import FILE --as-of YYYY-MM-DD`)")
-        table = table.assign(as_of=str(pd.Timestamp(as_of).date()))
-    table = table.assign(as_of=table["as_of"].astype("string").str[:10])
+        table = table.assign(as_of=str(release_date(as_of, where="--as-of")))
+    table = table.assign(as_of=_release_dates(table["as_of"], file))
     known = table["target"].isin(list(TARGETS))
+    if not known.any():
+        raise ValidationError(f"{file}: no row of a target flowcast knows (targets in the file: "
+                              f"{', '.join(map(str, table['target'].unique()[:6]))}); nothing "
+                              f"imported")
     unknown = tuple(sorted(table.loc[~known, "target"].astype(str).unique()))
     source = str(file.resolve())
     checked = [_check(str(target), date.fromisoformat(str(when)),
@@ -200,10 +222,23 @@ def import_hub_time_series(path: str | os.PathLike[str],
                                                accept_revisions=accept_revisions)), unknown)
 
 
+def _release_dates(column: pd.Series, file: Path) -> pd.Series:
+    """The ``as_of`` column as ``YYYY-MM-DD`` text; any unreadable value is one named error."""
+    text = column.astype("string").str.strip().str[:10]
+    parsed = pd.to_datetime(text, format="%Y-%m-%d", errors="coerce")
+    bad = text[parsed.isna()]
+    if len(bad):
+        raise ReleaseDateError(f"{file}: {len(bad)} row(s) with an unreadable release date in "
+                               f"as_of, e.g. {str(column[parsed.isna()].iloc[0])!r} (YYYY-MM-DD "
+                               f"expected); nothing imported")
+    return parsed.dt.strftime("%Y-%m-%d")
+
+
 def import_target_csv(path: str | os.PathLike[str], *, target: str, as_of: date | str,
                       data_dir: str | os.PathLike[str] | None = None,
                       accept_revisions: bool = False) -> HubImportSummary:
     """One vintage of ``target`` from a plain target-data CSV (module doc)."""
+    when = release_date(as_of, where="--as-of")
     file = Path(path)
     raw = decode_csv_frame(file.read_bytes(), source=str(file), max_bytes=MAX_CSV_BYTES)
     dates = next((c for c in ("date", "target_end_date") if c in raw.columns), None)
@@ -212,7 +247,6 @@ def import_target_csv(path: str | os.PathLike[str], *, target: str, as_of: date 
         raise ValidationError(f"{file}: a target CSV needs columns date (or target_end_date), "
                               f"location and value (or observation); columns present: "
                               f"{list(raw.columns)[:10]}")
-    when = pd.Timestamp(as_of).date()
     source = str(file.resolve())
     checked = _check(target_spec(target).target, when, _canonical(raw, dates, values),
                      f"{source} (as of {when})")

@@ -39,7 +39,7 @@ import pandas as pd
 
 from pipeline.data.california.counties import SAN_FRANCISCO
 from pipeline.data.core.gate import GateRules, Places, cases_bound, deaths_bound, gate, tests_bound
-from pipeline.data.core.plausibility import DAILY, JumpRule
+from pipeline.data.core.plausibility import DAILY, GrowthRule, JumpRule
 from pipeline.data.core.soda import SodaClient, SodaConfig
 from pipeline.data.core.transport import (REQUEST_THREAD_NAME, HTTPStatusError, NetworkError,
                                           RedirectRefusedError, UnreachableError, backoff_delay,
@@ -159,8 +159,10 @@ _BOUNDS = {"new_cases": cases_bound, "positives": cases_bound, "new_deaths": dea
 
 def gate_rules(spec: DatasetSpec, jump: JumpRule = DAILY) -> GateRules:
     """The validation gate's rules for one DataSF dataset (San Francisco, its daily counts)."""
+    cases = tuple(c for c in spec.count_columns if c in ("new_cases", "positives"))
     return GateRules(source=f"DataSF {spec.key}", places=SF_PLACES,
-                     counts=tuple(_BOUNDS[c](c) for c in spec.count_columns), jump=jump)
+                     counts=tuple(_BOUNDS[c](c) for c in spec.count_columns), jump=jump,
+                     growth=GrowthRule(columns=cases) if cases else None)
 
 
 def check_gate(frame: pd.DataFrame, spec: DatasetSpec, *, source: str,

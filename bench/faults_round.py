@@ -1,0 +1,150 @@
+"""Faults of a newer release met by the hub round (issue 39): the round is published, and what it
+left out is named (``round_published``, ``dropped`` per case).
+
+Each case imports the hub's real releases of 2025-09-10 and 2025-09-17 (both targets) and the
+ED share's of 2025-09-24 into a fresh ``FLOWCAST_DATA_DIR``, then the admissions release of
+2025-09-24 with one fault (``import_target_csv``), and runs the round from the cache on the
+``tiny`` preset through the library (``run_hub_round``, ``publish_hub_round``: what the
+``hub_forecast`` flow runs, without Prefect), validated against the hub's ``tasks.json``. The
+models are trained once into a store every case shares.
+
+``round-stale-release-held`` (problem 7) fails on this branch: the admissions release is stale
+and held, the round's file (of the ED share's week) then holds no admissions and names nothing;
+leaving the target out *and saying so* is issue 37's failure isolation (another branch).
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from bench.faults import CaseResult
+from bench.faults_nhsn import NHSN
+from pipeline.data.hub.nhsn import HOSP_COVID
+
+Change = Callable[[pd.DataFrame], pd.DataFrame]
+
+
+@dataclass(frozen=True)
+class RoundFault:
+    """A fault in the admissions release of 2025-09-24 (``change`` on its rows: ``date``,
+    ``location``, ``value``); ``dropped``: the locations the round must leave out and name
+    (``expect`` in the reason of the first); ``kept``: locations that must be in the round."""
+
+    name: str
+    change: Change
+    dropped: tuple[str, ...] = ()
+    expect: str = ""
+    kept: tuple[str, ...] = ()
+
+
+def _tenfold(frame: pd.DataFrame) -> pd.DataFrame:
+    ca = (frame["location"] == "06") & (frame["date"].astype(str) == "2025-06-07")
+    return frame.assign(value=frame["value"].where(~ca, frame["value"] * 10))
+
+
+def _na_week(frame: pd.DataFrame) -> pd.DataFrame:
+    ma = (frame["location"] == "25") & (frame["date"].astype(str) == "2025-08-02")
+    return frame.assign(value=frame["value"].where(~ma))
+
+
+def _later_row(frame: pd.DataFrame) -> pd.DataFrame:
+    newest = frame["date"].max()
+    return frame[(frame["date"] != newest) | (frame["location"] == "06")]
+
+
+def round_faults() -> list[RoundFault]:
+    return [
+        RoundFault("round-location-revised-held-alone", _tenfold, dropped=("06",),
+                   expect="revision held for review since the release of 2025-09-24"),
+        RoundFault("round-no-national-row", lambda f: f[f["location"] != "US"],
+                   kept=("US", "06")),
+        RoundFault("round-na-week-keeps-its-state", _na_week, kept=("25",)),
+        RoundFault("round-one-location-later-week", _later_row, dropped=("06",),
+                   expect="after the payload's last date 2025-09-13"),
+        RoundFault("round-stale-release-held",
+                   lambda f: f[f["date"].astype(str) <= "2025-08-23"]),
+    ]
+
+
+@contextmanager
+def _data_dir(folder: Path) -> Iterator[None]:
+    before = os.environ.get("FLOWCAST_DATA_DIR")
+    os.environ["FLOWCAST_DATA_DIR"] = str(folder)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("FLOWCAST_DATA_DIR", None)
+        else:
+            os.environ["FLOWCAST_DATA_DIR"] = before
+
+
+def _seed_cache(folder: Path, fault: RoundFault) -> None:
+    from pipeline.data.hub.target_import import import_hub_time_series, import_target_csv
+    series = pd.read_parquet(NHSN / "time-series.parquet")
+    as_of = series["as_of"].astype(str)
+    recent = series[(as_of >= "2025-09-10")
+                    & ~((as_of == "2025-09-24") & (series["target"] == HOSP_COVID))]
+    recent.to_parquet(folder / "time-series.parquet")
+    import_hub_time_series(folder / "time-series.parquet")
+    newest = series[(as_of == "2025-09-24") & (series["target"] == HOSP_COVID)]
+    rows = newest[["target_end_date", "location", "observation"]].rename(
+        columns={"target_end_date": "date", "observation": "value"}).reset_index(drop=True)
+    fault.change(rows).to_csv(folder / "newest.csv", index=False)
+    import_target_csv(folder / "newest.csv", target=HOSP_COVID, as_of="2025-09-24")
+
+
+def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult:
+    from pipeline.hub_round.publish import publish_hub_round
+    from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+    started = time.monotonic()
+    data = folder / "data"
+    data.mkdir(parents=True)
+    models.mkdir(parents=True, exist_ok=True)
+    (data / "models").symlink_to(models, target_is_directory=True)
+    with _data_dir(data):
+        try:
+            _seed_cache(folder, fault)
+            config = HubRunConfig(data_source="cache", output_dir=str(folder / "reports"),
+                                  members=hub_members_preset("tiny"),
+                                  hub_config=str(NHSN / "hub-config"))
+            run = run_hub_round(config)
+            published = publish_hub_round(run)
+        except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported
+            return CaseResult(fault.name, False, time.monotonic() - started, 0,
+                              f"round_published: false; raised {type(exc).__name__}: {exc}",
+                              source="hub_round", issue=39,
+                              detail={"round_published": False, "dropped": {}})
+    left_out = run.skipped()[HOSP_COVID]
+    frame = pd.read_csv(published.model_output, dtype={"location": str})
+    hosp = set(frame.loc[frame["target"] == HOSP_COVID, "location"])
+    dropped = sorted(left_out)
+    passed = (published.model_output.is_file() and bool(hosp)
+              and dropped == sorted(fault.dropped)
+              and all(loc not in hosp for loc in fault.dropped)
+              and all(loc in hosp for loc in fault.kept)
+              and (not fault.dropped or fault.expect in left_out[fault.dropped[0]]))
+    note = (f"round_published: true ({published.reference_date}, {len(hosp)} locations of "
+            f"{HOSP_COVID}); dropped: "
+            + ("; ".join(f"{why}" for why in left_out.values()) or "none"))
+    if not hosp:
+        note += (f"; {HOSP_COVID} is missing from the round file and not named (issue 39, "
+                 f"problem 7: a round without a target's current release must leave it out "
+                 f"and say so, issue 37's failure isolation on another branch)")
+    return CaseResult(fault.name, passed, time.monotonic() - started, 0, note,
+                      source="hub_round", issue=39,
+                      detail={"round_published": True, "reference_date": published.reference_date,
+                              "dropped": {t: dict(d) for t, d in run.skipped().items()}})
+
+
+def run_all(scratch: Path) -> list[CaseResult]:
+    from bench.faults import show
+    models = scratch / "models"
+    return [show(run_round_fault(f, scratch / f"round-{k}", models))
+            for k, f in enumerate(round_faults())]

@@ -1,0 +1,107 @@
+"""Revisions waiting per location: the locations of a hub target whose settled history a release
+revised beyond the policy, held for review one by one while the other locations go live
+(issue 37, item 4; issue 39).
+
+A release is judged location by location (:func:`pipeline.data.hub.nhsn_vintages.
+check_weekly_successor`). A location whose settled weeks change beyond the revision policy is
+**held**: the release goes live for every other location, and the held one is left out of every
+vintage read from then on (named in the vintage's ``skipped``: "revision held for review …"),
+so no forecast is made from the revised series nor from a series that stopped weeks ago. Its
+last accepted series stays in the archive (``vintages/``) and is the reference every later
+release is judged against, until
+
+* a later release no longer breaks the policy against that reference (the source took the
+  revision back): the hold ends by itself; or
+* the operator accepts it for that location alone (``flowcast data accept-revisions
+  --target T LOCATION``): from the live vintage on, the location reads as released.
+
+FluSight's real releases: the release of 2024-11-20 (the first of the 2024-25 season) revised
+Louisiana's week ending 2022-02-19 from 39 to 170 admissions and Ohio's weeks ending 2023-05-20
+and 2023-07-29 (11 -> 218, 9 -> 117); the whole release used to be held, and every release
+after it (27 of 59). Now those two locations are held and the other 51 go live.
+
+Kept as ``<dataset dir>/held-locations.json`` (written atomically): for each location, its holds
+as ``since`` (the release that was held), ``reference`` (the release its accepted series is
+from), ``until`` (the release from which it reads again; null while waiting) and ``reason``.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+from pipeline.errors import ConfigError
+from pipeline.io import atomic_write_text
+
+HOLDS_FILE = "held-locations.json"
+
+
+@dataclass(frozen=True)
+class Hold:
+    """One location held from the release of ``since`` (ISO date) until ``until`` (None:
+    waiting), judged against its series in the release of ``reference``."""
+
+    location: str
+    since: str
+    reference: str
+    reason: str
+    until: str | None = None
+
+    def covers(self, as_of: str) -> bool:
+        """Is a vintage released on ``as_of`` (ISO date) read without this location?"""
+        return self.since <= as_of and (self.until is None or as_of < self.until)
+
+
+@dataclass(frozen=True)
+class Holds:
+    """Every hold of one target, in the order they began."""
+
+    entries: tuple[Hold, ...] = ()
+
+    def waiting(self) -> dict[str, Hold]:
+        """The locations whose revision waits for review, each with its open hold."""
+        return {h.location: h for h in self.entries if h.until is None}
+
+    def at(self, as_of: str) -> dict[str, Hold]:
+        """The locations a vintage released on ``as_of`` is read without."""
+        return {h.location: h for h in self.entries if h.covers(as_of)}
+
+    def opened(self, found: Mapping[str, str], *, since: str, reference: str) -> Holds:
+        """These holds after a release of ``since`` judged ``found`` (location -> why) beyond
+        the policy: new holds opened (against ``reference``), holds no longer breaking ended."""
+        waiting = self.waiting()
+        ended = [replace(h, until=since) if h.until is None and h.location not in found else h
+                 for h in self.entries]
+        new = [Hold(loc, since, reference, why) for loc, why in sorted(found.items())
+               if loc not in waiting]
+        return Holds((*ended, *new))
+
+    def accepted(self, locations: tuple[str, ...], *, live: str) -> Holds:
+        """The holds of ``locations`` ended by the operator: read again from the live vintage
+        (released on ``live``) on. Every location named must be waiting."""
+        waiting = self.waiting()
+        unknown = [loc for loc in locations if loc not in waiting]
+        if unknown:
+            raise ConfigError(f"no revision waits for {', '.join(unknown)}; waiting: "
+                              f"{', '.join(sorted(waiting)) or 'none'}")
+        return Holds(tuple(replace(h, until=live) if h.until is None and h.location in locations
+                           else h for h in self.entries))
+
+
+def read_holds(directory: Path) -> Holds:
+    """The holds kept in ``directory`` (none when the file is missing)."""
+    path = directory / HOLDS_FILE
+    if not path.is_file():
+        return Holds()
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        return Holds(tuple(Hold(**entry) for entry in data["holds"]))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"damaged {path}: {exc}; delete it to release every held location "
+                          f"(they are then judged against the live vintage again)") from exc
+
+
+def write_holds(directory: Path, holds: Holds) -> None:
+    atomic_write_text(directory / HOLDS_FILE,
+                      json.dumps({"holds": [asdict(h) for h in holds.entries]}, indent=1) + "\n")

@@ -1,0 +1,36 @@
+"""Issue 39's catalogue (bench/faults_release.py): faults arriving as a release newer than the
+cached one, through the live fetch from a fake data.cdc.gov on 127.0.0.1 and through the
+import; every case must pass with 0 bytes of good cache lost. FluSight's whole import is
+tests/test_release_judgement.py's."""
+from __future__ import annotations
+
+import pytest
+
+from bench.faults_release import import_cases, newer_faults, run_newer
+from pipeline.data.hub.nhsn import HOSP_COVID
+
+
+@pytest.mark.parametrize("fault", newer_faults(), ids=lambda f: f.name)
+def test_a_fault_in_a_newer_release(fault, tmp_path):
+    result = run_newer(fault, tmp_path)
+    assert result.passed, result.note
+    assert result.bytes_lost == 0
+
+
+@pytest.mark.parametrize("case", import_cases()[:8], ids=lambda c: c.__name__)
+def test_an_import_fault(case, tmp_path):
+    result = case(tmp_path)
+    assert result.passed, f"{result.name}: {result.note}"
+
+
+@pytest.mark.slow
+def test_a_round_after_a_release_that_revises_one_location_publishes_without_it(tmp_path):
+    """The hub round (tiny preset, from the cache) after a newer release that revised
+    California's settled week tenfold: published, California left out and named."""
+    from bench.faults_round import round_faults, run_round_fault
+    fault = next(f for f in round_faults() if f.name == "round-location-revised-held-alone")
+    result = run_round_fault(fault, tmp_path / "round", tmp_path / "models")
+    assert result.passed, result.note
+    assert result.detail["round_published"] is True
+    dropped = result.detail["dropped"]
+    assert isinstance(dropped, dict) and list(dropped[HOSP_COVID]) == ["06"]
