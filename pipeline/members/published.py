@@ -29,6 +29,10 @@ from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
 from pipeline.members.nf.finetune import NF_REAL, FineTuneConfig, fit_finetuned_member, refit_dates
 from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMember
 from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
+from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextRefitConfig,
+                                         TrainingPool, fit_context_member)
+from pipeline.members.nf.context_features import ContextSources
+from pipeline.data.hub.locations import POPULATION
 from pipeline.members.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.errors import ConfigError
@@ -113,6 +117,8 @@ class HubMembersConfig:
     (the others are scored beside it)."""
 
     flow: WeeklyFlowConfig = field(default_factory=WeeklyFlowConfig)
+    context: ContextFlowConfig = field(default_factory=ContextFlowConfig)
+    context_refit: ContextRefitConfig = field(default_factory=ContextRefitConfig)
     finetune: FineTuneConfig = field(default_factory=lambda: FineTuneConfig(
         revision_days=14, min_windows=200))
     seasonal: SeasonalConfig = field(default_factory=SeasonalConfig)
@@ -148,16 +154,32 @@ class HubMembers:
     reused: bool
 
 
+def context_sources(target: str, climatology: Sequence[tuple[pd.Timestamp, Panel]],
+                    other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None = None
+                    ) -> ContextSources:
+    """What the context flow of ``target`` reads beside its own weeks: the other signal (by
+    default the ED share, the ``climatology``, for admissions; none for the share itself), the
+    climatology and the locations' populations."""
+    if other_signal is None:
+        other_signal = () if is_share(target) else climatology
+    return ContextSources(tuple(other_signal), tuple(climatology), POPULATION)
+
+
 def build_hub_members(config: HubMembersConfig, store_root: Path,
                       refit_vintages: Sequence[tuple[pd.Timestamp, Panel]],
                       climatology: Sequence[tuple[pd.Timestamp, Panel]],
                       progress: ProgressReporter | None = None, *,
-                      target: str) -> HubMembers:
+                      target: str,
+                      other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None = None
+                      ) -> HubMembers:
     """The hub forecast's members (docs/forecasting.md "The hub forecast"): the weekly flow
     (model store), that flow fine-tuned at the refit dates among the vintages' last weeks on
-    the windows of the vintage of each (``nf-real``), the seasonal member on the
-    ``climatology`` vintages (the ED-visit share), the hub baseline and growth-qr pooled over
-    the 53 locations; :func:`published_names` chooses the average's members for ``target``."""
+    the windows of the vintage of each (``nf-real``), the context flow refitted globally on
+    the same calendar (``nf-context``, :mod:`pipeline.members.nf.context`: its other signal is
+    ``other_signal``, by default the ``climatology`` for admissions and none for the share),
+    the seasonal member on the ``climatology`` vintages (the ED-visit share), the hub baseline
+    and growth-qr pooled over the 53 locations; :func:`published_names` chooses the average's
+    members for ``target``."""
     synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
     stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
                                          synthetic=synthetic)
@@ -174,7 +196,10 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     members: list[Member] = [
         flow, SeasonalGrowthMember(tuple(climatology), config.seasonal),
         HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
-        PooledGrowthMember(config.regression)]
+        PooledGrowthMember(config.regression),
+        fit_context_member(config.context, config.context_refit, [TrainingPool(
+            vintages, context_sources(target, climatology, other_signal))], store_root,
+            n_samples=config.flow_samples)]
     if dates:
         members.append(fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
                                             store_root, progress, known_at=known_at))

@@ -141,6 +141,13 @@ class ContextRefitConfig:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
+# Seconds, for tests and smoke runs: a small prior and network, short refits.
+TINY_CONTEXT_FLOW = ContextFlowConfig(
+    prior=WeeklyFlowConfig(n_trajectories=150, prior=ADMISSIONS_PRIOR), hidden_features=16,
+    embedding_features=8, flow_layers=2, flow_hidden=16, iterations=40, batch_size=256)
+TINY_CONTEXT_REFIT = ContextRefitConfig(iterations=20, batch_size=128, min_windows=50)
+
+
 # ------------------------------------------------------------------------------ pre-training
 
 
