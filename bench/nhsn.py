@@ -48,6 +48,11 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--out", default=None, help="output JSON path")
     p.add_argument("--files", default=None, help="write every round's hub file under DIR")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--flusight", default=str(SHARED.parent / "flusight"),
+                   help="FluSight's data (the influenza ablation's extra windows)")
+    p.add_argument("--no-ablations", action="store_true", help="skip the context flow's ablations")
+    p.add_argument("--no-transformer", action="store_true",
+                   help="skip the transformer-encoder ablation (its pre-training is the slowest)")
     p.add_argument("--no-timing", action="store_true",
                    help="skip the command-line runs that time a round (seconds.round, scratch)")
     return p.parse_args(argv)
@@ -131,6 +136,62 @@ def _value(row: dict[str, Any] | None) -> float | None:
     return None if row is None else float(row["relative_wis"])
 
 
+def influenza_vintages(flusight: Path) -> list[Any]:
+    """FluSight's influenza admissions of the same 53 places, one panel per release."""
+    import pandas as pd
+
+    from pipeline.data.hub.locations import POPULATION
+    from pipeline.panels.hub import vintage_panel
+
+    frame = pd.read_parquet(flusight / "time-series.parquet")
+    out = []
+    for as_of in sorted(frame["as_of"].unique()):
+        released = pd.Timestamp(str(as_of))
+        rows = frame[frame["as_of"] == as_of].rename(columns={"observation": "value"})
+        out.append((released, vintage_panel(rows, "wk inc flu hosp", POPULATION, released)))
+    return out
+
+
+def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
+                     other: list[Any], args: argparse.Namespace) -> list[tuple[str, Any]]:
+    """The context flow with each context group left out in turn, with the transformer encoder,
+    without refits (the prior alone) and, for admissions, with influenza windows added:
+    ``(label, member)``, each scored beside the members under its own name."""
+    import dataclasses
+
+    from pipeline.members.nf.context import TrainingPool, fit_context_member
+    from pipeline.members.nf.context_features import ContextChannels
+    from pipeline.members.published import HubMembersConfig, context_sources
+    from pipeline.panels.hub import is_share
+    from pipeline.training.model_store import default_store_root
+
+    config = HubMembersConfig()
+    pool = TrainingPool(vintages, context_sources(target, climatology, other))
+    store = default_store_root()
+
+    def fit(name: str, pools: list[Any], channels: Any = ContextChannels(),
+            flow: Any = config.context) -> Any:
+        return fit_context_member(flow, config.context_refit, pools, store, channels=channels,
+                                  name=name, n_samples=500)
+
+    out: list[tuple[str, Any]] = []
+    for group in ("other_signal", "season", "climatology", "scale"):
+        channels = ContextChannels(**{group: False})
+        out.append((channels.label(), fit(f"nf-context-no-{group}", [pool], channels)))
+    if not args.no_transformer:
+        out.append(("transformer encoder", fit(
+            "nf-context-transformer", [pool],
+            flow=dataclasses.replace(config.context, encoder="transformer"))))
+    prior = fit("nf-context-prior-only", [pool])
+    out.append(("prior only (no refit)", dataclasses.replace(prior, models={})))
+    if not is_share(target) and (Path(args.flusight) / "time-series.parquet").exists():
+        flu = TrainingPool(influenza_vintages(Path(args.flusight)), context_sources(
+            target, (), ()), ContextChannels(other_signal=False, season=False,
+                                             climatology=False))
+        out.append(("with influenza windows", fit("nf-context-influenza", [pool, flu])))
+    return out
+
+
 def run_target(target: str, args: argparse.Namespace, climatology: list[Any], teams: Any,
                exclusions: Any) -> dict[str, Any]:
     import dataclasses
@@ -145,16 +206,20 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
-    from pipeline.panels.hub import hub_rounds
+    from pipeline.panels.hub import HOSP_COVID, hub_rounds, is_share
     from pipeline.training.model_store import default_store_root
 
     started = time.perf_counter()
     vintages = load_vintages(target)
     rounds = hub_rounds(vintages)
     latest = vintages[-1][1]
+    other = load_vintages(HOSP_COVID) if is_share(target) else climatology
     members = build_hub_members(HubMembersConfig(), default_store_root(), vintages,
-                                climatology, target=target)
+                                climatology, target=target, other_signal=other)
     t_members = time.perf_counter() - started
+    ablated = [] if args.no_ablations else ablation_members(target, vintages, climatology,
+                                                           other, args)
+    t_ablations = time.perf_counter() - started - t_members
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")
@@ -168,8 +233,13 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
         Variant("v-nf-real+seasonal (published for the ED share)", reach,
                 ("nf-real", "seasonal")),
-        Variant("v-nf-weekly+seasonal (published for admissions)", reach,
+        Variant("v-nf-weekly+seasonal (published for admissions until 2026-11)", reach,
                 ("nf-weekly", "seasonal")),
+        Variant("v-nf-context+seasonal", reach, ("nf-context", "seasonal")),
+        Variant("v-nf-context+nf-weekly+seasonal", reach,
+                ("nf-context", "nf-weekly", "seasonal")),
+        Variant("v-nf-context+nf-real+seasonal", reach, ("nf-context", "nf-real", "seasonal")),
+        Variant("v-nf-context alone", reach, ("nf-context",)),
         Variant("v-log-average (the rule published until 2026-11)",
                 dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")),
         Variant("v-log-mixture, no online calibration",
@@ -180,9 +250,10 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     )
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
-                            references=(*members.references, pseudo))
-    t_backtest = time.perf_counter() - started - t_members
-    ours = result.scores()
+                            references=(*members.references, pseudo,
+                                        *[m for _, m in ablated]))
+    t_backtest = time.perf_counter() - started - t_members - t_ablations
+    ours = ours_all = result.scores()
     board_names = [PUBLISHED, UNRECONCILED, *[m.name for m in members.published],
                    *[m.name for m in (*members.references, pseudo)], *[v.name for v in variants]]
     ours = ours[ours["model_id"].isin(board_names)]
@@ -198,12 +269,26 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                              first_ed[0])
     gap = result.gap
     coverage = per_model[PUBLISHED]["coverage"]
+    scored = result.summary(PUBLISHED, [h for h in result.horizons if h >= 0])
+    ablations = {}
+    for label, member in ablated:
+        board = leaderboards(ours_all[ours_all["model_id"] == member.name], teams, target,
+                             exclusions, first_ed[0])
+        ablations[label] = {"member": member.name} | relative(board, member.name) | {
+            "coverage": summary_by_horizon(result, member.name)}
+    for name in ("nf-context", "nf-weekly", "seasonal", PUBLISHED):
+        if name in per_model:            # the table's reference rows
+            ablations.setdefault(f"[{name}]", {"member": name} | {
+                k: v for k, v in per_model[name].items()})
     return {
         "target": target,
         "pairwise_relative_wis": relative(published, PUBLISHED),
         "coverage50": coverage["h0-3"]["coverage50"],
         "coverage95": coverage["h0-3"]["coverage95"],
+        "coverage50_interval": scored["coverage50_interval"],
+        "coverage95_interval": scored["coverage95_interval"],
         "coverage_by_horizon": coverage,
+        "ablations": ablations,
         "n_rounds": len(rounds), "n_locations": len(result.places),
         "rounds": {"first": str(rounds[0].reference.date()),
                    "last": str(rounds[-1].reference.date())},
@@ -218,7 +303,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "reconciliation": None if gap is None else {
             "median_abs_log_gap_before": float(np.nanmedian(np.abs(gap))),
             "p90_abs_log_gap_before": float(np.nanquantile(np.abs(gap), 0.9))},
-        "seconds": {"members": round(t_members, 1), "backtest_rounds": round(t_backtest, 1),
+        "seconds": {"members": round(t_members, 1), "ablation_members": round(t_ablations, 1),
+                    "backtest_rounds": round(t_backtest, 1),
                     "parts": {k: round(v, 1) for k, v in result.seconds.items()}},
     }
 

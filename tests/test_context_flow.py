@@ -16,8 +16,8 @@ from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.nf.context import (NF_CONTEXT, TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT,
-                                         TrainingPool, decode_weekly, fit_context_member,
-                                         refit_windows, synthetic_dataset)
+                                         TrainingPool, decode_weekly, fit_context_member)
+from pipeline.members.nf.context_training import refit_windows, synthetic_dataset
 from pipeline.members.nf.context_features import (ContextChannels, ContextSources,
                                                   WindowInputs, context_windows,
                                                   fixed_channels, vintage_windows)
