@@ -53,6 +53,9 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--no-ablations", action="store_true", help="skip the context flow's ablations")
     p.add_argument("--no-transformer", action="store_true",
                    help="skip the transformer-encoder ablation (its pre-training is the slowest)")
+    p.add_argument("--keep-other", action="store_true",
+                   help="with one --target: keep the other target's figures already in the "
+                        "output file (the two targets run as two commands)")
     p.add_argument("--no-timing", action="store_true",
                    help="skip the command-line runs that time a round (seconds.round, scratch)")
     return p.parse_args(argv)
@@ -202,7 +205,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
-    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, CombineConfig
+    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED, CombineConfig
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
@@ -270,6 +273,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     gap = result.gap
     coverage = per_model[PUBLISHED]["coverage"]
     scored = result.summary(PUBLISHED, [h for h in result.horizons if h >= 0])
+    wis = ours_all[ours_all["horizon"] >= 0].groupby("model_id")["wis"].sum()
     ablations = {}
     for label, member in ablated:
         board = leaderboards(ours_all[ours_all["model_id"] == member.name], teams, target,
@@ -287,6 +291,9 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "coverage95": coverage["h0-3"]["coverage95"],
         "coverage50_interval": scored["coverage50_interval"],
         "coverage95_interval": scored["coverage95_interval"],
+        # the online calibration's cost: published WIS over the same average uncalibrated
+        # (horizons 0-3, every round and location, both reconciled)
+        "calibration_cost": float(wis[PUBLISHED] / wis[UNCALIBRATED]),
         "coverage_by_horizon": coverage,
         "ablations": ablations,
         "n_rounds": len(rounds), "n_locations": len(result.places),
@@ -340,13 +347,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if HOSP_COVID in out:
         out[HOSP_COVID]["seconds"] |= timing | {"backtest": round(out[HOSP_COVID]["seconds"][
             "members"] + out[HOSP_COVID]["seconds"]["backtest_rounds"], 1)}
-    result = {**out.get(HOSP_COVID, {}),
+    path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+    command = "python -m bench.nhsn " + " ".join(argv if argv is not None else sys.argv[1:])
+    for target in out:
+        out[target]["command"] = command        # each target's own run
+    if args.keep_other and args.target != "both" and path.exists():
+        before = json.loads(path.read_text())
+        if HOSP_COVID not in out:
+            out[HOSP_COVID] = {k: v for k, v in before.items()
+                               if k not in ("ed_visits", "machine", "python")}
+        if ED_COVID not in out:
+            out[ED_COVID] = before.get("ed_visits")
+    result = {"command": command, **out.get(HOSP_COVID, {}),
               "ed_visits": out.get(ED_COVID),
               "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
-              "python": sys.version.split()[0],
-              "command": "python -m bench.nhsn " + " ".join(argv if argv is not None
-                                                            else sys.argv[1:])}
-    path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+              "python": sys.version.split()[0]}
     atomic_write_json(path, json.loads(json.dumps(result, default=str)))
     print(f"→ {path}")
     return result
