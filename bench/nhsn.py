@@ -251,6 +251,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
     )
+    built = {m.name for m in (*members.published, *members.references)} | {pseudo.name}
+    variants = tuple(v for v in variants if set(v.members or ()) <= built)
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
                             references=(*members.references, pseudo,

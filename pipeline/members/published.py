@@ -16,6 +16,7 @@ worse than the baseline it would be averaged with).
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,12 +36,14 @@ from pipeline.members.nf.context_features import ContextSources
 from pipeline.data.hub.locations import POPULATION
 from pipeline.members.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, TrainingDivergedError
 from pipeline.panels.history import EpiHistory, History
 from pipeline.panels.hub import is_share
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter
 from pipeline.training.digests import DataDigests
+
+log = logging.getLogger(__name__)
 
 # The hub baseline resamples its differences; 10,000 draws per forecast (reichlab: 100,000) keep
 # the Monte Carlo error of its 1 % quantile under 0.1 percentage points of level, at a tenth of
@@ -200,10 +203,15 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         fit_context_member(config.context, config.context_refit, [TrainingPool(
             vintages, context_sources(target, climatology, other_signal))], store_root,
             n_samples=config.flow_samples)]
+    refitted = False
     if dates:
-        members.append(fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
-                                            store_root, progress, known_at=known_at))
-    published = published_names(config, target, refitted=bool(dates))
+        try:
+            members.append(fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
+                                                store_root, progress, known_at=known_at))
+            refitted = True
+        except TrainingDivergedError as error:   # nf-real is scored beside, not published:
+            log.warning("nf-real left out: %s", error)    # the round goes on without it
+    published = published_names(config, target, refitted=refitted)
     unknown = [n for n in published if n not in {m.name for m in members}]
     if unknown:
         raise ConfigError(f"the hub forecast's published members {unknown} are not among "
