@@ -56,6 +56,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--keep-other", action="store_true",
                    help="with one --target: keep the other target's figures already in the "
                         "output file (the two targets run as two commands)")
+    p.add_argument("--influenza", action="store_true",
+                   help="instead: the context flow alone on FluSight's rounds (→ influenza)")
     p.add_argument("--no-timing", action="store_true",
                    help="skip the command-line runs that time a round (seconds.round, scratch)")
     return p.parse_args(argv)
@@ -153,6 +155,61 @@ def influenza_vintages(flusight: Path) -> list[Any]:
         rows = frame[frame["as_of"] == as_of].rename(columns={"observation": "value"})
         out.append((released, vintage_panel(rows, "wk inc flu hosp", POPULATION, released)))
     return out
+
+
+def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
+    """The context flow alone on FluSight's rounds (influenza admissions of the 53 places), in
+    real time from each round's release, against every FluSight team (``FluSight-baseline``
+    = 1), overall and per season. Its climatology is influenza's own history (weeks from
+    2022-02) as released by the round; there is no other signal."""
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds, \
+        summary_by_horizon
+    from pipeline.data.hub.locations import POPULATION
+    from pipeline.data.hub.team_forecasts import quantile_table, read_hub_forecasts, \
+        read_target_data
+    from pipeline.evaluation.hub_leaderboard import LeaderboardConfig, hub_leaderboard, \
+        score_quantile_forecasts
+    from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+    from pipeline.members.nf.context import TrainingPool, fit_context_member
+    from pipeline.members.nf.context_features import ContextSources
+    from pipeline.members.published import HubMembersConfig
+    from pipeline.panels.hub import hub_rounds
+    from pipeline.training.model_store import default_store_root
+
+    started = time.perf_counter()
+    flusight, target = Path(args.flusight), "wk inc flu hosp"
+    vintages = influenza_vintages(flusight)
+    config = HubMembersConfig()
+    member = fit_context_member(config.context, config.context_refit, [TrainingPool(
+        vintages, ContextSources((), tuple(vintages), POPULATION))], default_store_root())
+    rounds = hub_rounds(vintages)
+    result = run_hub_rounds(rounds, vintages[-1][1], [member],
+                            HubBacktestConfig(seed=args.seed, reconcile=False),
+                            references=[HubBaseline(HubBaselineConfig(n_samples=10_000))])
+    ours = result.scores([member.name])
+    truth = read_target_data(flusight / "time-series.parquet", target)
+    teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
+        flusight / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
+    scores = pd.concat([teams, ours], ignore_index=True)
+    scores = scores.assign(season=np.where(scores["reference_date"] < pd.Timestamp("2024-08-01"),
+                                           "2023-24", "2024-25"))
+    board = LeaderboardConfig(target=target, baseline="FluSight-baseline")
+    overall = hub_leaderboard(scores, board)
+    by_season = hub_leaderboard(scores, board, by=("season",))
+    mine = overall[overall["model_id"] == member.name].iloc[0]
+    return {"command": "python -m bench.nhsn --influenza", "member": member.name,
+            "relative_wis": float(mine["relative_wis"]), "n_rounds": len(rounds),
+            "by_season": {str(r["season"]): float(r["relative_wis"])
+                          for r in by_season.to_dict(orient="records")
+                          if r["model_id"] == member.name},
+            "teams": {str(r["model_id"]): float(r["relative_wis"])
+                      for r in overall.to_dict(orient="records")},
+            "teams_by_season": by_season.to_dict(orient="records"),
+            "coverage": summary_by_horizon(result, member.name)["h0-3"],
+            "refits": len(member.models), "seconds": round(time.perf_counter() - started, 1)}
 
 
 def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
@@ -328,6 +385,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.io import atomic_write_json
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
 
+    if args.influenza:
+        path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+        kept = json.loads(path.read_text()) if path.exists() else {}
+        kept["influenza"] = influenza_figure(args)
+        print(json.dumps({k: v for k, v in kept["influenza"].items()
+                          if k not in ("teams_by_season",)}, indent=1, default=str))
+        atomic_write_json(path, json.loads(json.dumps(kept, default=str)))
+        return kept
     hub = Path(args.hub)
     import_hub_time_series(hub, if_empty=True)          # the hub's vintages into the cache
     climatology = load_vintages(ED_COVID)
