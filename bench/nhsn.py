@@ -191,6 +191,7 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
                             references=[HubBaseline(HubBaselineConfig(n_samples=10_000))])
     ours = result.scores([member.name])
     truth = read_target_data(flusight / "time-series.parquet", target)
+    truth = truth[np.isfinite(truth["value"].to_numpy(dtype=np.float64))]   # unreported weeks
     teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
         flusight / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
     scores = pd.concat([teams, ours], ignore_index=True)

@@ -170,7 +170,9 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     for target, target_vintages in vintages.items():
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
-                                    climatology, progress, target=target)
+                                    climatology, progress, target=target,
+                                    other_signal=next((v for t, v in vintages.items()
+                                                       if t != target), None))
         model_key, reused = members.model_key, reused and members.reused
         memo = ForecastMemo.load(memo_path(config, target))
         results[target] = run_hub_rounds(
