@@ -419,8 +419,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     command = "python -m bench.nhsn " + " ".join(argv if argv is not None else sys.argv[1:])
     for target in out:
         out[target]["command"] = command        # each target's own run
-    if args.keep_other and args.target != "both" and path.exists():
-        before = json.loads(path.read_text())
+    before = json.loads(path.read_text()) if path.exists() else {}
+    if args.keep_other and args.target != "both" and before:
         if HOSP_COVID not in out:
             out[HOSP_COVID] = {k: v for k, v in before.items()
                                if k not in ("ed_visits", "machine", "python")}
@@ -430,6 +430,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
               "ed_visits": out.get(ED_COVID),
               "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
               "python": sys.version.split()[0]}
+    if "influenza" in before:           # another command's figure (--influenza): kept
+        result["influenza"] = before["influenza"]
     atomic_write_json(path, json.loads(json.dumps(result, default=str)))
     print(f"→ {path}")
     return result
