@@ -48,6 +48,16 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--out", default=None, help="output JSON path")
     p.add_argument("--files", default=None, help="write every round's hub file under DIR")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--flusight", default=str(SHARED.parent / "flusight"),
+                   help="FluSight's data (the influenza ablation's extra windows)")
+    p.add_argument("--no-ablations", action="store_true", help="skip the context flow's ablations")
+    p.add_argument("--no-transformer", action="store_true",
+                   help="skip the transformer-encoder ablation (its pre-training is the slowest)")
+    p.add_argument("--keep-other", action="store_true",
+                   help="with one --target: keep the other target's figures already in the "
+                        "output file (the two targets run as two commands)")
+    p.add_argument("--influenza", action="store_true",
+                   help="instead: the context flow alone on FluSight's rounds (→ influenza)")
     p.add_argument("--no-timing", action="store_true",
                    help="skip the command-line runs that time a round (seconds.round, scratch)")
     return p.parse_args(argv)
@@ -131,6 +141,118 @@ def _value(row: dict[str, Any] | None) -> float | None:
     return None if row is None else float(row["relative_wis"])
 
 
+def influenza_vintages(flusight: Path) -> list[Any]:
+    """FluSight's influenza admissions of the same 53 places, one panel per release."""
+    import pandas as pd
+
+    from pipeline.data.hub.locations import POPULATION
+    from pipeline.panels.hub import vintage_panel
+
+    frame = pd.read_parquet(flusight / "time-series.parquet")
+    out = []
+    for as_of in sorted(frame["as_of"].unique()):
+        released = pd.Timestamp(str(as_of))
+        rows = frame[frame["as_of"] == as_of].rename(columns={"observation": "value"})
+        out.append((released, vintage_panel(rows, "wk inc flu hosp", POPULATION, released)))
+    return out
+
+
+def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
+    """The context flow alone on FluSight's rounds (influenza admissions of the 53 places), in
+    real time from each round's release, against every FluSight team (``FluSight-baseline``
+    = 1), overall and per season. Its climatology is influenza's own history (weeks from
+    2022-02) as released by the round; there is no other signal."""
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds, \
+        summary_by_horizon
+    from pipeline.data.hub.locations import POPULATION
+    from pipeline.data.hub.team_forecasts import quantile_table, read_hub_forecasts, \
+        read_target_data
+    from pipeline.evaluation.hub_leaderboard import LeaderboardConfig, hub_leaderboard, \
+        score_quantile_forecasts
+    from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+    from pipeline.members.nf.context import TrainingPool, fit_context_member
+    from pipeline.members.nf.context_features import ContextSources
+    from pipeline.members.published import HubMembersConfig
+    from pipeline.panels.hub import hub_rounds
+    from pipeline.training.model_store import default_store_root
+
+    started = time.perf_counter()
+    flusight, target = Path(args.flusight), "wk inc flu hosp"
+    vintages = influenza_vintages(flusight)
+    config = HubMembersConfig()
+    member = fit_context_member(config.context, config.context_refit, [TrainingPool(
+        vintages, ContextSources((), tuple(vintages), POPULATION))], default_store_root())
+    rounds = hub_rounds(vintages)
+    result = run_hub_rounds(rounds, vintages[-1][1], [member],
+                            HubBacktestConfig(seed=args.seed, reconcile=False),
+                            references=[HubBaseline(HubBaselineConfig(n_samples=10_000))])
+    ours = result.scores([member.name])
+    truth = read_target_data(flusight / "time-series.parquet", target)
+    truth = truth[np.isfinite(truth["value"].to_numpy(dtype=np.float64))]   # unreported weeks
+    teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
+        flusight / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
+    scores = pd.concat([teams, ours], ignore_index=True)
+    scores = scores.assign(season=np.where(scores["reference_date"] < pd.Timestamp("2024-08-01"),
+                                           "2023-24", "2024-25"))
+    board = LeaderboardConfig(target=target, baseline="FluSight-baseline")
+    overall = hub_leaderboard(scores, board)
+    by_season = hub_leaderboard(scores, board, by=("season",))
+    mine = overall[overall["model_id"] == member.name].iloc[0]
+    return {"command": "python -m bench.nhsn --influenza", "member": member.name,
+            "relative_wis": float(mine["relative_wis"]), "n_rounds": len(rounds),
+            "by_season": {str(r["season"]): float(r["relative_wis"])
+                          for r in by_season.to_dict(orient="records")
+                          if r["model_id"] == member.name},
+            "teams": {str(r["model_id"]): float(r["relative_wis"])
+                      for r in overall.to_dict(orient="records")},
+            "teams_by_season": by_season.to_dict(orient="records"),
+            "coverage": summary_by_horizon(result, member.name)["h0-3"],
+            "refits": len(member.models), "seconds": round(time.perf_counter() - started, 1)}
+
+
+def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
+                     other: list[Any], args: argparse.Namespace) -> list[tuple[str, Any]]:
+    """The context flow with each context group left out in turn, with the transformer encoder,
+    without refits (the prior alone) and, for admissions, with influenza windows added:
+    ``(label, member)``, each scored beside the members under its own name."""
+    import dataclasses
+
+    from pipeline.members.nf.context import TrainingPool, fit_context_member
+    from pipeline.members.nf.context_features import ContextChannels
+    from pipeline.members.published import HubMembersConfig, context_sources
+    from pipeline.panels.hub import is_share
+    from pipeline.training.model_store import default_store_root
+
+    config = HubMembersConfig()
+    pool = TrainingPool(vintages, context_sources(target, climatology, other))
+    store = default_store_root()
+
+    def fit(name: str, pools: list[Any], channels: Any = ContextChannels(),
+            flow: Any = config.context) -> Any:
+        return fit_context_member(flow, config.context_refit, pools, store, channels=channels,
+                                  name=name, n_samples=500)
+
+    out: list[tuple[str, Any]] = []
+    for group in ("other_signal", "season", "climatology", "scale"):
+        channels = ContextChannels(**{group: False})
+        out.append((channels.label(), fit(f"nf-context-no-{group}", [pool], channels)))
+    if not args.no_transformer:
+        out.append(("transformer encoder", fit(
+            "nf-context-transformer", [pool],
+            flow=dataclasses.replace(config.context, encoder="transformer"))))
+    prior = fit("nf-context-prior-only", [pool])
+    out.append(("prior only (no refit)", dataclasses.replace(prior, models={})))
+    if not is_share(target) and (Path(args.flusight) / "time-series.parquet").exists():
+        flu = TrainingPool(influenza_vintages(Path(args.flusight)), context_sources(
+            target, (), ()), ContextChannels(other_signal=False, season=False,
+                                             climatology=False))
+        out.append(("with influenza windows", fit("nf-context-influenza", [pool, flu])))
+    return out
+
+
 def run_target(target: str, args: argparse.Namespace, climatology: list[Any], teams: Any,
                exclusions: Any) -> dict[str, Any]:
     import dataclasses
@@ -141,20 +263,24 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
-    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, CombineConfig
+    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED, CombineConfig
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
-    from pipeline.panels.hub import hub_rounds
+    from pipeline.panels.hub import HOSP_COVID, hub_rounds, is_share
     from pipeline.training.model_store import default_store_root
 
     started = time.perf_counter()
     vintages = load_vintages(target)
     rounds = hub_rounds(vintages)
     latest = vintages[-1][1]
+    other = load_vintages(HOSP_COVID) if is_share(target) else climatology
     members = build_hub_members(HubMembersConfig(), default_store_root(), vintages,
-                                climatology, target=target)
+                                climatology, target=target, other_signal=other)
     t_members = time.perf_counter() - started
+    ablated = [] if args.no_ablations else ablation_members(target, vintages, climatology,
+                                                           other, args)
+    t_ablations = time.perf_counter() - started - t_members
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")
@@ -168,8 +294,13 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
         Variant("v-nf-real+seasonal (published for the ED share)", reach,
                 ("nf-real", "seasonal")),
-        Variant("v-nf-weekly+seasonal (published for admissions)", reach,
+        Variant("v-nf-weekly+seasonal (published for admissions until 2026-11)", reach,
                 ("nf-weekly", "seasonal")),
+        Variant("v-nf-context+seasonal", reach, ("nf-context", "seasonal")),
+        Variant("v-nf-context+nf-weekly+seasonal", reach,
+                ("nf-context", "nf-weekly", "seasonal")),
+        Variant("v-nf-context+nf-real+seasonal", reach, ("nf-context", "nf-real", "seasonal")),
+        Variant("v-nf-context alone", reach, ("nf-context",)),
         Variant("v-log-average (the rule published until 2026-11)",
                 dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")),
         Variant("v-log-mixture, no online calibration",
@@ -178,11 +309,14 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
     )
+    built = {m.name for m in (*members.published, *members.references)} | {pseudo.name}
+    variants = tuple(v for v in variants if set(v.members or ()) <= built)
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
-                            references=(*members.references, pseudo))
-    t_backtest = time.perf_counter() - started - t_members
-    ours = result.scores()
+                            references=(*members.references, pseudo,
+                                        *[m for _, m in ablated]))
+    t_backtest = time.perf_counter() - started - t_members - t_ablations
+    ours = ours_all = result.scores()
     board_names = [PUBLISHED, UNRECONCILED, *[m.name for m in members.published],
                    *[m.name for m in (*members.references, pseudo)], *[v.name for v in variants]]
     ours = ours[ours["model_id"].isin(board_names)]
@@ -198,12 +332,30 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                              first_ed[0])
     gap = result.gap
     coverage = per_model[PUBLISHED]["coverage"]
+    scored = result.summary(PUBLISHED, [h for h in result.horizons if h >= 0])
+    wis = ours_all[ours_all["horizon"] >= 0].groupby("model_id")["wis"].sum()
+    ablations = {}
+    for label, member in ablated:
+        board = leaderboards(ours_all[ours_all["model_id"] == member.name], teams, target,
+                             exclusions, first_ed[0])
+        ablations[label] = {"member": member.name} | relative(board, member.name) | {
+            "coverage": summary_by_horizon(result, member.name)}
+    for name in ("nf-context", "nf-weekly", "seasonal", PUBLISHED):
+        if name in per_model:            # the table's reference rows
+            ablations.setdefault(f"[{name}]", {"member": name} | {
+                k: v for k, v in per_model[name].items()})
     return {
         "target": target,
         "pairwise_relative_wis": relative(published, PUBLISHED),
         "coverage50": coverage["h0-3"]["coverage50"],
         "coverage95": coverage["h0-3"]["coverage95"],
+        "coverage50_interval": scored["coverage50_interval"],
+        "coverage95_interval": scored["coverage95_interval"],
+        # the online calibration's cost: published WIS over the same average uncalibrated
+        # (horizons 0-3, every round and location, both reconciled)
+        "calibration_cost": float(wis[PUBLISHED] / wis[UNCALIBRATED]),
         "coverage_by_horizon": coverage,
+        "ablations": ablations,
         "n_rounds": len(rounds), "n_locations": len(result.places),
         "rounds": {"first": str(rounds[0].reference.date()),
                    "last": str(rounds[-1].reference.date())},
@@ -218,7 +370,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "reconciliation": None if gap is None else {
             "median_abs_log_gap_before": float(np.nanmedian(np.abs(gap))),
             "p90_abs_log_gap_before": float(np.nanquantile(np.abs(gap), 0.9))},
-        "seconds": {"members": round(t_members, 1), "backtest_rounds": round(t_backtest, 1),
+        "seconds": {"members": round(t_members, 1), "ablation_members": round(t_ablations, 1),
+                    "backtest_rounds": round(t_backtest, 1),
                     "parts": {k: round(v, 1) for k, v in result.seconds.items()}},
     }
 
@@ -233,6 +386,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.io import atomic_write_json
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
 
+    if args.influenza:
+        path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+        kept = json.loads(path.read_text()) if path.exists() else {}
+        kept["influenza"] = influenza_figure(args)
+        print(json.dumps({k: v for k, v in kept["influenza"].items()
+                          if k not in ("teams_by_season",)}, indent=1, default=str))
+        atomic_write_json(path, json.loads(json.dumps(kept, default=str)))
+        return kept
     hub = Path(args.hub)
     import_hub_time_series(hub, if_empty=True)          # the hub's vintages into the cache
     climatology = load_vintages(ED_COVID)
@@ -254,13 +415,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if HOSP_COVID in out:
         out[HOSP_COVID]["seconds"] |= timing | {"backtest": round(out[HOSP_COVID]["seconds"][
             "members"] + out[HOSP_COVID]["seconds"]["backtest_rounds"], 1)}
-    result = {**out.get(HOSP_COVID, {}),
+    path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+    command = "python -m bench.nhsn " + " ".join(argv if argv is not None else sys.argv[1:])
+    for target in out:
+        out[target]["command"] = command        # each target's own run
+    before = json.loads(path.read_text()) if path.exists() else {}
+    if args.keep_other and args.target != "both" and before:
+        if HOSP_COVID not in out:
+            out[HOSP_COVID] = {k: v for k, v in before.items()
+                               if k not in ("ed_visits", "machine", "python")}
+        if ED_COVID not in out:
+            out[ED_COVID] = before.get("ed_visits")
+    result = {"command": command, **out.get(HOSP_COVID, {}),
               "ed_visits": out.get(ED_COVID),
               "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}",
-              "python": sys.version.split()[0],
-              "command": "python -m bench.nhsn " + " ".join(argv if argv is not None
-                                                            else sys.argv[1:])}
-    path = Path(args.out) if args.out else RESULTS / "nhsn.json"
+              "python": sys.version.split()[0]}
+    if "influenza" in before:           # another command's figure (--influenza): kept
+        result["influenza"] = before["influenza"]
     atomic_write_json(path, json.loads(json.dumps(result, default=str)))
     print(f"→ {path}")
     return result

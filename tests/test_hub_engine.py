@@ -202,8 +202,11 @@ def test_each_hub_target_averages_its_own_members():
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
     config = HubMembersConfig()
     assert published_names(config, HOSP_COVID, refitted=True) == ("nf-weekly", "seasonal")
-    assert published_names(config, ED_COVID, refitted=True) == ("nf-real", "seasonal")
-    # before the first refit the share's average takes the weekly flow, never nothing
-    assert published_names(config, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
+    # the share's average takes the context flow (its pre-trained model serves before a refit)
+    assert published_names(config, ED_COVID, refitted=True) == ("nf-context", "seasonal")
+    assert published_names(config, ED_COVID, refitted=False) == ("nf-context", "seasonal")
+    # an average with nf-real takes the weekly flow before the first refit, never nothing
+    real = HubMembersConfig(published_share=("nf-real", "seasonal"))
+    assert published_names(real, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
     both = HubMembersConfig(published_share=("nf-real", "nf-weekly", "seasonal"))
     assert published_names(both, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")

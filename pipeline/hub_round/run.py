@@ -34,6 +34,7 @@ from pipeline.data.hub.nhsn import NHSNConfig, NHSNProvenance, load_nhsn
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targets
 from pipeline.errors import ConfigError, OfflineError
 from pipeline.members.nf.finetune import FineTuneConfig
+from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
 from pipeline.members.published import HubMembersConfig, build_hub_members
 from pipeline.members.nf.weekly import WeeklyFlowConfig
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
@@ -60,6 +61,7 @@ HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
                               hidden_features=16, flow_layers=2, flow_hidden=16),
         finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
                                 batch_size=128),
+        context=TINY_CONTEXT_FLOW, context_refit=TINY_CONTEXT_REFIT,
         flow_samples=200, baseline_samples=2000),
 }
 
@@ -186,7 +188,9 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     for target, target_vintages in vintages.items():
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
-                                    climatology, progress, target=target)
+                                    climatology, progress, target=target,
+                                    other_signal=next((v for t, v in vintages.items()
+                                                       if t != target), None))
         model_key, reused = members.model_key, reused and members.reused
         memo = ForecastMemo.load(memo_path(config, target))
         results[target] = run_hub_rounds(

@@ -1,0 +1,179 @@
+"""The context flow (``nf-context``): the paper's masked autoregressive flow over the next weeks of
+a hub target, conditioned on an encoder of real context — the target's recent weeks, the other
+signal's, the time of year, the climatology's growth at this time of year and the place's scale
+(:mod:`pipeline.members.nf.context_features`) — trained globally across every place and week
+known at each refit date.
+
+**Pre-training.** The weekly flow's prior (:mod:`pipeline.members.nf.weekly`: the calmed
+multi-wave SIRS seen through an admissions layer), cut into windows with the real-context
+channels at 0 ("not known") and the scale channel from each trajectory's population: the first
+rounds, with a few weeks of history and no other signal released, are served by the prior.
+
+**Refits.** On the refit calendar (:func:`~pipeline.members.nf.finetune.refit_dates`), the
+pre-trained flow is trained further on every (place, week) window of the vintage of that date
+whose target weeks had ended ``revision_days`` before it, the other signal and climatology as
+released by the vintage's own date (never later), with windows of any extra pool (influenza
+admissions of the same 53 places, released by then) and as many synthetic windows as the
+``synthetic_share`` asks (the prior's coverage of situations the real data have not shown).
+Validation: a seeded share of the places. A cell at origin o uses the latest refit ≤ o.
+
+Targets and decoding are the weekly flow's: z_h = logit f_h − logit f_0 (valid paths by
+construction), so the member emits joint weekly sample paths (the hub's samples follow their
+ranks) as well as quantiles.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError
+from pipeline.members.base import MemberForecast, quantiles_of_samples
+from pipeline.members.nf.context_features import ContextChannels, ContextSources, WindowInputs, \
+    context_windows
+from pipeline.members.nf.context_training import (NF_CONTEXT, TINY_CONTEXT_FLOW,
+                                                  TINY_CONTEXT_REFIT, ContextFlowConfig,
+                                                  ContextRefitConfig, TrainingPool,
+                                                  refit_windows, stored_pretrained, stored_refit)
+from pipeline.members.nf.finetune import refit_dates
+from pipeline.members.nf.model import HALF_CASE, cell_noise, decode_paths, single_thread
+from pipeline.models.estimator import ConditionalEstimator
+from pipeline.panels.history import History, WeeklyHistory
+from pipeline.panels.panel import Cells
+from pipeline.panels.targets import TargetError
+
+__all__ = ["NF_CONTEXT", "TINY_CONTEXT_FLOW", "TINY_CONTEXT_REFIT", "ContextFlowConfig",
+           "ContextRefitConfig", "ContextFlowMember", "TrainingPool", "decode_weekly",
+           "fit_context_member"]
+
+# ------------------------------------------------------------------------------------ member
+
+
+def _window(cases: NDArray[np.float64], k_weeks: int) -> NDArray[np.float64]:
+    out = np.full(k_weeks, np.nan)
+    take = min(len(cases), k_weeks)
+    out[k_weeks - take:] = cases[len(cases) - take:]
+    return out
+
+
+def decode_weekly(z: NDArray[np.float64], histories: Sequence[WeeklyHistory]
+                  ) -> NDArray[np.float64]:
+    """Weekly S, I, R paths ``(B, n, H, 3)`` from the flow's ``z (B, n, H)`` (the weekly
+    flow's decoding: a count depletes S; a rate keeps S at 1, each week a share of N)."""
+    last = np.array([h.cases[-1] for h in histories])
+    population = np.array([h.population for h in histories], dtype=np.int64)[:, None]
+    s = np.array([h.susceptible_at_weeks()[-2:] if len(h) > 1
+                  else np.r_[1.0, h.susceptible_at_weeks()] for h in histories])
+    paths = decode_paths(z, last[:, None], s[:, :1], s[:, 1:], population)
+    rate = np.array([not h.depletes for h in histories])
+    if rate.any():
+        share0 = (last[rate, None] + HALF_CASE) / population[rate]
+        base = (np.log(share0) - np.log1p(-share0))[..., None]
+        share = 1.0 / (1.0 + np.exp(-(z[rate] + base)))
+        paths[rate] = np.stack([1.0 - share, share, np.zeros_like(share)], axis=-1)
+    return paths
+
+
+@dataclass(frozen=True, eq=False)
+class ContextFlowMember:
+    """``nf-context`` (module docstring): ``models[r]`` the flow refitted at r, ``base`` the
+    pre-trained one (before the first refit); ``sources`` what a cell's context reads."""
+
+    base: ConditionalEstimator
+    models: Mapping[pd.Timestamp, ConditionalEstimator]
+    config: ContextFlowConfig
+    sources: ContextSources
+    channels: ContextChannels = ContextChannels()
+    name: str = NF_CONTEXT
+    n_samples: int = 1000
+
+    @property
+    def max_horizon(self) -> int:
+        return self.config.horizon_weeks
+
+    def model_for(self, origin: pd.Timestamp) -> ConditionalEstimator:
+        dates = [r for r in self.models if r <= origin]
+        return self.models[max(dates)] if dates else self.base
+
+    def cell_context(self, cells: Cells) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """The cells' context windows: the other signal and climatology as released by each
+        cell's panel's release date."""
+        k, h = self.config.context_weeks, self.config.horizon_weeks
+        histories = [_weekly(x, self.name) for x in cells.histories]
+        climate: dict[tuple[pd.Timestamp | None, pd.Timestamp], NDArray[np.float64]] = {}
+        for panel, origin in zip(cells.panels, cells.origins):
+            if (panel.as_of, origin) not in climate:
+                climate[(panel.as_of, origin)] = self.sources.climatology_at(
+                    panel.as_of, [origin], h)[0]
+        inputs = WindowInputs(
+            np.stack([_window(x.cases, k) for x in histories]),
+            np.stack([self.sources.other_weeks(p.as_of, place, o, k)
+                      for p, place, o in zip(cells.panels, cells.places, cells.origins)]),
+            np.array(cells.origins, dtype="datetime64[ns]"),
+            np.stack([climate[(p.as_of, o)] for p, o in zip(cells.panels, cells.origins)]),
+            np.array([self.sources.people(place, x)
+                      for place, x in zip(cells.places, histories)]))
+        return context_windows(inputs, self.channels)
+
+    def sample_paths(self, cells: Cells, chunk: int = 16) -> NDArray[np.float64]:
+        """Weekly S, I, R paths ``(B, n, H, 3)``, each cell through its origin's refit."""
+        histories = [_weekly(x, self.name) for x in cells.histories]
+        missing = [x for x in histories if not np.isfinite(x.cases[-1])]
+        if missing:
+            raise TargetError(f"{self.name}: the week ending {missing[0].origin.date()} is "
+                              "missing (the origin's week must be reported or nowcast)")
+        context, mask = self.cell_context(cells)
+        eps = cell_noise(cells.seeds, self.n_samples, self.config.horizon_weeks)
+        z = np.empty(eps.shape, dtype=np.float64)
+        models = [self.model_for(o) for o in cells.origins]
+        with torch.no_grad(), single_thread():
+            for model in {id(m): m for m in models}.values():
+                index = [i for i, m in enumerate(models) if m is model]
+                for start in range(0, len(index), chunk):
+                    part = index[start:start + chunk]
+                    z[part] = model.noise_to_data(eps[part], torch.from_numpy(context[part]),
+                                                  torch.from_numpy(mask[part])).double().numpy()
+        return decode_weekly(z, histories)
+
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        """Count quantiles ``(B, H, Q)`` from the sampled paths (kept for the hub's samples)."""
+        if max(horizons) > self.max_horizon or min(horizons) < 1:
+            raise TargetError(f"{self.name} forecasts weeks 1 … {self.max_horizon}, "
+                              f"not {horizons}")
+        paths = self.sample_paths(cells)[:, :, [h - 1 for h in horizons]]
+        counts = paths[..., 1] * cells.populations[:, None, None] - HALF_CASE
+        return MemberForecast(np.maximum(quantiles_of_samples(counts, levels), 0.0),
+                              paths=paths)
+
+
+def _weekly(history: History, name: str) -> WeeklyHistory:
+    if not isinstance(history, WeeklyHistory):
+        raise TargetError(f"{name} reads weekly counts; a daily series needs the daily flow")
+    return history
+
+
+def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
+                       pools: Sequence[TrainingPool], store_root: Path, *,
+                       channels: ContextChannels = ContextChannels(), name: str = NF_CONTEXT,
+                       n_samples: int = 1000) -> ContextFlowMember:
+    """The pre-trained flow (model store) refitted at every refit date among the first pool's
+    vintages' last weeks (module docstring)."""
+    if not pools or not pools[0].vintages:
+        raise ConfigError(f"{name}: no vintage of the target to train on")
+    base, synthetic, base_key = stored_pretrained(config, store_root)
+    dates = refit_dates(sorted({p.last_date for _, p in pools[0].vintages}),
+                        refit.refit_every_weeks)
+    models: dict[pd.Timestamp, ConditionalEstimator] = {}
+    for date in dates:
+        windows = refit_windows(pools, date, refit.revision_days, config, channels)
+        model = stored_refit(base, base_key, windows, synthetic, date, config, refit, channels,
+                             store_root)
+        if model is not None:
+            models[date] = model
+    return ContextFlowMember(base, models, config, pools[0].sources, channels, name, n_samples)
