@@ -13,8 +13,9 @@
 (c) **The weekly forecast's path**: one run of the weekly step on the ``tiny`` preset and the
     recorded DataSF exports (imported into a temporary ``FLOWCAST_DATA_DIR``, read offline, as
     ``tests/test_forecast_flow.py`` does) — the series from the cache, its S/I/R conversion, the
-    nowcast step, the weekly forecast (:func:`pipeline.forecast.steps.weekly_forecast`: panel,
-    members, combiner, track record) and its hub file and tables — traced with ``sys.setprofile``.
+    nowcast step, the weekly forecast
+    (:func:`pipeline.forecast.published_forecast.weekly_forecast`: panel, members, combiner,
+    track record) and its hub file and tables — traced with ``sys.setprofile``.
     For every ``pipeline`` module: how many times control *enters* it from another module (a
     ``call`` event of one of its functions whose nearest calling ``pipeline``/``flows`` frame is
     in another module; library frames in between, e.g. torch calling a module's ``forward``, are
@@ -469,7 +470,7 @@ def _prepared_run(data_dir: Path, datasf: Path, cdph: Path | None) -> tuple[Any,
     from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
     from pipeline.forecast.sources import load_series, series_to_sir
     from pipeline.forecast.nowcasting import nowcast_recent_days
-    from pipeline.forecast.steps import weekly_forecast
+    from pipeline.forecast.published_forecast import weekly_forecast
 
     config = resolve_config("tiny", data=dataclasses.replace(
         resolve_config("tiny").data, kind="import", import_paths=(str(datasf),)))
@@ -495,7 +496,7 @@ def traced_path(datasf: Path, cdph: Path | None) -> dict[str, Any]:
         prepared_s = time.perf_counter() - started
 
         from pipeline import forked
-        from pipeline.forecast import steps
+        from pipeline.forecast import published_forecast as steps
         from pipeline.forecast.nowcasting import nowcast_recent_days
         from pipeline.forecast.publish import weekly_tables, write_submission
         from pipeline.forecast.sources import load_series, series_to_sir
@@ -547,7 +548,7 @@ def traced_path(datasf: Path, cdph: Path | None) -> dict[str, Any]:
                        "none); the SMC batch runs in this process instead of a forked child.",
             "path": ["forecast.sources.load_series (cache)", "forecast.sources.series_to_sir",
                      "forecast.nowcasting.nowcast_recent_days",
-                     "forecast.steps.weekly_forecast",
+                     "forecast.published_forecast.weekly_forecast",
                      "forecast.publish.weekly_tables", "forecast.publish.write_submission"],
             "preset": "tiny", "data": [str(datasf)] + ([str(cdph)] if cdph else []),
             "nowcast": weekly.nowcast is not None,
