@@ -31,18 +31,18 @@ class Recorder:
 
 
 def test_a_backtest_announces_every_forecast_it_makes_as_its_total():
-    """Two places × 30 weekly origins × (2 members + the hub baseline, added as a reference):
-    the bar's total is 180, and it ends at 180 (the county backtest's bar read "14712/1")."""
-    places = {"a": random_walk_history(40, seed=1), "b": random_walk_history(40, seed=2)}
+    """Two places × 6 weekly origins × (2 members + the hub baseline, added as a reference):
+    the bar's total is 36, and it ends at 36 (the county backtest's bar read "14712/1")."""
+    places = {"a": random_walk_history(14, seed=1), "b": random_walk_history(14, seed=2)}
     panel = Panel(places)
-    origins = weekly_origins(panel.dates, scored_only=False)[:30]
+    origins = weekly_origins(panel.dates, scored_only=False)[:6]
     recorder = Recorder()
     assert isinstance(recorder, PhasedProgress)
     run_backtest(OneVintage(panel), [LogNormalMember("sharp", 0.1),
                                      LogNormalMember("wide", 0.6)], origins, progress=recorder)
-    assert len(origins) == 30
-    assert recorder.phases == [("forecasts", 2 * 30 * 3)]
-    assert recorder.steps == [180]
+    assert len(origins) == 6
+    assert recorder.phases == [("forecasts", 2 * 6 * 3)]
+    assert recorder.steps == [36]
 
 
 def test_a_rich_bar_opens_one_task_per_phase_and_closes_the_one_before_at_its_count():
