@@ -576,6 +576,9 @@ def _print(result: dict[str, Any]) -> None:
     for module, lines in s["over_max_lines"].items():
         print(f"      {lines:5d}  {module}")
     print(f"    folders over {MAX_MODULES} modules: {s['over_max_modules'] or 'none'}")
+    uses = result["any_uses"]
+    print(f"    Any in {', '.join(ANY_SCANNED)}: {sum(uses.values())} uses (at most {MAX_ANY}) "
+          f"{uses}")
     print(f"(b) {i['import_statements']} imports ({i['function_local_imports']} function-local, "
           f"{i['type_checking_imports']} under TYPE_CHECKING) between {i['packages']} packages "
           f"in {len(i['layering'])} layers")
