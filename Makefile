@@ -60,9 +60,11 @@ hub:
 	$(MAKE) forecast FORECAST_ARGS="--hub covid $(FORECAST_ARGS)"
 
 # The type check first (pyright over pipeline/ and flows/, settings in pyproject.toml): zero errors.
+# Then whole files to two workers (a file's module fixtures are built once), longest files first
+# (the order tests/conftest.py collects them in; xdist's own reorder by test count is off).
 test: venv sysdeps
 	$(VENV)/bin/pyright
-	$(VENV)/bin/python -m pytest -q -n 2 --dist loadfile
+	$(VENV)/bin/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 # The report's Table 5 columns beyond the run's own model: train the paper's variants once
 # (Dask workers, flows/scale_out.py); the weekly forecast scores every variant in the model cache.

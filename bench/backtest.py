@@ -1,8 +1,9 @@
 """Real-time backtest of the published weekly forecast → bench/results/backtest.json.
 
 Every Saturday origin of the shared DataSF data with 4 weeks of truth (from 8 weeks into the
-data), with the weekly forecast's own settings (``pipeline.forecast.steps`` preset ``default``: the same
-members, flow model, ensemble and recalibration the weekly run publishes). At each origin every member sees the
+data), with the weekly forecast's own settings (preset ``default`` of ``pipeline.forecast.config``:
+the same members, flow model, ensemble and recalibration the weekly run publishes). At each origin
+every member sees the
 data up to that day only; the published forecast is their quantile average with weights and a
 recalibration fitted to past origins' scores only (:mod:`pipeline.backtest.backtest`).
 Targets I and weekly reported cases, 1–4 weeks, 23 hub quantiles; WIS relative to the COVID-19
@@ -96,7 +97,7 @@ def smc_reference(history: Any, origins: list[Any], seed: int) -> tuple[list[Any
     from pipeline import forecast as fc
     from pipeline.forecast.joint_models import simulate_training_data, train_or_reuse_models
     from pipeline.forecast.sources import SF_COUNTY
-    from pipeline.forecast.steps import smc_member
+    from pipeline.forecast.published_forecast import smc_member
     from pipeline.members.smc import batched_smc_forecasts
     from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
 

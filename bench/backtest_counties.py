@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     # scores exactly what the weekly forecast publishes and shares its stored models
     config = resolve_config("default", seed=args.seed)
     started = time.perf_counter()
-    with rich_progress("cross-county backtest", 1) as progress:
+    with rich_progress("cross-county backtest") as progress:
         result, chosen = county_backtest(vintage, config, default_store_root(),
                                          variants=design_variants(),
                                          references=(AutoETSMember(),), progress=progress)

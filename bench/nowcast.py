@@ -266,7 +266,7 @@ def evaluate_forecasts(vintages: list[CDPHVintage], chain: RevisionPairs,
                       for c, h in histories.items()}, name="california-counties")
         refits = sorted({latest_refit_date(o, record.members.finetune.refit_every_weeks)
                          for o in (weeks.origin, drop_origin)})
-        with rich_progress(f"members at {vintage.as_of.date()}", 2) as progress:
+        with rich_progress(f"members at {vintage.as_of.date()}") as progress:
             chosen = build_members(record.members, store_root, pool, refits, progress)
         published = Ensemble(tuple(chosen.members))
         seconds["members"][str(vintage.as_of.date())] = round(time.perf_counter() - t, 1)

@@ -9,7 +9,7 @@ import os
 import sys
 from pathlib import Path
 from enum import Enum
-from typing import TYPE_CHECKING, Annotated, Any, NoReturn, TypeAlias
+from typing import TYPE_CHECKING, Annotated, NoReturn, TypeAlias, TypeVar
 
 import typer
 
@@ -19,6 +19,8 @@ from pipeline.cli.choices import DataSource, Encoder, choices_enum, value
 from pipeline.forecast.config import FORECAST_PRESETS
 
 if TYPE_CHECKING:
+    from prefect.client.schemas.objects import State
+
     ForecastPreset: TypeAlias = Enum  # built from the preset names at run time (see choices)
 else:
     ForecastPreset = choices_enum("ForecastPreset", tuple(FORECAST_PRESETS))
@@ -91,7 +93,11 @@ def forecast_command(
                     f"(run state '{state.name}')", fg=typer.colors.YELLOW, err=True)
 
 
-def _outcome(state: Any, what: str) -> dict[str, Any]:
+# what a flow returns: its outcome (a dict), or the State it ends in (the weekly run's stale data)
+Returned = TypeVar("Returned")
+
+
+def _outcome(state: State[Returned], what: str) -> dict[str, object]:
     """The flow run's result; a failed run: one line naming the problem (the log has the
     rest), exit 1."""
     from pipeline.errors import FlowcastError

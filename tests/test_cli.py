@@ -68,6 +68,7 @@ def test_makefile_forecast_target_calls_flowcast_forecast():
     assert "python -m flows.weekly_forecast" not in makefile
 
 
+@pytest.mark.slow  # a fresh process imports the whole CLI and starts Prefect's temporary server
 def test_forecast_without_data_fails_in_one_line(tmp_path):
     """`flowcast forecast` as a user runs it (a process); no cache, offline: exit 1 and one
     error line that names the fix."""

@@ -106,21 +106,25 @@ def test_serve_and_run_deployment(tmp_path, datasf_dir):
         procs.append(start([sys.executable, "-m", "flows.deploy", "--preset", "tiny",
                             "--data-source", "cache", "--output-dir", str(reports)],
                            env, serve_log))
+        # serve registers the two deployments one after the other: wait for both (on a loaded
+        # box the hub's came a moment after the SF one, and a lookup in between found none)
         deadline = time.monotonic() + 40
-        deployments: list = []
-        while time.monotonic() < deadline and not deployments:
-            deployments = api_post(api, "/deployments/filter",
-                                   {"deployments": {"name": {"any_": ["sf-weekly"]}}})
+        registered: dict[str, dict] = {}
+        while time.monotonic() < deadline and len(registered) < 2:
+            found = api_post(api, "/deployments/filter", {"deployments": {"name": {
+                "any_": ["sf-weekly", "hub-covid-weekly"]}}})
+            registered = {d["name"]: d for d in found}
             time.sleep(0.5)
-        assert deployments, f"deployment never registered:\n{serve_log.read_text()[-3000:]}"
-        deployment = deployments[0]
+        assert set(registered) == {"sf-weekly", "hub-covid-weekly"}, \
+            f"deployments registered: {sorted(registered)}\n{serve_log.read_text()[-3000:]}"
+        assert len(found) == 2          # one of each
+        deployment = registered["sf-weekly"]
         schedule = deployment["schedules"][0]["schedule"]
         assert schedule["cron"] == "0 6 * * 1"
         assert schedule["timezone"] == "America/Los_Angeles"
         assert deployment["paused"] is False
         # the hub round's deployment is served beside it, on the hub's Wednesday
-        (hub,) = api_post(api, "/deployments/filter",
-                          {"deployments": {"name": {"any_": ["hub-covid-weekly"]}}})
+        hub = registered["hub-covid-weekly"]
         hub_schedule = hub["schedules"][0]["schedule"]
         assert (hub_schedule["cron"], hub_schedule["timezone"]) == ("0 15 * * 3",
                                                                     "America/New_York")

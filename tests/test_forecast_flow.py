@@ -263,8 +263,9 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
         assert (out / name).read_bytes() == (flow_dir / name).read_bytes(), name
 
     # Again on the stored models, the track record's memo removed: the weekly forecast is made
-    # in a forked child (steps.start_weekly_forecast) beside the estimates; same tables.
-    from pipeline.forecast.steps import forecast_memo_path
+    # in a forked child (published_forecast.start_weekly_forecast) beside the estimates; same
+    # tables.
+    from pipeline.forecast.published_forecast import forecast_memo_path
 
     forecast_memo_path(config.data.place).unlink()
     again = run_forecast(config)

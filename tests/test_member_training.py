@@ -3,6 +3,7 @@ the same models, bit for bit, as the steps would train themselves; a failure is 
 costs nothing; a run that ends early stops it."""
 from __future__ import annotations
 
+import pytest
 import torch
 
 from pipeline import forecast as fc
@@ -12,6 +13,9 @@ from pipeline.panels.panel import Panel
 from pipeline.forecast.member_training import member_training, start_member_training
 from pipeline.training.model_store import ModelStore
 from tests.forecasting_helpers import random_walk_history
+
+# each of the first tests starts a Python process that imports torch and trains the tiny models
+pytestmark = pytest.mark.slow
 
 CONFIG = fc.FORECAST_PRESETS["tiny"]
 PLACE = "San Francisco"

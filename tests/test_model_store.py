@@ -139,7 +139,7 @@ def test_forecast_model_key_follows_encoder_recipe_and_seed():
 def test_forecast_config_rejects_unknown_preset_parts():
     from pipeline.errors import ConfigError
     from pipeline.forecast import ForecastConfig, resolve_config
-    from pipeline.forecast.config import TrainingSettings
+    from pipeline.forecast.settings import TrainingSettings
 
     with pytest.raises(ConfigError, match="unknown encoder 'lstm'"):
         resolve_config("tiny", encoder="lstm")

@@ -14,10 +14,15 @@ import time
 import traceback
 from pathlib import Path
 
+import pytest
+
 from pipeline.data.core.cache import DatasetCache
 from pipeline.data.sf.datasf import CASES
 from pipeline.io import sha256_bytes
 from pipeline.training.model_store import ModelStore
+
+# 20 trials of five processes each: ~35 s on a loaded 2-core box (make test starts it early)
+pytestmark = pytest.mark.slow
 
 TRIALS = int(os.environ.get("FLOWCAST_STRESS_TRIALS", "20"))
 WRITERS = 4

@@ -35,7 +35,7 @@ from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline
 from pipeline.panels.history import History
 from pipeline.panels.panel import Cells, Panel, origin_seed, truth_arrays
 from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS, SHARE
-from pipeline.progress import ProgressReporter, SilentProgress
+from pipeline.progress import ProgressReporter, SilentProgress, start_phase
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,8 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
     latest, levels = data.latest, np.asarray(config.levels, dtype=np.float64)
     horizons, origins = tuple(config.horizons), list(origins)
     cells = backtest_cells(data, origins, config.seed)
+    # one step a cell a forecaster: the bar's total is every forecast the loop below makes
+    start_phase(progress, "forecasts", len(cells) * (len(members) + len(references)))
     shape = (len(latest.places), len(origins))
     seconds: dict[str, float] = {}
     forecasts: dict[str, dict[str, NDArray[np.float64]]] = {t: {} for t in latest.targets}

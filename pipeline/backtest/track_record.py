@@ -30,7 +30,7 @@ from pipeline.nowcast.mixture import CompletionMixture, RunNowcast
 from pipeline.panels.history import History
 from pipeline.panels.panel import Panel, weekly_origins
 from pipeline.panels.targets import HORIZONS_WEEKS
-from pipeline.progress import ProgressReporter
+from pipeline.progress import ProgressReporter, start_phase
 
 
 @dataclass(frozen=True)
@@ -128,6 +128,8 @@ def track_record(panel: Panel, place: str, config: TrackRecordConfig, store_root
     panel = panel.only([place])
     history = panel.histories[place]
     every = config.origins(history)
+    if progress is not None:
+        start_phase(progress, "members' models", None)
     chosen = build_members(config.members, store_root, panel, every, progress)
     members: list[Member] = list(chosen.members)
     scored: list[Member] = [AutoETSMember(),

@@ -89,7 +89,7 @@ def backtest_command(
         record = _without_flows(fc.resolve_config("default", seed=seed).track_record_config(),
                                 nf)
         panel = place_panel(SF_COUNTY, history, load_reference_histories())
-        with rich_progress("backtest", 1) as progress:
+        with rich_progress("backtest") as progress:
             made = track_record(panel, SF_COUNTY, record, default_store_root(), progress,
                                 scored_only=not all_origins, first=_date(first, "--from"),
                                 last=_date(last, "--to"))
@@ -126,7 +126,7 @@ def _county_backtest(county: str, out: Path, nf: bool, seed: int) -> None:
         chosen = pool if county.lower() == "all" else select_counties(vintage, counties=[county])
         config = resolve_config("default", seed=seed)
         config = dataclasses.replace(config, track_record=_without_flows(config.track_record, nf))
-        with rich_progress("cross-county backtest", 1) as progress:
+        with rich_progress("cross-county backtest") as progress:
             result, _ = county_backtest(vintage, config, default_store_root(),
                                         counties=sorted({*pool, *chosen}), progress=progress)
         result = result.for_places(chosen)

@@ -36,7 +36,7 @@ from pipeline.errors import OfflineError
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import CountySkill
 from pipeline.io import atomic_write_json
-from pipeline.progress import ProgressReporter
+from pipeline.progress import ProgressReporter, start_phase
 from pipeline.training.model_store import default_store_root
 
 log = logging.getLogger(__name__)
@@ -86,6 +86,8 @@ def county_backtest(vintage: CDPHVintage, config: ForecastConfig, store_root: Pa
     origin with four weeks of truth, its members' models the weekly run's own (shared through
     the model store), with the ``variants`` and ``references`` scored beside it."""
     panel, origins = panel_and_origins(vintage, counties)
+    if progress is not None:
+        start_phase(progress, "members' models", None)
     chosen = build_members(config.track_record_config().members, store_root, panel, origins,
                            progress)
     result = run_backtest(OneVintage(panel), chosen.members, origins,

@@ -39,7 +39,6 @@ from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from pipeline.panels.history import EpiHistory
 from pipeline.forecast.config import ForecastConfig
@@ -77,7 +76,7 @@ class MemberTraining:
     """The background process (:meth:`wait` for it), or none (nothing to train)."""
 
     process: subprocess.Popen[bytes] | None = None
-    logger: logging.Logger | logging.LoggerAdapter[Any] = log
+    logger: logging.Logger | logging.LoggerAdapter[logging.Logger] = log
     started: float = field(default_factory=time.monotonic)
     _tail: deque[str] = field(default_factory=lambda: deque(maxlen=TAIL_LINES))
     _relay: threading.Thread | None = None
@@ -133,7 +132,7 @@ class MemberTraining:
 
 
 def start_member_training(config: ForecastConfig, history: EpiHistory, store_root: Path,
-                          logger: logging.Logger | logging.LoggerAdapter[Any] = log
+                          logger: logging.Logger | logging.LoggerAdapter[logging.Logger] = log
                           ) -> MemberTraining:
     """Start training the weekly forecast's members in a background process (module
     docstring); with nothing of them to train, or where it cannot start, none is started (the
@@ -169,7 +168,7 @@ def wait_for_members(training: MemberTraining) -> MemberTrainingOutcome:
 
 @contextlib.contextmanager
 def member_training(config: ForecastConfig, history: EpiHistory, store_root: Path,
-                    needed: bool, logger: logging.Logger | logging.LoggerAdapter[Any] = log
+                    needed: bool, logger: logging.Logger | logging.LoggerAdapter[logging.Logger] = log
                     ) -> Iterator[MemberTraining]:
     """:func:`start_member_training` when ``needed``, stopped on leaving if still running."""
     training = (start_member_training(config, history, store_root, logger) if needed

@@ -38,7 +38,7 @@ from pipeline.nowcast.hub_weeks import hub_weeks, last_saturday
 from pipeline.nowcast.mixture import RunNowcast, median_history
 from pipeline.panels.history import EpiHistory
 from pipeline.panels.targets import DAYS_PER_WEEK
-from pipeline.forecast.config import NowcastSettings
+from pipeline.forecast.settings import NowcastSettings
 from pipeline.forecast.sources import SF_COUNTY, sf_history
 from pipeline.io import sha256_bytes
 

@@ -19,7 +19,7 @@ from pipeline.backtest.writers import hub_frame
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import ForecastResults
-from pipeline.forecast.steps import published_skill
+from pipeline.forecast.published_forecast import published_skill
 from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission, SubmissionConfig,
                                        write_model_output)

@@ -5,11 +5,9 @@ the Prefect flow read these types and nothing else.
 """
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -113,9 +111,6 @@ class CountySkill:
     share_beating_baseline: dict[str, float]
     coverage: dict[str, tuple[float, float]]
     reused: bool = False
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)

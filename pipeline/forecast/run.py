@@ -25,10 +25,10 @@ from pipeline.forecast.member_training import member_training, wait_for_members
 from pipeline.forecast.results import ForecastResults, SIRArrays, TrainedModels, TrainingData
 from pipeline.forecast.sources import (data_is_stale, load_series, series_to_sir, sir_arrays,
                                        staleness_notes)
+from pipeline.forecast.published_forecast import (published_skill, start_weekly_forecast,
+                                                  weekly_forecast_step)
 from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_variants,
-                                     published_skill, rollouts, seeded_smc,
-                                     start_parameter_track, start_weekly_forecast,
-                                     weekly_forecast_step)
+                                     rollouts, seeded_smc, start_parameter_track)
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.training.model_store import default_store_root
 

@@ -213,8 +213,28 @@ class ConfidenceRegion:
         return self.points.max(dim=0).values
 
 
+class Draws:
+    """Summaries over the draws (dim 0) of ``samples``: an estimate's (n, D), a rollout's
+    (P, H, D) sample paths."""
+
+    samples: Tensor
+
+    @property
+    def mean(self) -> Tensor:
+        return self.samples.mean(dim=0)
+
+    @property
+    def std(self) -> Tensor:
+        return self.samples.std(dim=0)
+
+    def quantiles_over_draws(self, levels: Sequence[float]) -> Tensor:
+        """(Q, ...) empirical quantiles at ``levels``, one per draw-free index."""
+        return torch.quantile(self.samples, torch.tensor(levels, dtype=self.samples.dtype),
+                              dim=0)
+
+
 @dataclass(frozen=True, eq=False)
-class Estimate:
+class Estimate(Draws):
     """An estimate of the target at ``window.target_time``.
 
     ``samples (n, D)`` in original units; ``names`` label the D components; ``regions`` the
@@ -231,18 +251,9 @@ class Estimate:
     quantile_levels: tuple[float, ...] = DEFAULT_QUANTILES
 
     @property
-    def mean(self) -> Tensor:
-        return self.samples.mean(dim=0)
-
-    @property
-    def std(self) -> Tensor:
-        return self.samples.std(dim=0)
-
-    @property
     def quantiles(self) -> Tensor:
         """(Q, D) empirical quantiles at ``quantile_levels``."""
-        levels = torch.tensor(self.quantile_levels, dtype=self.samples.dtype)
-        return torch.quantile(self.samples, levels, dim=0)
+        return self.quantiles_over_draws(self.quantile_levels)
 
     def summary_rows(self) -> list[dict[str, float | str]]:
         """One row per component: mean, std, quantiles, and each σ-region's extent."""

@@ -49,7 +49,7 @@ import torch
 from torch import Tensor
 
 from pipeline.errors import ConfigError
-from pipeline.inference.estimate import (Estimator, ObservationWindow, assemble_context, check_direction,
+from pipeline.inference.estimate import (Draws, Estimator, ObservationWindow, assemble_context, check_direction,
                                context_window_length, draw_noise, noise_dim, target_dim,
                                uses_absolute_time)
 from pipeline.progress import ProgressReporter, SilentProgress
@@ -79,7 +79,7 @@ class RolloutConfig:
 
 
 @dataclass(frozen=True, eq=False)
-class RolloutResult:
+class RolloutResult(Draws):
     """Sample paths ``samples (P, H, D)`` at ``times (H,)`` (NaN where nothing was predicted).
 
     ``anchors``: for rolling rollouts, the series index of the first prediction of each segment.
@@ -91,21 +91,13 @@ class RolloutResult:
     names: tuple[str, ...]
     anchors: tuple[int, ...] = ()
 
-    @property
-    def mean(self) -> Tensor:
-        return self.samples.mean(dim=0)
-
-    @property
-    def std(self) -> Tensor:
-        return self.samples.std(dim=0)
-
     def band(self, n_sigma: float = 2.0) -> tuple[Tensor, Tensor]:
         """mean ∓ n_sigma · std per step and component (the paper's 2σ bands)."""
         return self.mean - n_sigma * self.std, self.mean + n_sigma * self.std
 
     def quantiles(self, levels: Sequence[float] = BAND_QUANTILES) -> Tensor:
         """(Q, H, D) per-step quantiles over paths."""
-        return torch.quantile(self.samples, torch.tensor(levels, dtype=self.samples.dtype), dim=0)
+        return self.quantiles_over_draws(levels)
 
     def summary_frame(self, levels: Sequence[float] = BAND_QUANTILES) -> pd.DataFrame:
         """Long table: time, component, mean, std, lower_2sigma, upper_2sigma, q<level>..."""

@@ -35,7 +35,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.data.california.delays import DelayModel, lag_days
-from pipeline.panels.history import EpiHistory, history_length_up_to
+from pipeline.panels.history import DailySIR, EpiHistory, history_length_up_to
 from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 
 N_TREND_COEFFICIENTS = 2 + 6        # level, slope per week, weekday effects (Monday = 0)
@@ -208,16 +208,10 @@ def nowcast_history(history: EpiHistory, model: DelayModel, *, as_of: pd.Timesta
 
 
 @dataclass(frozen=True, eq=False)
-class CompletedHistories:
+class CompletedHistories(DailySIR):
     """K copies of a history whose last days hold nowcast samples: ``cases``, ``S``, ``I``,
     ``R`` are (K, T) on ``dates``; :meth:`history` gives one as an :class:`EpiHistory`."""
 
-    dates: pd.DatetimeIndex
-    cases: NDArray[np.int64]
-    S: NDArray[np.float64]
-    I: NDArray[np.float64]  # noqa: E741 - the compartment's name
-    R: NDArray[np.float64]
-    population: int
     first_nowcast_day: pd.Timestamp
     reported: NDArray[np.int64] | None = None       # (T,) the counts as reported, when known
 

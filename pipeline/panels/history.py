@@ -78,12 +78,11 @@ def _position(dates: pd.DatetimeIndex, origin: pd.Timestamp) -> int:
 
 
 @dataclass(frozen=True, eq=False)
-class EpiHistory:
-    """A daily series up to and including the origin (its last date).
-
-    ``cases`` are the daily reported case counts the conversion used (ascertainment-adjusted when
-    that is on); ``S``, ``I``, ``R`` the proportions; ``population`` N. Dates are consecutive days.
-    """
+class DailySIR:
+    """The daily columns of an S/I/R history on ``dates``: reported ``cases`` and the proportions
+    ``S``, ``I``, ``R`` of a place of ``population`` N. One history's are (T,)
+    (:class:`EpiHistory`); K histories on the same days hold (K, T) (the nowcast's completions,
+    :class:`pipeline.nowcast.completions.CompletedHistories`)."""
 
     dates: pd.DatetimeIndex
     cases: NDArray[np.int64]
@@ -91,6 +90,15 @@ class EpiHistory:
     I: NDArray[np.float64]  # noqa: E741 - the compartment's name
     R: NDArray[np.float64]
     population: int
+
+
+@dataclass(frozen=True, eq=False)
+class EpiHistory(DailySIR):
+    """A daily series up to and including the origin (its last date).
+
+    ``cases`` are the daily reported case counts the conversion used (ascertainment-adjusted when
+    that is on); ``S``, ``I``, ``R`` the proportions; ``population`` N. Dates are consecutive days.
+    """
 
     count_target = CASES
     targets = (SHARE, CASES)
