@@ -137,6 +137,9 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
     if result["data_stale"]:
         typer.secho("warning: data.cdc.gov could not be reached; the round used cached data",
                     fg=typer.colors.YELLOW, err=True)
+    if result.get("degraded"):
+        typer.secho(f"warning: the round is degraded ({state.message})",
+                    fg=typer.colors.YELLOW, err=True)
 
 
 def main() -> NoReturn:

@@ -61,6 +61,7 @@ class HubBacktestConfig:
     nowcast: RevisionNowcastConfig = field(default_factory=RevisionNowcastConfig)
     reconcile: bool = True
     n_samples: int = 200
+    member_time_limit_s: float | None = 1800.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +86,12 @@ class HubRoundsResult:
     @property
     def references(self) -> tuple[pd.Timestamp, ...]:
         return tuple(r.reference for r in self.rounds)
+
+    def dropped_members(self, index: int = -1) -> dict[str, str]:
+        """The members the guard left out of round ``index`` (at one location or more), and
+        why (:mod:`pipeline.members.isolation`)."""
+        return {name: failure.why for name, failure in self.backtest.failures.items()
+                if failure.cells[:, index].any()}
 
     def target_ends(self) -> NDArray[np.datetime64]:
         """``(R, H)`` the week each round's horizon ends."""
@@ -192,7 +199,8 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
         [r.origin for r in rounds],
         BacktestConfig(horizons=steps, levels=config.levels, seed=config.seed,
                        combine=config.combine, variants=config.variants,
-                       n_paths=config.n_samples),
+                       n_paths=config.n_samples,
+                       member_time_limit_s=config.member_time_limit_s),
         references=references, progress=progress)
     seconds = {"nowcast_and_backtest": time.perf_counter() - started}
     count = result.forecasts[target]

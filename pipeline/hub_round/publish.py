@@ -21,7 +21,7 @@ import pandas as pd
 
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.core.cache import utc_now
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, FlowcastError
 from pipeline.hub_round.run import HubRun
 from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.outputs.hubverse_round import (compound_sample_ids, load_model_metadata,
@@ -46,10 +46,17 @@ class PublishedRound:
 def round_frame(run: HubRun) -> pd.DataFrame:
     """The newest round of every target in the hubverse format, sample ids unique per
     location × target (one id a trajectory across the horizons)."""
-    frames = [result.round_frame(len(result.rounds) - 1) for result in run.results.values()]
-    reference = max(f["reference_date"].iloc[0] for f in frames)
-    kept = [f for f in frames if f["reference_date"].iloc[0] == reference]
-    return compound_sample_ids(pd.concat(kept, ignore_index=True))
+    current = run.published_targets
+    if not current:
+        raise NoCurrentReleaseError(
+            f"no target has a release for the round of {run.reference_date}: "
+            + "; ".join(d.why for d in run.dropped if d.what == "target"))
+    frames = [run.results[t].round_frame(len(run.results[t].rounds) - 1) for t in current]
+    return compound_sample_ids(pd.concat(frames, ignore_index=True))
+
+
+class NoCurrentReleaseError(FlowcastError):
+    """No target of the disease has a release serving this round: nothing to publish."""
 
 
 def summary(run: HubRun) -> dict[str, Any]:
@@ -58,15 +65,26 @@ def summary(run: HubRun) -> dict[str, Any]:
                            "model_id": run.config.model_id, "model_key": run.model_key,
                            "model_reused": run.model_reused, "stale": run.stale,
                            "skipped": run.skipped(),
+                           "degraded": run.degraded,
+                           "dropped": [dataclasses.asdict(d) for d in run.dropped],
                            "seconds": {k: round(v, 1) for k, v in run.seconds.items()}}
+    for target in {d.target for d in run.dropped if d.what == "target"} - set(run.results):
+        out[target] = {"published": False, "dropped": _dropped_of(run, target)}
     for target, result in run.results.items():
         table = track_record_table(result)
-        out[target] = {"rounds": {"first": str(result.rounds[0].reference.date()),
+        out[target] = {"published": target in run.published_targets,
+                       "dropped": _dropped_of(run, target),
+                       "rounds": {"first": str(result.rounds[0].reference.date()),
                                   "last": str(result.rounds[-1].reference.date()),
                                   "n": len(result.rounds)},
                        "n_locations": len(result.places),
                        "track_record": json.loads(table.to_json(orient="index"))}
     return out
+
+
+def _dropped_of(run: HubRun, target: str) -> list[dict[str, str]]:
+    return [{"what": d.what, "name": d.name, "why": d.why}
+            for d in run.dropped if d.target == target]
 
 
 def publish_hub_round(run: HubRun) -> PublishedRound:
@@ -96,7 +114,9 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
         content = hub_report_content(run.results, reference_date=run.reference_date,
                                      model_id=config.model_id, data_vintage=vintage,
                                      warnings=notes, skipped=run.skipped(),
-                                     config=dataclasses.asdict(config))
+                                     config=dataclasses.asdict(config),
+                                     dropped=[d.line() for d in run.dropped
+                                              if d.what != "location"])
         write_report(content, staging)
         files = tuple(sorted(p.relative_to(staging).as_posix()
                              for p in staging.rglob("*") if p.is_file()))
@@ -104,7 +124,8 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
                            finished_at=utc_now().isoformat(timespec="seconds"),
                            data_stale=run.stale, data_vintage=vintage, model_key=run.model_key,
                            seed=config.seed, preset=f"hub-{config.disease}", files=files,
-                           summary={"forecast": PUBLISHED, "notes": notes})
+                           summary={"forecast": PUBLISHED, "notes": notes,
+                                    "degraded": run.degraded_message()})
         folder = outputs.promote(staging, record)
     return PublishedRound(reference, folder, files,
                           folder / written.path.relative_to(staging))

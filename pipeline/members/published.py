@@ -16,6 +16,7 @@ worse than the baseline it would be averaged with).
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.members.base import Member
+from pipeline.members.isolation import Dropped
 from pipeline.members.nf.growth import NFGrowthMember
 from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
                                        train_or_reuse_growth_model)
@@ -38,6 +40,7 @@ from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter
 from pipeline.training.digests import DataDigests
 
+log = logging.getLogger(__name__)
 # The hub baseline resamples its differences; 10,000 draws per forecast (reichlab: 100,000) keep
 # the Monte Carlo error of its 1 % quantile under 0.1 percentage points of level, at a tenth of
 # the cost over the thousands of cells of a panel and the nowcast's completions.
@@ -146,6 +149,7 @@ class HubMembers:
     references: list[Member]
     model_key: str
     reused: bool
+    dropped: tuple[Dropped, ...] = ()
 
 
 def build_hub_members(config: HubMembersConfig, store_root: Path,
@@ -172,17 +176,32 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     dates = refit_dates(sorted({panel.last_date for _, panel in vintages}),
                         config.finetune.refit_every_weeks)
     members: list[Member] = [
-        flow, SeasonalGrowthMember(tuple(climatology), config.seasonal),
+        flow, SeasonalGrowthMember(tuple(climatology), config.seasonal,
+                                   climatology_required=True),
         HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
         PooledGrowthMember(config.regression)]
+    dropped: list[Dropped] = []
+    refitted = False
     if dates:
-        members.append(fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
-                                            store_root, progress, known_at=known_at))
-    published = published_names(config, target, refitted=bool(dates))
+        try:
+            refits = fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
+                                          store_root, progress, known_at=known_at)
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception as error:  # noqa: BLE001 - isolation: the refits alone are lost
+            log.warning("nf-real could not be built and is left out: %s", error, exc_info=True)
+            dropped.append(Dropped("member", target, NF_REAL,
+                                   f"refits failed: {type(error).__name__}: {error}"))
+        else:
+            members.append(refits)
+            refitted = True
+            dropped += [Dropped("refit", target, f"{NF_REAL} {date.date()}", why)
+                        for date, why in refits.fallbacks.items()]
+    published = published_names(config, target, refitted=refitted)
     unknown = [n for n in published if n not in {m.name for m in members}]
     if unknown:
         raise ConfigError(f"the hub forecast's published members {unknown} are not among "
                           f"{[m.name for m in members]}")
     return HubMembers([m for m in members if m.name in published],
                       [m for m in members if m.name not in published], stored.key,
-                      stored.reused)
+                      stored.reused, tuple(dropped))

@@ -132,9 +132,10 @@ def _or_nan(value: float | None) -> float:
 
 def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date: dt.date,
                        model_id: str, data_vintage: str, warnings: Sequence[str],
-                       skipped: Mapping[str, Mapping[str, str]], config: Mapping[str, object]
-                       ) -> ReportContent:
-    """The round's report (module docstring)."""
+                       skipped: Mapping[str, Mapping[str, str]], config: Mapping[str, object],
+                       dropped: Sequence[str] = ()) -> ReportContent:
+    """The round's report (module docstring). ``dropped``: what the round left out of its
+    submission (a target, a member) or replaced (a refit), in words: page 1 says it."""
     counts = [r for t, r in results.items() if not is_share(t)]
     main = counts[0] if counts else next(iter(results.values()))
     up, down = movers(main)
@@ -178,6 +179,10 @@ def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date
     return ReportContent(title=f"CDC COVID-19 Forecast Hub round {reference_date} — {model_id}",
                          reference_date=reference_date, data_vintage=data_vintage,
                          sections=tuple(sections), provenance=provenance,
-                         warnings=tuple(warnings) + tuple(f"Left out: {n}" for n in notes),
+                         # issue 37: the degraded round's notice, first on page 1 (a target
+                         # missing from the submission must be seen); page 1's design may move it
+                         warnings=tuple(f"Not in this submission as planned: {line}"
+                                        for line in dropped)
+                         + tuple(warnings) + tuple(f"Left out: {n}" for n in notes),
                          summary=lead, headline=headline,
                          kicker="flowcast forecast hub round")
