@@ -22,6 +22,7 @@ import logging
 from typing import Literal
 
 import datetime as dt
+import time
 
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
@@ -30,6 +31,7 @@ from prefect.client.schemas.objects import State
 from prefect.states import Completed
 
 from pipeline.hub_round.publish import PublishedRound, publish_hub_round
+from pipeline.hub_round.replay import RoundOutcome, RoundStep
 from pipeline.hub_round.run import HubRun, HubRunConfig, hub_members_preset, run_hub_round
 from pipeline.progress import LogProgress
 
@@ -94,6 +96,38 @@ def round_outcome(run: HubRun, published: PublishedRound) -> dict[str, object]:
             "data_stale": run.stale, "seconds": run.seconds,
             "published_targets": list(run.published_targets), "degraded": run.degraded,
             "dropped": [dataclasses.asdict(d) for d in run.dropped]}
+
+
+def flow_step(preset: Literal["default", "tiny"]) -> RoundStep:
+    """One Wednesday of a replay (:mod:`pipeline.hub_round.replay`) as the deployment runs it:
+    this flow, its state kept (Completed, Completed (degraded) or Failed)."""
+    def step(config: HubRunConfig) -> RoundOutcome:
+        started = time.perf_counter()
+        state = hub_forecast(disease=config.disease, data_source=config.data_source,
+                             output_dir=config.output_dir, hub_config=config.hub_config,
+                             seed=config.seed, preset=preset, due=config.due,
+                             return_state=True)
+        due = str(config.due)
+        if not state.is_completed():
+            try:
+                state.result()
+                why = state.message or "failed"
+            except Exception as error:  # noqa: BLE001 - the failed round's error, in words
+                why = f"{type(error).__name__}: {error}"
+            return RoundOutcome(due, "Failed", why, seconds=time.perf_counter() - started)
+        outcome = state.result()
+        assert isinstance(outcome, dict)
+        degraded, targets, dropped = (outcome["degraded"], outcome["published_targets"],
+                                      outcome["dropped"])
+        assert isinstance(targets, list) and isinstance(dropped, list)
+        return RoundOutcome(
+            due, "Completed (degraded)" if degraded else "Completed",
+            (state.message or "") if degraded else "", str(outcome["reference_date"]),
+            str(outcome["model_output"]), tuple(str(t) for t in targets),
+            tuple({str(k): str(v) for k, v in d.items()} for d in dropped),
+            time.perf_counter() - started)
+
+    return step
 
 
 def main(argv: list[str] | None = None) -> int:

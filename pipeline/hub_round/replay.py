@@ -150,19 +150,28 @@ def import_releases(releases: Sequence[Release], data_dir: Path, folder: Path
     raised: the round goes on with what the cache holds."""
     done: list[VintageImport] = []
     for release in releases:
-        slug = target_spec(release.target).dataset_id
-        path = folder / f"{release.as_of}-{slug}.csv"
-        atomic_write_bytes(path, release.payload)
+        path = folder / _release_name(release)
+        incoming = path.with_name(f"incoming-{path.name}")   # named as imported once done
+        atomic_write_bytes(incoming, release.payload)
         try:
-            summary = import_target_csv(path, target=release.target, as_of=release.as_of,
+            summary = import_target_csv(incoming, target=release.target, as_of=release.as_of,
                                         data_dir=data_dir)
+            done += summary.vintages
         except FlowcastError as error:        # refused whole (no location passes the gate)
             log.warning("release %s of %s refused: %s", release.as_of, release.target, error)
             done.append(VintageImport(release.target, str(release.as_of), "refused", 0, "", "",
                                       str(error)))
-            continue
-        done += summary.vintages
+        os.replace(incoming, path)
     return done
+
+
+def _release_name(release: Release) -> str:
+    return f"{release.as_of}-{target_spec(release.target).dataset_id}.csv"
+
+
+def _release_file(out: Path, release: Release) -> Path:
+    """Where the replay keeps a release it imported (its presence: imported)."""
+    return out / "releases" / _release_name(release)
 
 
 def library_step(config: HubRunConfig) -> RoundOutcome:
@@ -178,9 +187,12 @@ def library_step(config: HubRunConfig) -> RoundOutcome:
 
 
 def replay(config: ReplayConfig, releases: Sequence[Release],
-           step: RoundStep = library_step) -> dict[str, object]:
+           step: RoundStep = library_step,
+           on_round: Callable[[dict[str, object]], None] | None = None) -> dict[str, object]:
     """Every Wednesday of ``releases`` (module docstring); the summary, also in
-    ``DIR/replay.json``. A round that fails is recorded and the next Wednesday goes on."""
+    ``DIR/replay.json`` (and to ``on_round`` after each round). A round that fails is recorded
+    and the next Wednesday goes on. Each Wednesday imports every release dated by then not yet
+    imported (from ``start`` on, the earlier ones come in at the first)."""
     out = config.out
     data_dir = out / "data"
     model_dir = out / "model-output" / config.run.model_id
@@ -192,7 +204,8 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
             continue
         started = time.perf_counter()
         with data_folder(data_dir):
-            imported = import_releases([r for r in releases if r.as_of == due], data_dir,
+            imported = import_releases([r for r in releases if r.as_of <= due
+                                        and not _release_file(out, r).is_file()], data_dir,
                                        out / "releases")
             run_config = dataclasses.replace(config.run, data_source="cache", due=due,
                                              output_dir=str(out / "rounds"))
@@ -216,6 +229,8 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
                  outcome.seconds)
         rounds.append(dataclasses.asdict(outcome))
         atomic_write_json(out / SUMMARY_NAME, summarize(rounds, config))
+        if on_round is not None:
+            on_round(summarize(rounds, config))
     summary = summarize(rounds, config)
     atomic_write_json(out / SUMMARY_NAME, summary)
     return summary
