@@ -33,6 +33,7 @@ import os
 import platform
 import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -62,13 +63,15 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 
 def _merge(path: Path, part: dict[str, Any]) -> None:
     """``part``'s keys into the JSON at ``path`` (the other parts' kept), atomically."""
-    from pipeline.io import atomic_write_json
+    from pipeline.io import atomic_write_json, file_lock
 
-    current = json.loads(path.read_text()) if path.is_file() else {}
-    current.update(json.loads(json.dumps(part, default=str)))
-    current["machine"] = f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}"
-    current["python"] = sys.version.split()[0]
-    atomic_write_json(path, current)
+    lock = Path(tempfile.gettempdir()) / f"flowcast-bench-{path.name}.lock"
+    with file_lock(lock):                   # the parts may run side by side
+        current = json.loads(path.read_text()) if path.is_file() else {}
+        current.update(json.loads(json.dumps(part, default=str)))
+        current["machine"] = f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.system()}"
+        current["python"] = sys.version.split()[0]
+        atomic_write_json(path, current)
 
 
 @contextmanager

@@ -161,13 +161,18 @@ def finetune(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: Wind
     stopped when the validation loss stops improving (best validation state)."""
     model = copy.deepcopy(base)
     model.train()
-    train(model, train_ds, val_ds,
-          TrainConfig(iterations=config.iterations, batch_size=config.batch_size, lr=config.lr,
-                      schedule="cosine", eval_every=max(1, config.iterations // 10),
-                      seed=config.seed + 11, grad_clip_norm=config.grad_clip_norm,
-                      early_stop_patience=config.early_stop_patience))
+    train(model, train_ds, val_ds, train_config(config))
     model.eval()
     return model
+
+
+def train_config(config: FineTuneConfig) -> TrainConfig:
+    """The trainer's settings of a refit: cosine schedule, ten evaluations, clipped, early
+    stop."""
+    return TrainConfig(iterations=config.iterations, batch_size=config.batch_size, lr=config.lr,
+                       schedule="cosine", eval_every=max(1, config.iterations // 10),
+                       seed=config.seed + 11, grad_clip_norm=config.grad_clip_norm,
+                       early_stop_patience=config.early_stop_patience)
 
 
 @dataclass(frozen=True, eq=False)
