@@ -89,9 +89,14 @@ class HubRoundsResult:
 
     def dropped_members(self, index: int = -1) -> dict[str, str]:
         """The members the guard left out of round ``index`` (at one location or more), and
-        why (:mod:`pipeline.members.isolation`)."""
-        return {name: failure.why for name, failure in self.backtest.failures.items()
-                if failure.cells[:, index].any()}
+        why (:mod:`pipeline.members.isolation`); a member with no forecast at all in that
+        round (the seasonal one before its climatology was released) too."""
+        failed = {name: failure.why for name, failure in self.backtest.failures.items()
+                  if failure.cells[:, index].any()}
+        silent = {name: "no forecast for this round" for name in self.backtest.members
+                  if name in self.forecasts and name not in failed
+                  and np.isnan(self.forecasts[name][:, index]).all()}
+        return failed | silent
 
     def target_ends(self) -> NDArray[np.datetime64]:
         """``(R, H)`` the week each round's horizon ends."""

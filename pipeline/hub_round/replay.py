@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as dt
+import json
 import logging
 import os
 import shutil
@@ -227,7 +228,7 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
                            for v in imported))
         log.info("replay %s: %s %s (%.1f s)", due, outcome.state, outcome.message,
                  outcome.seconds)
-        rounds.append(dataclasses.asdict(outcome))
+        rounds.append(json.loads(json.dumps(dataclasses.asdict(outcome))))  # as in the file
         atomic_write_json(out / SUMMARY_NAME, summarize(rounds, config))
         if on_round is not None:
             on_round(summarize(rounds, config))
@@ -237,8 +238,6 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
 
 
 def _read_summary(out: Path) -> dict[str, list[dict[str, object]]]:
-    import json
-
     path = out / SUMMARY_NAME
     if not path.is_file():
         return {}
