@@ -195,8 +195,11 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         else:
             members.append(refits)
             refitted = True
+            # a fallback matters to this round when the newest refit is one that diverged
+            newest = max(refits.models, default=None)
             dropped += [Dropped("refit", target, f"{NF_REAL} {date.date()}", why)
-                        for date, why in refits.fallbacks.items()]
+                        for date, why in refits.fallbacks.items()
+                        if newest is None or date > newest]
     published = published_names(config, target, refitted=refitted)
     unknown = [n for n in published if n not in {m.name for m in members}]
     if unknown:
