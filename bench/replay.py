@@ -12,7 +12,7 @@ published figure. The JSON is rewritten after every round (``"partial": true`` u
 
 ``injected``: one-Wednesday replays (the tiny preset; the releases before it imported at its
 start) with a failure injected: ``member_raises`` (nf-weekly raises), ``member_nan`` (seasonal
-returns NaN), ``refit_diverges`` (every nf-real fine-tune diverges), ``location_revised`` (the
+returns a NaN median), ``refit_diverges`` (every nf-real fine-tune diverges), ``location_revised`` (the
 week's admissions release revises California's settled weeks tenfold), ``target_stale`` (the
 ED share's last five releases withheld): each ``{"published", "valid", "dropped"}``, valid =
 the round's file validated against the hub's tasks.json again and read back by hubdata.
@@ -55,6 +55,9 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
                    help="the full replay's members")
     p.add_argument("--from", dest="start", default=None)
     p.add_argument("--to", dest="end", default=None)
+    p.add_argument("--case", action="append", default=None,
+                   choices=("member_raises", "member_nan", "refit_diverges", "location_revised",
+                            "target_stale"), help="the injected cases to run (default: all)")
     p.add_argument("--resume", action="store_true",
                    help="go on with the full replay's folder instead of starting it empty")
     p.add_argument("--out", default=str(RESULTS / "replay.json"))
@@ -189,12 +192,18 @@ def _raise(*args: object, **kwargs: object) -> Any:
     raise RuntimeError("injected failure")
 
 
-def _nan_forecast(self: Any, cells: Any, horizons: tuple[int, ...], levels: Any) -> Any:
-    import numpy as np
+def _nan_median(forecast: Callable[..., Any]) -> Callable[..., Any]:
+    """A member's ``forecast`` with a NaN median: a numerical blow-up."""
+    def broken(self: Any, cells: Any, horizons: tuple[int, ...], levels: Any) -> Any:
+        import numpy as np
 
-    from pipeline.members.base import MemberForecast
+        from pipeline.members.base import MemberForecast
 
-    return MemberForecast(np.full((len(cells), len(horizons), len(levels)), np.nan))
+        count = forecast(self, cells, horizons, levels).count.copy()
+        count[:, :, len(levels) // 2] = np.nan
+        return MemberForecast(count)
+
+    return broken
 
 
 def _diverge(*args: object, **kwargs: object) -> Any:
@@ -245,15 +254,18 @@ def run_injected(args: argparse.Namespace, releases: list[Any], path: Path) -> N
     cases: dict[str, tuple[Callable[[pytest.MonkeyPatch], None], list[Any]]] = {
         "member_raises": (lambda mp: mp.setattr(WeeklyFlowMember, "forecast", _raise),
                           releases),
-        "member_nan": (lambda mp: mp.setattr(SeasonalGrowthMember, "forecast", _nan_forecast),
+        "member_nan": (lambda mp: mp.setattr(SeasonalGrowthMember, "forecast",
+                                             _nan_median(SeasonalGrowthMember.forecast)),
                        releases),
         "refit_diverges": (lambda mp: mp.setattr(finetune, "train", _diverge), releases),
         "location_revised": (lambda mp: None, _revised(releases, INJECTED_DUE)),
         "target_stale": (lambda mp: None, _stale(releases, INJECTED_DUE)),
     }
-    results: dict[str, Any] = {}
+    path_results = json.loads(path.read_text()).get("injected", {}) if path.is_file() else {}
+    results: dict[str, Any] = dict(path_results)
+    chosen = args.case or list(cases)
     with _prefect():
-        for name, (inject, given) in cases.items():
+        for name, (inject, given) in ((n, cases[n]) for n in chosen):
             out = Path(args.work) / f"injected-{name}"
             if out.exists():
                 shutil.rmtree(out)

@@ -93,9 +93,9 @@ class HubRoundsResult:
         round (the seasonal one before its climatology was released) too."""
         failed = {name: failure.why for name, failure in self.backtest.failures.items()
                   if failure.cells[:, index].any()}
+        made = self.backtest.forecasts[self.backtest.panel.count_target]   # the steps ≥ 1
         silent = {name: "no forecast for this round" for name in self.backtest.members
-                  if name in self.forecasts and name not in failed
-                  and np.isnan(self.forecasts[name][:, index]).all()}
+                  if name in made and name not in failed and np.isnan(made[name][:, index]).all()}
         return failed | silent
 
     def target_ends(self) -> NDArray[np.datetime64]:
