@@ -99,6 +99,8 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
         "diverged_before": int(frame[frame["settings"] == "before"]["diverged"].sum()),
         "diverged_after": int(frame[frame["settings"] == "after"]["diverged"].sum()),
         "refits_each": int((frame["settings"] == "after").sum()),
+        "diverged_by_settings": {s: int(g["diverged"].sum())
+                                 for s, g in frame.groupby("settings")},
         "rounds_lost_after": 0,   # a diverged refit falls back (pipeline.members.nf.finetune)
         "before_settings": {"early_stop_patience": None, "grad_clip_norm": 10.0,
                             "lr": after.lr},
