@@ -11,7 +11,11 @@ cache, the newest round published as the hub's file.
 3. **Members** (:func:`~pipeline.members.published.build_hub_members`): for admissions the
    weekly flow and the seasonal member averaged, for the ED share the flow refitted on the
    share's windows and the seasonal member; the others scored beside.
-4. **Publish** (:mod:`pipeline.hub_round.publish`): the round's file
+4. **What could not be published** (:class:`~pipeline.members.isolation.Dropped`, on
+   ``HubRun.dropped``): a member that failed (the engine's guard), a refit that diverged, a
+   location the gate skipped, a target with no release for this round (left out of the file,
+   with its age): the round is then *degraded*, and says so.
+5. **Publish** (:mod:`pipeline.hub_round.publish`): the round's file
    ``model-output/<model>/<reference date>-<model>.csv`` with its metadata, validated against
    the hub's ``tasks.json``, the report, the track record's scores.
 """
