@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "nhsn"
+BEFORE_LR = 5e-4
 
 
 def _refit(flow: Any, cut: Any, config: Any) -> tuple[bool, float, int, str]:
@@ -57,7 +58,9 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
 
     members = HubMembersConfig()
     after = members.finetune
-    before = dataclasses.replace(after, early_stop_patience=None, grad_clip_norm=10.0)
+    # the settings before issue 37: the trainer's defaults, the hub's lr then
+    before = dataclasses.replace(after, early_stop_patience=None, grad_clip_norm=10.0,
+                                 lr=BEFORE_LR)
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="flowcast-refits-") as tmp:
         with data_folder(Path(tmp) / "data"):
@@ -103,7 +106,7 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
                                  for s, g in frame.groupby("settings")},
         "rounds_lost_after": 0,   # a diverged refit falls back (pipeline.members.nf.finetune)
         "before_settings": {"early_stop_patience": None, "grad_clip_norm": 10.0,
-                            "lr": after.lr},
+                            "lr": BEFORE_LR},
         "after_settings": {"early_stop_patience": after.early_stop_patience,
                            "grad_clip_norm": after.grad_clip_norm, "lr": after.lr},
         "lr_mean_best_val_nll": {f"{lr:g}": float(v) for lr, v in by_lr.items()},
