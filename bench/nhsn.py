@@ -46,7 +46,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--target", choices=("hosp", "ed", "both"), default="both")
     p.add_argument("--hub", default=str(SHARED), help="the hub data (time series, forecasts)")
     p.add_argument("--out", default=None, help="output JSON path")
-    p.add_argument("--files", default=None, help="write every round's hub file under DIR")
+    p.add_argument("--files", default=None,
+                   help="write every round's hub file under DIR/model-output/<model>/")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--flusight", default=str(SHARED.parent / "flusight"),
                    help="FluSight's data (the influenza ablation's extra windows)")
@@ -254,7 +255,8 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
 
 
 def run_target(target: str, args: argparse.Namespace, climatology: list[Any], teams: Any,
-               exclusions: Any) -> dict[str, Any]:
+               exclusions: Any) -> tuple[dict[str, Any], Any]:
+    """The target's figures, and its rounds' result (the files of ``--files``)."""
     import dataclasses
 
     import numpy as np
@@ -373,7 +375,31 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "seconds": {"members": round(t_members, 1), "ablation_members": round(t_ablations, 1),
                     "backtest_rounds": round(t_backtest, 1),
                     "parts": {k: round(v, 1) for k, v in result.seconds.items()}},
-    }
+    }, result
+
+
+def write_round_files(results: dict[str, Any], folder: Path, hub: Path) -> int:
+    """Every round's hub file of the published forecast (both targets where both have the
+    round) under ``folder/model-output/<model>/``, validated against the hub's tasks.json as
+    the hub round writes its own; returns the number of files."""
+    import pandas as pd
+
+    from pipeline.outputs.hubverse_round import (CDC_HUB_MODEL_ID, compound_sample_ids,
+                                                 load_model_metadata, write_hub_round)
+    from pipeline.outputs.hubverse_validation import load_tasks_config
+
+    tasks = load_tasks_config(hub / "hub-config" / "tasks.json")
+    metadata = load_model_metadata(Path(__file__).resolve().parents[1] / "model-metadata" /
+                                   f"{CDC_HUB_MODEL_ID}.yml")
+    by_round: dict[pd.Timestamp, list[pd.DataFrame]] = {}
+    for result in results.values():
+        for index, rnd in enumerate(result.rounds):
+            by_round.setdefault(rnd.reference, []).append(result.round_frame(index))
+    for frames in by_round.values():
+        write_hub_round(compound_sample_ids(pd.concat(frames, ignore_index=True)),
+                        hub_dir=folder, model_id=CDC_HUB_MODEL_ID, tasks=tasks,
+                        metadata=metadata)
+    return len(by_round)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -399,18 +425,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     climatology = load_vintages(ED_COVID)
     exclusions = read_excluded_locations(hub / "excluded_locations.toml")
     out: dict[str, Any] = {}
+    rounds: dict[str, Any] = {}
     targets = {"hosp": [HOSP_COVID], "ed": [ED_COVID], "both": [HOSP_COVID, ED_COVID]}
     for target in targets[args.target]:
         truth = read_target_data(hub / "time-series.parquet", target)
         teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
             hub / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
-        out[target] = run_target(target, args, climatology, teams, exclusions)
+        out[target], rounds[target] = run_target(target, args, climatology, teams,
+                                                 exclusions)
         s = out[target]
         print(f"{target}: published pairwise relative WIS {s['pairwise_relative_wis']}, "
               f"coverage {s['coverage50']:.2f}/{s['coverage95']:.2f}")
         for name, m in s["members_and_variants"].items():
             print(f"  {name:60s} all {m['all']}  " + " ".join(
                 f"{k}={v:.3f}" for k, v in m.items() if k.startswith("h") and v is not None))
+    if args.files:
+        written = write_round_files(rounds, Path(args.files), hub)
+        print(f"{written} round files → {Path(args.files) / 'model-output'}")
     timing = {} if args.no_timing else timed_rounds(hub)
     if HOSP_COVID in out:
         out[HOSP_COVID]["seconds"] |= timing | {"backtest": round(out[HOSP_COVID]["seconds"][

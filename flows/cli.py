@@ -159,6 +159,82 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
                     "unreachable, its release refused or held, or the cache lock held); the "
                     "report's data notes say which and why",
                     fg=typer.colors.YELLOW, err=True)
+    if result.get("degraded"):
+        typer.secho(f"warning: the round is degraded ({state.message})",
+                    fg=typer.colors.YELLOW, err=True)
+
+
+@app.command("replay")
+def replay_command(
+    out: Annotated[Path, typer.Option(
+        help="the replay's folder: model-output/<model>/ (every round's file), rounds/ (each "
+             "round's run folder: report, summary), data/ (its cache, model store, memo), "
+             "replay.json (the summary); a rerun replays only the Wednesdays not done yet")],
+    hub: Annotated[str, typer.Option(
+        metavar="DISEASE", help="the hub's disease (covid)")] = "covid",
+    start: Annotated[str | None, typer.Option(
+        "--from", metavar="YYYY-MM-DD", help="first Wednesday (default: the first release)")
+    ] = None,
+    end: Annotated[str | None, typer.Option(
+        "--to", metavar="YYYY-MM-DD", help="last Wednesday (default: the last release)")
+    ] = None,
+    source: Annotated[Path | None, typer.Option(
+        metavar="PARQUET", help="a hub's time-series.parquet to take the releases from "
+                                "(default: every release in the cache)")] = None,
+    preset: Annotated[str, typer.Option(help="default or tiny")] = "default",
+    seed: Annotated[int, typer.Option(help="seed of every random step")] = 0,
+    hub_config: Annotated[Path | None, typer.Option(
+        help="the hub's hub-config folder; default: $FLOWCAST_HUB_CONFIG or "
+             "../shared/data/nhsn/hub-config")] = None,
+) -> None:
+    """Replay the hub's Wednesdays: every release in order, from an empty model store, each
+    week the deployment's run (the hub_forecast flow) offline into OUT."""
+    import datetime as dt
+
+    import pandas as pd
+
+    from pipeline.errors import FlowcastError
+    from pipeline.hub_round import replay as rp
+    from pipeline.hub_round.run import HubRunConfig, hub_members_preset
+
+    if hub not in ("covid", "flu", "rsv") or preset not in ("default", "tiny"):
+        typer.secho(f"error: --hub takes covid, flu or rsv (got {hub!r}) and --preset default "
+                    f"or tiny (got {preset!r})", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2)
+    try:
+        first = dt.date.fromisoformat(start) if start else None
+        last = dt.date.fromisoformat(end) if end else None
+        run = HubRunConfig(disease=hub, members=hub_members_preset(preset), seed=seed,
+                           hub_config=str(hub_config) if hub_config else None)
+        config = rp.ReplayConfig(out, run, first, last)
+        releases = (rp.releases_of_time_series(pd.read_parquet(source), hub) if source
+                    else rp.cached_releases(hub))
+    except (ValueError, FlowcastError, OSError) as error:
+        typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1) from None
+    if not rp.wednesdays(releases, first, last):
+        typer.secho("error: no release to replay in that span: import the hub's target data "
+                    "first (`flowcast data import <hub folder>`)", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1)
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("DO_NOT_TRACK", "1")
+    from flows.server_guard import start_temporary_server
+
+    start_temporary_server()
+    from flows.hub_forecast import flow_step
+    from flows.weekly_forecast import local_api
+
+    rp.copy_hub_config(run.hub_config_dir(), out)
+    with local_api():
+        summary = rp.replay(config, releases,
+                            flow_step("tiny" if preset == "tiny" else "default"))
+    degraded = summary["degraded"]
+    assert isinstance(degraded, list)
+    typer.echo(f"replay: {summary['rounds_due']} rounds due, {summary['rounds_published']} "
+               f"published ({len(degraded)} degraded), {summary['rounds_failed']} "
+               f"failed → {out / rp.SUMMARY_NAME}")
+    if summary["rounds_failed"]:
+        raise typer.Exit(code=1)
 
 
 def main() -> NoReturn:
@@ -177,3 +253,7 @@ def main() -> NoReturn:
 
 
 __all__ = ["app", "build_command", "main"]
+
+
+if __name__ == "__main__":
+    main()

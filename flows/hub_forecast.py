@@ -2,10 +2,14 @@
 
 Tasks: ``forecast-rounds`` (the disease's admissions and ED share from data.cdc.gov, the
 transport's retries and the cache as fallback; then every cached vintage's round, the newest
-this week's: :func:`pipeline.hub_round.run.run_hub_round`; one task retry), then
+this week's: :func:`pipeline.hub_round.run.run_hub_round`; no task retry: what is left to fail
+there is deterministic — the same seed on the same data fails the same way — and a member,
+refit or target that fails is left out of the round, not retried), then
 ``publish-round`` (the hub's
 file validated against its ``tasks.json``, the report, the track record:
-:func:`pipeline.hub_round.publish.publish_hub_round`). Deployed for the hub's deadline
+:func:`pipeline.hub_round.publish.publish_hub_round`). A round that left a target or a member
+out ends ``Completed (degraded)``, its message naming what and why (a target: its age), the
+artifact too. Deployed for the hub's deadline
 (``flows/deploy.py``, ``prefect.yaml``: Wednesdays, after NHSN's Wednesday release).
 
     python -m flows.hub_forecast [--disease covid] [--data-source live|cache] [--preset tiny]
@@ -17,24 +21,31 @@ import dataclasses
 import logging
 from typing import Literal
 
+import datetime as dt
+import time
+
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
+from prefect.client.schemas.objects import State
+from prefect.states import Completed
 
-from pipeline.hub_round.publish import publish_hub_round, require_hub_config
-from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+from pipeline.hub_round.publish import PublishedRound, publish_hub_round, require_hub_config
+from pipeline.hub_round.replay import RoundOutcome, RoundStep
+from pipeline.hub_round.run import HubRun, HubRunConfig, hub_members_preset, run_hub_round
 from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.progress import LogProgress
 
 FLOW_NAME = "hub_forecast"
+DEGRADED_STATE_NAME = "Completed (degraded)"
 
 
 @flow(name=FLOW_NAME, log_prints=True)
 def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                  data_source: Literal["live", "cache"] = "live",
                  output_dir: str = "reports", hub_config: str | None = None,
-                 seed: int = 0, preset: Literal["default", "tiny"] = "default"
-                 ) -> dict[str, object]:
+                 seed: int = 0, preset: Literal["default", "tiny"] = "default",
+                 due: dt.date | None = None) -> dict[str, object] | State:
     """This week's round of the hub for ``disease`` (module docstring) into
     ``<output_dir>/hub-<disease>/<reference date>/``.
 
@@ -50,16 +61,18 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
         seed: Seed of every random step.
         preset: default: the product's members; tiny: a small flow and few draws, a
             seconds-long smoke run.
+        due: The Wednesday the round is due (a replay's week,
+            :mod:`pipeline.hub_round.replay`); a target without a release for its round is
+            left out. Empty: the newest round the data serve.
     """
     logger = get_run_logger()
     config = HubRunConfig(disease=disease, data_source=data_source, output_dir=output_dir,
                           hub_config=hub_config, seed=seed,
-                          members=hub_members_preset(preset))
+                          members=hub_members_preset(preset), due=due)
     config = dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
     require_hub_config(config)        # no hub config (RSV): refused by name before any work
-    run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False,
-               retries=1, retry_delay_seconds=30)(run_hub_round)(
-        config, LogProgress(logger, "rounds", 2000))
+    run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False)(
+        run_hub_round)(config, LogProgress(logger, "rounds", 2000))
     try:
         published = task(name="publish-round", cache_policy=NO_CACHE, persist_result=False)(
             publish_hub_round)(run)
@@ -67,16 +80,64 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
         logger.info("%s", error)
         return {"reference_date": str(run.reference_date), "no_round": str(error),
                 "output_dir": None, "model_output": None, "files": [],
-                "data_stale": run.stale, "seconds": run.seconds}
+                "data_stale": run.stale, "seconds": run.seconds, "published_targets": [],
+                "degraded": False, "dropped": []}
     stale = "; ".join(f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes)
     create_markdown_artifact(
         f"Hub round {published.reference_date} ({disease}): `{published.model_output}`"
-        + (f"\n\nMade from cached data: {stale}" if run.stale else ""),
+        + (f"\n\nMade from cached data: {stale}" if run.stale else "")
+        + (f"\n\n**Degraded**: {run.degraded_message()}" if run.degraded else ""),
         key=f"hub-round-{disease}", description="the round's model-output file")
     logger.info("hub round %s → %s", published.reference_date, published.folder)
+    outcome = round_outcome(run, published)
+    if not run.degraded:
+        return outcome
+    logger.warning("hub round %s degraded: %s", published.reference_date,
+                   run.degraded_message())
+    return Completed(name=DEGRADED_STATE_NAME, data=outcome,
+                     message=f"round {published.reference_date} degraded: "
+                             f"{run.degraded_message()}")
+
+
+def round_outcome(run: HubRun, published: PublishedRound) -> dict[str, object]:
+    """What the flow returns: where the round went, and what it left out."""
     return {"reference_date": published.reference_date, "output_dir": str(published.folder),
             "model_output": str(published.model_output), "files": list(published.files),
-            "data_stale": run.stale, "seconds": run.seconds}
+            "data_stale": run.stale, "seconds": run.seconds,
+            "published_targets": list(run.published_targets), "degraded": run.degraded,
+            "dropped": [dataclasses.asdict(d) for d in run.dropped]}
+
+
+def flow_step(preset: Literal["default", "tiny"]) -> RoundStep:
+    """One Wednesday of a replay (:mod:`pipeline.hub_round.replay`) as the deployment runs it:
+    this flow, its state kept (Completed, Completed (degraded) or Failed)."""
+    def step(config: HubRunConfig) -> RoundOutcome:
+        started = time.perf_counter()
+        state = hub_forecast(disease=config.disease, data_source=config.data_source,
+                             output_dir=config.output_dir, hub_config=config.hub_config,
+                             seed=config.seed, preset=preset, due=config.due,
+                             return_state=True)
+        due = str(config.due)
+        if not state.is_completed():
+            try:
+                state.result()
+                why = state.message or "failed"
+            except Exception as error:  # noqa: BLE001 - the failed round's error, in words
+                why = f"{type(error).__name__}: {error}"
+            return RoundOutcome(due, "Failed", why, seconds=time.perf_counter() - started)
+        outcome = state.result()
+        assert isinstance(outcome, dict)
+        degraded, targets, dropped = (outcome["degraded"], outcome["published_targets"],
+                                      outcome["dropped"])
+        assert isinstance(targets, list) and isinstance(dropped, list)
+        return RoundOutcome(
+            due, "Completed (degraded)" if degraded else "Completed",
+            (state.message or "") if degraded else "", str(outcome["reference_date"]),
+            str(outcome["model_output"]), tuple(str(t) for t in targets),
+            tuple({str(k): str(v) for k, v in d.items()} for d in dropped),
+            time.perf_counter() - started)
+
+    return step
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -95,7 +156,9 @@ def main(argv: list[str] | None = None) -> int:
     with local_api():
         result = hub_forecast(disease=args.disease, data_source=args.data_source,
                               output_dir=args.output_dir, hub_config=args.hub_config,
-                              seed=args.seed)
+                              seed=args.seed, preset=args.preset)
+    # Called directly, a flow that returned a State gives back that state's data: the outcome.
+    assert isinstance(result, dict)
     print(result["no_round"] if result.get("no_round") else
           f"hub round: {result['model_output']}")
     return 0

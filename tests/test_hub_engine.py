@@ -195,6 +195,16 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
     back = hubdata.connect_hub(root).get_dataset().to_table().to_pandas()
     assert len(back) == 53 * 5 * (23 + 200) and set(back.location) == set(result.places)
     assert written.reference_date == rounds[-1].reference.date()
+    # `python -m bench.nhsn --files DIR` writes every round's file (issue 37)
+    from bench.nhsn import write_round_files
+
+    files = tmp_path / "files"
+    shutil.copytree(NHSN / "hub-config", files / "hub-config")
+    assert write_round_files({HOSP_COVID: result}, files, NHSN) == 8
+    every = hubdata.connect_hub(files).get_dataset().to_table().to_pandas()
+    assert sorted(every["reference_date"].astype(str).unique()) == [
+        str(r.reference.date()) for r in rounds]
+    assert len(every) == 8 * 53 * 5 * (23 + 200)
 
 
 def test_each_hub_target_averages_its_own_members():

@@ -24,13 +24,14 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.members.isolation import MemberFailure, guarded_forecast
 from pipeline.backtest.result import BacktestResult
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import (PUBLISHED, RESERVED_NAMES, UNCALIBRATED, CombineConfig,
                                        KnownTruth, combine)
 from pipeline.combine.paths import sample_paths
 from pipeline.evaluation.regimes import growth_regimes
-from pipeline.members.base import Member, forecast_within_reach
+from pipeline.members.base import Member, MemberForecast
 from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline
 from pipeline.panels.history import History
 from pipeline.panels.panel import Cells, Panel, origin_seed, truth_arrays
@@ -60,6 +61,9 @@ class BacktestConfig:
     combine: CombineConfig = field(default_factory=CombineConfig)
     variants: tuple[Variant, ...] = ()
     n_paths: int = 0
+    # a member still forecasting after this long is left out (pipeline.members.isolation);
+    # the slowest, nf-weekly's 1,000 draws over 44 rounds × 53 places, takes about a minute
+    member_time_limit_s: float | None = 1800.0
 
     def __post_init__(self) -> None:
         if not self.horizons or min(self.horizons) < 1:
@@ -148,15 +152,20 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
     seconds: dict[str, float] = {}
     forecasts: dict[str, dict[str, NDArray[np.float64]]] = {t: {} for t in latest.targets}
     template: NDArray[np.float64] | None = None
+    failures: dict[str, MemberFailure] = {}
     for member in (*members, *references):
         started = time.perf_counter()
-        made = forecast_within_reach(member, cells, horizons, levels)
+        guarded = guarded_forecast(member, cells, horizons, levels, config.member_time_limit_s)
         seconds[member.name] = time.perf_counter() - started
+        made = guarded.forecast or MemberForecast(
+            np.full((len(cells), len(horizons), len(levels)), np.nan))
+        if guarded.failed.any():
+            failures[member.name] = MemberFailure(guarded.failed.reshape(shape), guarded.why)
         progress.advance(len(cells), member=member.name)
         for target, values in made.values(cells.histories).items():
             forecasts[target][member.name] = values.reshape(*shape, *values.shape[1:])
         if (config.n_paths and template is None and member.name in names
-                and made.paths is not None):
+                and made.paths is not None and not guarded.failed.any()):
             kept = made.paths[:, :config.n_paths]
             template = kept.reshape(*shape, *kept.shape[1:])
     started = time.perf_counter()
@@ -165,12 +174,16 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
     count = latest.count_target
     baseline = forecasts[count][HUB_BASELINE]
 
+    dropped = {n: f.cells for n, f in failures.items()}
+
     def published_by(chosen: Sequence[str], combiner: CombineConfig) -> NDArray[np.float64]:
         return combine({n: forecasts[count][n] for n in chosen}, baseline, truth[count], regimes,
-                       levels, horizons, origins, combiner, truth_at=truth_at).published
+                       levels, horizons, origins, combiner, truth_at=truth_at,
+                       dropped=dropped).published
 
     combined = combine({n: forecasts[count][n] for n in names}, baseline, truth[count], regimes,
-                       levels, horizons, origins, config.combine, truth_at=truth_at)
+                       levels, horizons, origins, config.combine, truth_at=truth_at,
+                       dropped=dropped)
     _add(forecasts, PUBLISHED, combined.published, latest)
     _add(forecasts, UNCALIBRATED, combined.uncalibrated, latest)
     seconds["combine"] = time.perf_counter() - started
@@ -189,7 +202,8 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
             else np.isin(pd.DatetimeIndex(origins), pd.DatetimeIndex(list(reported))))
     return BacktestResult(latest, tuple(origins), horizons, levels, names,
                           tuple(r.name for r in references), forecasts, truth, regimes,
-                          combined.weights, paths, keep, seconds, config).reported_only()
+                          combined.weights, paths, keep, seconds, config,
+                          failures).reported_only()
 
 
 def _add(forecasts: dict[str, dict[str, NDArray[np.float64]]], name: str,

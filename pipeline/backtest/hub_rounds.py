@@ -62,6 +62,7 @@ class HubBacktestConfig:
     nowcast: RevisionNowcastConfig = field(default_factory=RevisionNowcastConfig)
     reconcile: bool = True
     n_samples: int = 200
+    member_time_limit_s: float | None = 1800.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,6 +87,17 @@ class HubRoundsResult:
     @property
     def references(self) -> tuple[pd.Timestamp, ...]:
         return tuple(r.reference for r in self.rounds)
+
+    def dropped_members(self, index: int = -1) -> dict[str, str]:
+        """The members the guard left out of round ``index`` (at one location or more), and
+        why (:mod:`pipeline.members.isolation`); a member with no forecast at all in that
+        round (the seasonal one before its climatology was released) too."""
+        failed = {name: failure.why for name, failure in self.backtest.failures.items()
+                  if failure.cells[:, index].any()}
+        made = self.backtest.forecasts[self.backtest.panel.count_target]   # the steps ≥ 1
+        silent = {name: "no forecast for this round" for name in self.backtest.members
+                  if name in made and name not in failed and np.isnan(made[name][:, index]).all()}
+        return failed | silent
 
     def target_ends(self) -> NDArray[np.datetime64]:
         """``(R, H)`` the week each round's horizon ends."""
@@ -193,7 +205,8 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
         [r.origin for r in rounds],
         BacktestConfig(horizons=steps, levels=config.levels, seed=config.seed,
                        combine=config.combine, variants=config.variants,
-                       n_paths=config.n_samples),
+                       n_paths=config.n_samples,
+                       member_time_limit_s=config.member_time_limit_s),
         references=references, progress=progress)
     seconds = {"nowcast_and_backtest": time.perf_counter() - started}
     count = result.forecasts[target]

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.members.isolation import MemberFailure
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.combine.paths import InvalidCounts, add_counts, count_invalid
@@ -84,6 +85,8 @@ class BacktestResult:
     reported: NDArray[np.bool_]
     seconds: dict[str, float]
     config: BacktestConfig
+    # the members the guard left out, and where (pipeline.members.isolation)
+    failures: dict[str, MemberFailure] = dataclasses.field(default_factory=dict)
 
     @property
     def places(self) -> tuple[str, ...]:
@@ -111,7 +114,9 @@ class BacktestResult:
             truth={t: v[:, keep] for t, v in self.truth.items()}, regimes=self.regimes[:, keep],
             weights=self.weights[keep],
             paths=None if self.paths is None else self.paths[:, keep],
-            reported=np.ones(int(keep.sum()), dtype=bool))
+            reported=np.ones(int(keep.sum()), dtype=bool),
+            failures={n: MemberFailure(f.cells[:, keep], f.why)
+                      for n, f in self.failures.items()})
 
     def for_places(self, places: Sequence[str]) -> BacktestResult:
         """The same backtest restricted to ``places`` (their forecasts are unchanged: pooled
@@ -125,7 +130,8 @@ class BacktestResult:
             self, panel=self.panel.only(places),
             forecasts={t: {n: v[keep] for n, v in f.items()} for t, f in self.forecasts.items()},
             truth={t: v[keep] for t, v in self.truth.items()}, regimes=self.regimes[keep],
-            paths=None if self.paths is None else self.paths[keep])
+            paths=None if self.paths is None else self.paths[keep],
+            failures={n: MemberFailure(f.cells[keep], f.why) for n, f in self.failures.items()})
 
     # ------------------------------------------------------------------------ one cell's view
 

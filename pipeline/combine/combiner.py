@@ -123,15 +123,21 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
             truth: NDArray[np.float64], regimes: NDArray[np.intp], levels: NDArray[np.float64],
             horizons: tuple[int, ...], origins: Sequence[pd.Timestamp],
             config: CombineConfig = CombineConfig(), *,
-            truth_at: KnownTruth | None = None) -> CombinedForecast:
+            truth_at: KnownTruth | None = None,
+            dropped: Mapping[str, NDArray[np.bool_]] | None = None) -> CombinedForecast:
     """The published count quantiles of every cell (module docstring) from the members'
     ``(C, O, H, Q)`` quantiles (NaN where a member has no forecast: it is left out of that
     cell's equal-weight average), the hub baseline's, the truth ``(C, O, H)`` and each cell's
-    regime ``(C, O)``, origin j learning only from the cells :func:`scored_before` it."""
+    regime ``(C, O)``, origin j learning only from the cells :func:`scored_before` it.
+    ``dropped[name]`` ``(C, O)``: the cells where a member failed (:mod:`pipeline.backtest.
+    isolation`): left out there, the baseline standing in where every member failed."""
     names = list(members)
     if not names:
         raise EnsembleError("no member forecasts to combine")
     values = np.stack([members[n] for n in names])                        # (M, C, O, H, Q)
+    failed = (None if not dropped else
+              np.stack([np.asarray(dropped.get(n, np.zeros(values.shape[1:3], dtype=bool)),
+                                   dtype=bool) for n in names]))          # (M, C, O)
     _, n_c, n_o, n_h, _ = values.shape
     if len(horizons) != n_h or baseline.shape != values.shape[1:] or len(origins) != n_o:
         raise EnsembleError(f"member quantiles {values.shape[1:]}, baseline {baseline.shape}, "
@@ -165,7 +171,9 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
                                         len(fit), scale=config.scale,
                                         shrinkage_origins=config.shrinkage_origins,
                                         stacking_step=config.stacking_step)
-            uncal[:, j, k] = _average(values[:, :, j, k], weights[j, k], config)
+            uncal[:, j, k] = _average(values[:, :, j, k], weights[j, k], config,
+                                      None if failed is None else failed[:, :, j],
+                                      baseline[:, j, k])
             if tracker is not None:
                 calibration[j, k] = np.nan
                 published[:, j, k] = tracker.apply(uncal[:, j, k], regimes[:, j])
@@ -193,26 +201,35 @@ def _pits(levels: NDArray[np.float64], quantiles: NDArray[np.float64],
     return out.ravel()
 
 
-def _average(values: NDArray[np.float64], weights: NDArray[np.float64], config: CombineConfig
-             ) -> NDArray[np.float64]:
+def _average(values: NDArray[np.float64], weights: NDArray[np.float64], config: CombineConfig,
+             dropped: NDArray[np.bool_] | None = None,
+             floor: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """The weighted average ``(C, Q)`` of ``values (M, C, Q)``; where a member is missing (NaN:
     beyond its reach) NaN, or (``reachable-members``) the average of the others, their weights
-    renormalised."""
+    renormalised. A member ``dropped`` ``(M, C)`` at a cell (it failed there) is left out of
+    that cell's average whatever ``beyond_reach`` says; a cell every member failed takes
+    ``floor`` ``(C, Q)`` (the hub baseline)."""
     scale = config.scale
-    present = np.isfinite(values).all(axis=-1)                             # (M, C)
+    present = np.asarray(np.isfinite(values).all(axis=-1), dtype=bool)    # (M, C)
     if present.all():
         return vincentize(values, weights, scale)
+    failed: NDArray[np.bool_] = (np.zeros_like(present) if dropped is None
+                                 else dropped & ~present)
     out = np.full(values.shape[1:], np.nan)
-    if config.beyond_reach == "missing":
-        everyone = present.all(axis=0)
-        out[everyone] = vincentize(values[:, everyone], weights, scale)
-        return out
-    for pattern in np.unique(present, axis=1).T:                           # few patterns
-        cells = (present == pattern[:, None]).all(axis=0)
+    # "missing": a member beyond its reach (not one that failed) leaves the cell unforecast
+    open_cells = (np.asarray((present | failed).all(axis=0), dtype=bool)
+                  if config.beyond_reach == "missing" else np.ones(values.shape[1], dtype=bool))
+    patterns: NDArray[np.bool_] = (np.unique(present[:, open_cells], axis=1).T
+                                   if open_cells.any() else np.zeros((0, len(present)), bool))
+    for pattern in patterns:                                               # few patterns
+        cells = open_cells & (present == pattern[:, None]).all(axis=0)
         if not pattern.any():
             continue
         w = weights[pattern] / weights[pattern].sum()
         out[cells] = vincentize(values[pattern][:, cells], w, scale)
+    if floor is not None:
+        floored = open_cells & ~present.any(axis=0) & failed.any(axis=0)
+        out[floored] = floor[floored]
     return out
 
 

@@ -28,7 +28,7 @@ from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.core.cache import utc_now
 from pipeline.data.hub.locations import POPULATION
 from pipeline.data.hub.nhsn_vintages import HOSP_FLU
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, FlowcastError
 from pipeline.hub_round.run import HubRun, HubRunConfig
 from pipeline.io import atomic_write_json, atomic_write_text
 from pipeline.outputs.derived_round import (PEAK_WEEK, RATE_CHANGE, derive_targets,
@@ -39,6 +39,7 @@ from pipeline.outputs.hubverse_round import (compound_sample_ids, load_model_met
                                              write_hub_round)
 from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
+from pipeline.report.content import Notice, NoticeKind
 from pipeline.report.hub import hub_report_content, track_record_table
 from pipeline.report.render import write_report
 
@@ -56,17 +57,37 @@ class PublishedRound:
 
 def round_frame(run: HubRun, tasks: Mapping[str, Any] | None = None) -> pd.DataFrame:
     """The newest round of every target in the hubverse format, sample ids unique per
-    location × target (one id a trajectory across the horizons); with the hub's ``tasks``,
-    the targets it derives from the weekly admissions' joint paths (FluSight's rate change and
-    peak: :func:`derived_frame`)."""
-    frames = [result.round_frame(len(result.rounds) - 1) for result in run.results.values()]
-    reference = max(f["reference_date"].iloc[0] for f in frames)
-    kept = [f for f in frames if f["reference_date"].iloc[0] == reference]
+    location × target (one id a trajectory across the horizons), of the targets with a release
+    for this round; with the hub's ``tasks``, the targets it derives from the weekly admissions'
+    joint paths (FluSight's rate change and peak: :func:`derived_frame`)."""
+    current = run.published_targets
+    if not current:
+        raise NoCurrentReleaseError(
+            f"no target has a release for the round of {run.reference_date}: "
+            + "; ".join(d.why for d in run.dropped if d.what == "target"))
+    frames = [run.results[t].round_frame(len(run.results[t].rounds) - 1) for t in current]
     if tasks is not None:
-        kept += [derived_frame(result, tasks) for result in run.results.values()
-                 if result.rounds[-1].reference == pd.Timestamp(reference)
-                 and _asks_derived(tasks, result)]
-    return compound_sample_ids(pd.concat(kept, ignore_index=True))
+        frames += [derived_frame(run.results[t], tasks) for t in current
+                   if _asks_derived(tasks, run.results[t])]
+    return compound_sample_ids(pd.concat(frames, ignore_index=True))
+
+
+def round_notices(run: HubRun) -> tuple[Notice, ...]:
+    """Page 1's notices beyond the locations left out: what the round dropped from its
+    submission (a target, a member) or replaced (a refit), and the locations whose revised
+    history waits for review (kept at their cached series)."""
+    kinds = {"target": NoticeKind.LEFT_OUT, "member": NoticeKind.LEFT_OUT,
+             "refit": NoticeKind.NOTE}
+    dropped = [Notice(kinds[d.what], f"Not in this submission as planned: {d.line()}")
+               for d in run.dropped if d.what in kinds]
+    held = [Notice(NoticeKind.HELD, f"{p.target}: revision of {location} waiting for review "
+                                    f"({why}); its cached series is used")
+            for p in run.provenance.values() for location, why in p.held.items()]
+    return tuple(dropped + held)
+
+
+class NoCurrentReleaseError(FlowcastError):
+    """No target of the disease has a release serving this round: nothing to publish."""
 
 
 def _asks_derived(tasks: Mapping[str, Any], result: HubRoundsResult) -> bool:
@@ -109,15 +130,26 @@ def summary(run: HubRun) -> dict[str, Any]:
                            "model_id": run.config.model_id, "model_key": run.model_key,
                            "model_reused": run.model_reused, "stale": run.stale,
                            "skipped": run.skipped(),
+                           "degraded": run.degraded,
+                           "dropped": [dataclasses.asdict(d) for d in run.dropped],
                            "seconds": {k: round(v, 1) for k, v in run.seconds.items()}}
+    for target in {d.target for d in run.dropped if d.what == "target"} - set(run.results):
+        out[target] = {"published": False, "dropped": _dropped_of(run, target)}
     for target, result in run.results.items():
         table = track_record_table(result)
-        out[target] = {"rounds": {"first": str(result.rounds[0].reference.date()),
+        out[target] = {"published": target in run.published_targets,
+                       "dropped": _dropped_of(run, target),
+                       "rounds": {"first": str(result.rounds[0].reference.date()),
                                   "last": str(result.rounds[-1].reference.date()),
                                   "n": len(result.rounds)},
                        "n_locations": len(result.places),
                        "track_record": json.loads(table.to_json(orient="index"))}
     return out
+
+
+def _dropped_of(run: HubRun, target: str) -> list[dict[str, str]]:
+    return [{"what": d.what, "name": d.name, "why": d.why}
+            for d in run.dropped if d.target == target]
 
 
 def publish_hub_round(run: HubRun) -> PublishedRound:
@@ -145,7 +177,8 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
         content = hub_report_content(run.results, reference_date=run.reference_date,
                                      model_id=config.model_id, data_vintage=vintage,
                                      warnings=notes, skipped=run.skipped(),
-                                     config=dataclasses.asdict(config))
+                                     config=dataclasses.asdict(config),
+                                     notices=round_notices(run))
         write_report(content, staging)
         files = tuple(sorted(p.relative_to(staging).as_posix()
                              for p in staging.rglob("*") if p.is_file()))
@@ -153,7 +186,8 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
                            finished_at=utc_now().isoformat(timespec="seconds"),
                            data_stale=run.stale, data_vintage=vintage, model_key=run.model_key,
                            seed=config.seed, preset=f"hub-{config.disease}", files=files,
-                           summary={"forecast": PUBLISHED, "notes": notes})
+                           summary={"forecast": PUBLISHED, "notes": notes,
+                                    "degraded": run.degraded_message()})
         folder = outputs.promote(staging, record)
     return PublishedRound(reference, folder, files,
                           folder / written.path.relative_to(staging))

@@ -11,7 +11,11 @@ cache, the newest round published as the hub's file.
 3. **Members** (:func:`~pipeline.members.published.build_hub_members`): for admissions the
    weekly flow and the seasonal member averaged, for the ED share the flow refitted on the
    share's windows and the seasonal member; the others scored beside.
-4. **Publish** (:mod:`pipeline.hub_round.publish`): the round's file
+4. **What could not be published** (:class:`~pipeline.members.isolation.Dropped`, on
+   ``HubRun.dropped``): a member that failed (the engine's guard), a refit that diverged, a
+   location the gate skipped, a target with no release for this round (left out of the file,
+   with its age): the round is then *degraded*, and says so.
+5. **Publish** (:mod:`pipeline.hub_round.publish`): the round's file
    ``model-output/<model>/<reference date>-<model>.csv`` with its metadata, validated against
    the hub's ``tasks.json``, the report, the track record's scores.
 """
@@ -38,7 +42,8 @@ from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
 from pipeline.members.published import HubMembersConfig, build_hub_members
 from pipeline.members.nf.weekly import WeeklyFlowConfig
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
-from pipeline.panels.hub import hub_rounds, is_share, panel_of
+from pipeline.members.isolation import Dropped
+from pipeline.panels.hub import hub_rounds, is_share, panel_of, reference_date_for
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.training.model_store import default_store_root
@@ -86,6 +91,9 @@ class HubRunConfig:
     output_dir: str = "reports"
     hub_config: str | None = None
     seed: int = 0
+    # the Wednesday the round is due (a replay's week): a target whose newest release serves
+    # an older round is not current; None: the newest round any target serves
+    due: dt.date | None = None
 
     def __post_init__(self) -> None:
         if self.disease not in ("covid", "flu", "rsv"):
@@ -116,10 +124,35 @@ class HubRun:
     model_key: str
     model_reused: bool
     seconds: dict[str, float]
+    # what the round left out (members, locations, targets) or replaced (refits), and why
+    dropped: tuple[Dropped, ...] = ()
 
     @property
     def reference_date(self) -> dt.date:
+        """The round's reference date: that of the week it is due (``config.due``), else the
+        newest round any target's release serves."""
+        if self.config.due is not None:
+            return reference_date_for(pd.Timestamp(self.config.due)).date()
         return max(r.rounds[-1].reference for r in self.results.values()).date()
+
+    @property
+    def published_targets(self) -> tuple[str, ...]:
+        """The targets whose newest round is this round (the others have no current
+        release: they are left out of the file, and said in ``dropped``)."""
+        reference = pd.Timestamp(self.reference_date)
+        return tuple(t for t, r in self.results.items() if r.rounds[-1].reference == reference)
+
+    @property
+    def degraded(self) -> bool:
+        """Whether the round left a target or a member out (or fell back from a refit)."""
+        return any(d.what != "location" for d in self.dropped)
+
+    def degraded_message(self) -> str:
+        """The run state's message: what was left out and why, targets first."""
+        order = {"target": 0, "member": 1, "refit": 2, "location": 3}
+        lines = [d.line() for d in sorted(self.dropped, key=lambda d: order[d.what])
+                 if d.what != "location"]
+        return "; ".join(lines)
 
     @property
     def stale(self) -> bool:
@@ -158,39 +191,25 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     targets = disease_targets(config.disease)
-    if config.data_source == "cache":
-        # offline, the ED share where the cache has it (FluSight's data: admissions only);
-        # without admissions every target is asked for, for load_nhsn to name what is missing
-        held = tuple(t for t in targets if cached_weekly_vintages(t))
-        targets = held if any(not is_share(t) for t in held) else targets
-    loaded = load_nhsn(NHSNConfig(disease=config.disease, targets=targets),
-                       offline=config.data_source == "cache")
-    for provenance in loaded.provenance.values():     # its notes: pipeline.data.hub.nhsn logs them
-        if provenance.skipped:
-            log.warning("%s: locations left out: %s", provenance.target,
-                        "; ".join(f"{p} ({why})" for p, why in provenance.skipped.items()))
-    vintages = {t: load_vintages(t) for t in targets}
-    if all(vintages[t] for t in targets if not is_share(t)):
-        # the ED share where the data have it (FluSight's data hold no influenza ED vintage)
-        for target in [t for t, v in vintages.items() if not v and is_share(t)]:
-            log.warning("%s: no cached vintage; the round is made without it", target)
-            del vintages[target]
-    if not all(vintages.values()):
-        raise OfflineError(f"no cached vintage of {[t for t, v in vintages.items() if not v]}: "
-                           "import the hub's target data with `flowcast data import <hub "
-                           "folder>` or fetch it with `flowcast data fetch --source nhsn`")
+    provenance, missing = _load(config)
+    for loaded in provenance.values():     # their notes: pipeline.data.hub.nhsn logs them
+        if loaded.skipped:
+            log.warning("%s: locations left out: %s", loaded.target,
+                        "; ".join(f"{p} ({why})" for p, why in loaded.skipped.items()))
+    vintages = {t: load_vintages(t) if t in provenance else [] for t in targets}
     seconds["data"] = time.perf_counter() - started
-    # the ED share's vintages are the seasonal member's climatology; without them it reads the
-    # admissions' own earlier seasons
+    # the ED share's vintages are the seasonal member's climatology; without them (FluSight's
+    # data hold no influenza ED vintage) it reads the admissions' own earlier seasons
     climatology = next((v for t, v in vintages.items() if is_share(t)), [])
+    dropped = [Dropped("target", t, t, f"no release of it yet ({missing[t]})") for t in missing]
     results: dict[str, HubRoundsResult] = {}
     model_key, reused = "", True
-    for target, target_vintages in vintages.items():
+    for target, target_vintages in ((t, v) for t, v in vintages.items() if v):
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
                                     climatology, progress, target=target,
                                     other_signal=next((v for t, v in vintages.items()
-                                                       if t != target), None))
+                                                       if t != target and v), None))
         model_key, reused = members.model_key, reused and members.reused
         memo = ForecastMemo.load(memo_path(config, target))
         results[target] = run_hub_rounds(
@@ -199,5 +218,57 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
             references=[memo.wrap(m, config.rounds.n_samples) for m in members.references],
             progress=progress)
         _save(memo)
+        published = {m.name for m in members.published}
+        dropped += [*members.dropped, *(
+            Dropped("member", target, name, why)
+            for name, why in results[target].dropped_members().items() if name in published)]
         seconds[target] = time.perf_counter() - started
-    return HubRun(config, results, dict(loaded.provenance), model_key, reused, seconds)
+    dropped += stale_targets(results, config.due)
+    dropped += [Dropped("location", t, place, why)
+                for t, r in results.items() for place, why in r.rounds[-1].panel.skipped.items()]
+    for item in dropped:
+        if item.what != "location":
+            log.warning("the round left out %s", item.line())
+    return HubRun(config, results, provenance, model_key, reused, seconds, tuple(dropped))
+
+
+def _load(config: HubRunConfig) -> tuple[dict[str, NHSNProvenance], dict[str, str]]:
+    """The disease's targets loaded (live with cache fallback, or the cache), and the targets
+    with no release at all and why; with none of them: the error naming the import."""
+    offline = config.data_source == "cache"
+    try:
+        return dict(load_nhsn(NHSNConfig(disease=config.disease), offline=offline).provenance), {}
+    except OfflineError as error:
+        first = error
+    provenance: dict[str, NHSNProvenance] = {}
+    missing: dict[str, str] = {}
+    for target in disease_targets(config.disease):     # each alone: which one has none?
+        try:
+            loaded = load_nhsn(NHSNConfig(disease=config.disease, targets=(target,)),
+                               offline=offline)
+            provenance |= loaded.provenance
+        except OfflineError as error:
+            missing[target] = str(error).split(" in ")[0]
+    if not provenance:
+        raise first
+    return provenance, missing
+
+
+def stale_targets(results: dict[str, HubRoundsResult], due: dt.date | None
+                  ) -> list[Dropped]:
+    """The targets whose newest release serves an older round than this one (the round of
+    ``due``, else the newest any target serves): left out of the file, with their age."""
+    if not results:
+        return []
+    newest = max(r.rounds[-1].reference for r in results.values())
+    reference = reference_date_for(pd.Timestamp(due)) if due is not None else newest
+    out = []
+    for target, result in results.items():
+        last = result.rounds[-1]
+        if last.reference < reference:
+            weeks = (reference - last.reference).days // 7
+            out.append(Dropped("target", target, target,
+                               f"no current release: the newest, of {last.as_of.date()}, is "
+                               f"{weeks} week{'s' if weeks != 1 else ''} old (it serves the "
+                               f"round of {last.reference.date()}, not {reference.date()})"))
+    return out

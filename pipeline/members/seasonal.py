@@ -81,11 +81,14 @@ class SeasonalGrowthMember:
     climatology: Sequence[tuple[pd.Timestamp, Panel]] = ()
     config: SeasonalConfig = SeasonalConfig()
     name: str = SEASONAL
+    # the hub's: the climatology is another series (the ED share); none released yet means no
+    # forecast, not the cell's own short series
+    climatology_required: bool = False
 
     def source_for(self, panel: Panel) -> Panel | None:
         """The climatology as known when ``panel`` was released."""
         if not self.climatology:
-            return panel
+            return None if self.climatology_required else panel
         if panel.as_of is None:
             raise TargetError(f"{self.name}: the cell's panel has no release date to choose "
                               "the climatology known then")

@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import functools
 import json
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -37,7 +38,7 @@ from pipeline.members.nf.model import (CHECKPOINT_NAME, FlowModelConfig, RealWin
 from pipeline.panels.history import History
 from pipeline.panels.panel import Cells
 from pipeline.panels.targets import DAYS_PER_WEEK
-from pipeline.errors import CheckpointError, ConfigError
+from pipeline.errors import CheckpointError, ConfigError, TrainingDivergedError
 from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
@@ -47,6 +48,7 @@ from pipeline.training.model_store import ModelStore, StoreEntry
 from pipeline.training.trainer import TrainConfig, train
 
 NF_REAL = "nf-real"
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -62,10 +64,17 @@ class FineTuneConfig:
     val_fraction: float = 0.2
     min_windows: int = 500
     seed: int = 0
+    # Stop when the validation loss has not improved for this many evaluations (a tenth of the
+    # iterations each) and keep the best state: a refit whose loss rises ends there instead of
+    # diverging (bench/results/replay.json "refits")
+    early_stop_patience: int | None = 2
+    grad_clip_norm: float = 1.0
 
     def __post_init__(self) -> None:
         if (self.refit_every_weeks < 1 or self.revision_days < 0 or self.iterations < 1
-                or not 0 <= self.synthetic_share < 1 or not 0 < self.val_fraction < 1):
+                or not 0 <= self.synthetic_share < 1 or not 0 < self.val_fraction < 1
+                or self.grad_clip_norm <= 0
+                or (self.early_stop_patience is not None and self.early_stop_patience < 1)):
             raise ConfigError(f"invalid FineTuneConfig {self}")
 
     def identity(self) -> dict[str, object]:
@@ -148,15 +157,22 @@ def training_windows(real: RealWindows, synthetic: WindowedDataset, config: Fine
 
 def finetune(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: WindowedDataset,
              config: FineTuneConfig) -> ConditionalEstimator:
-    """A copy of ``base`` trained ``config.iterations`` more steps (best validation state)."""
+    """A copy of ``base`` trained at most ``config.iterations`` more steps, gradients clipped,
+    stopped when the validation loss stops improving (best validation state)."""
     model = copy.deepcopy(base)
     model.train()
-    train(model, train_ds, val_ds,
-          TrainConfig(iterations=config.iterations, batch_size=config.batch_size, lr=config.lr,
-                      schedule="cosine", eval_every=max(1, config.iterations // 10),
-                      seed=config.seed + 11))
+    train(model, train_ds, val_ds, train_config(config))
     model.eval()
     return model
+
+
+def train_config(config: FineTuneConfig) -> TrainConfig:
+    """The trainer's settings of a refit: cosine schedule, ten evaluations, clipped, early
+    stop."""
+    return TrainConfig(iterations=config.iterations, batch_size=config.batch_size, lr=config.lr,
+                       schedule="cosine", eval_every=max(1, config.iterations // 10),
+                       seed=config.seed + 11, grad_clip_norm=config.grad_clip_norm,
+                       early_stop_patience=config.early_stop_patience)
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,6 +208,8 @@ class FineTunedGrowthMember:
     base: FlowMember
     models: Mapping[pd.Timestamp, Refit]
     name: str = NF_REAL
+    # the refit dates whose fine-tuning diverged, and what their forecasts use instead
+    fallbacks: Mapping[pd.Timestamp, str] = dataclasses.field(default_factory=dict)
 
     @property
     def max_horizon(self) -> int:
@@ -243,26 +261,44 @@ def fit_finetuned_member(base: FlowMember, synthetic: SyntheticWindows,
     ``newest_first``: fine-tune the latest date first (a second process filling the same store
     from the other end, :mod:`pipeline.forecast.member_training`); the models are the same
     either way. ``known_at``: the places' data as released by a date (a source with vintages:
-    a refit learns from the vintage of its date, not from later revisions of it)."""
+    a refit learns from the vintage of its date, not from later revisions of it).
+
+    A refit that still diverges is left out: its forecasts come from the previous refit (or
+    the base flow), recorded in ``fallbacks``; with a store the divergence is recorded too,
+    so the next run does not train it again."""
     progress = progress or SilentProgress()
     models: dict[pd.Timestamp, Refit] = {}
+    diverged: dict[pd.Timestamp, str] = {}
     for date in (sorted(dates, reverse=True) if newest_first else dates):
         known = (list(known_at(date)) if known_at is not None
                  else [h.up_to(date) for h in histories if h.dates[0] <= date])
         windows = functools.cache(functools.partial(
             _refit_windows, base, known, date - pd.Timedelta(days=config.revision_days),
             synthetic, config))
-        if store_root is None:
-            cut = windows()
-            if cut is not None:
-                models[date] = finetune(base.estimator, *cut, config)
-        else:
-            stored = _stored_finetune(base, known, date, synthetic, config, store_root, windows)
-            if stored is not None:
-                models[date] = stored
+        try:
+            if store_root is None:
+                cut = windows()
+                if cut is not None:
+                    models[date] = finetune(base.estimator, *cut, config)
+            else:
+                stored = _stored_finetune(base, known, date, synthetic, config, store_root,
+                                          windows)
+                if stored is not None:
+                    models[date] = stored
+        except TrainingDivergedError as error:
+            log.warning("nf-real refit %s diverged; its forecasts use the one before: %s",
+                        date.date(), error)
+            diverged[date] = str(error)
         if date in models:
             progress.advance(1, refit=str(date.date()))
-    return FineTunedGrowthMember(base, models)
+    return FineTunedGrowthMember(base, models, fallbacks={
+        date: f"{why}; forecasts from {_previous(models, date)} instead"
+        for date, why in sorted(diverged.items())})
+
+
+def _previous(models: Mapping[pd.Timestamp, Refit], date: pd.Timestamp) -> str:
+    earlier = [d for d in models if d < date]
+    return f"the refit of {max(earlier).date()}" if earlier else "the base flow"
 
 
 def _refit_windows(base: FlowMember, known: Sequence[History], cutoff: pd.Timestamp,
@@ -307,5 +343,18 @@ def _stored_finetune(base: FlowMember, known: Sequence[History], date: pd.Timest
 
     key = {NF_REAL: config.identity(), base.config.kind: base.config.identity(),
            "validation_sha256": digests["validation_sha256"]}
-    entry = ModelStore(store_root).get_or_build(key, digests["train_sha256"], build)
+    store = ModelStore(store_root)
+
+    def attempt() -> Digests:
+        """Train the refit into the store once; a divergence is an outcome kept beside it."""
+        try:
+            store.get_or_build(key, digests["train_sha256"], build)
+        except TrainingDivergedError as error:
+            return {"diverged": str(error)}
+        return {"trained": digests["train_sha256"]}
+
+    outcome = DataDigests(store_root).get_or_compute(("nf-real outcome", *inputs), attempt)
+    if "diverged" in outcome:
+        raise TrainingDivergedError(outcome["diverged"])
+    entry = store.get_or_build(key, digests["train_sha256"], build)
     return StoredRefit.of(entry, base.config.estimator_config())

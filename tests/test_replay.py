@@ -1,0 +1,192 @@
+"""The hub round replayed through the real flow (``hub_forecast`` under prefect_test_harness, the
+tiny preset, the hub's real releases of ``../shared/data/nhsn`` from 2025-08-20 on) with a
+failure injected; every one still gives a valid round file (validated against the hub's
+tasks.json again, read back by hubdata) that names what it dropped. Also: the replay sees only
+the releases up to each Wednesday, and a rerun replays only the Wednesdays not done."""
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytestmark = pytest.mark.slow
+
+NHSN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nhsn"
+HOSP, ED = "wk inc covid hosp", "wk inc covid prop ed visits"
+DUE = "2025-09-24"                # the last release; its round is 2025-09-27
+
+
+@pytest.fixture(scope="module")
+def every_release():
+    from pipeline.hub_round.replay import releases_of_time_series
+
+    series = pd.read_parquet(NHSN / "time-series.parquet")
+    recent = series[pd.to_datetime(series["as_of"]) >= pd.Timestamp("2025-08-20")]
+    return releases_of_time_series(recent, "covid")
+
+
+@pytest.fixture(scope="module")
+def releases(every_release):
+    """The last three Wednesdays' releases (few rounds: seconds)."""
+    return [r for r in every_release if str(r.as_of) >= "2025-09-10"]
+
+
+def _replay(tmp_path: Path, releases, start: str = DUE, end: str = DUE):  # noqa: ANN001, ANN202
+    import datetime as dt
+
+    from flows.hub_forecast import flow_step
+    from pipeline.hub_round import replay as rp
+    from pipeline.hub_round.run import HubRunConfig, hub_members_preset
+
+    run = HubRunConfig(members=hub_members_preset("tiny"))
+    config = rp.ReplayConfig(tmp_path / "replay", run, dt.date.fromisoformat(start),
+                             dt.date.fromisoformat(end))
+    rp.copy_hub_config(run.hub_config_dir(), config.out)
+    summary = rp.replay(config, releases, flow_step("tiny"))
+    return config.out, summary
+
+
+def _checked(out: Path) -> pd.DataFrame:
+    """Every round file valid against the hub's tasks.json, and the folder read by hubdata."""
+    import hubdata
+
+    from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
+
+    tasks = load_tasks_config(NHSN / "hub-config" / "tasks.json")
+    files = sorted((out / "model-output" / "flowcast-nfhub").glob("*.csv"))
+    assert files
+    for path in files:
+        validate_model_output(path, tasks)
+    return hubdata.connect_hub(out).get_dataset().to_table().to_pandas()
+
+
+def _last(summary):  # noqa: ANN001, ANN202
+    return summary["rounds"][-1]
+
+
+def _dropped(summary, what: str) -> dict[tuple[str, str], str]:  # noqa: ANN001
+    return {(d["target"], d["name"]): d["why"] for d in _last(summary)["dropped"]
+            if d["what"] == what}
+
+
+def test_members_that_raise_or_return_nan_are_dropped_and_the_baseline_is_the_floor(
+        prefect_harness, tmp_path, releases, monkeypatch):
+    """Admissions' two published members both fail (nf-weekly raises, seasonal returns a NaN
+    median): the round is still published, naming both, its admissions the hub baseline's."""
+    from pipeline.members.base import MemberForecast
+    from pipeline.members.nf.weekly import WeeklyFlowMember
+    from pipeline.members.seasonal import SeasonalGrowthMember
+
+    def broken(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise RuntimeError("injected failure")
+
+    forecast = SeasonalGrowthMember.forecast
+
+    def nan(self, cells, horizons, levels):  # noqa: ANN001, ANN202
+        count = forecast(self, cells, horizons, levels).count.copy()
+        count[:, :, len(levels) // 2] = np.nan         # a numerical blow-up at the median
+        return MemberForecast(count)
+
+    monkeypatch.setattr(WeeklyFlowMember, "forecast", broken)
+    monkeypatch.setattr(SeasonalGrowthMember, "forecast", nan)
+    out, summary = _replay(tmp_path, releases)
+    last = _last(summary)
+    assert summary["rounds_failed"] == 0 and last["state"] == "Completed (degraded)"
+    dropped = _dropped(summary, "member")
+    assert dropped[(HOSP, "nf-weekly")] == "raised RuntimeError: injected failure"
+    assert dropped[(HOSP, "seasonal")].startswith("non-finite quantiles in ")
+    assert dropped[(ED, "seasonal")].startswith("non-finite quantiles in ")
+    assert "member nf-weekly (wk inc covid hosp): raised RuntimeError" in last["message"]
+    back = _checked(out)
+    assert back.groupby("target")["location"].nunique().to_dict() == {HOSP: 53, ED: 51}
+    # without the floor (the hub baseline where every published member failed) admissions
+    # would have no forecast at any location from horizon 0 on
+    hosp = back[(back["target"] == HOSP) & (back["output_type"] == "quantile")]
+    assert hosp.groupby("horizon")["location"].nunique().to_dict() == {
+        -1: 53, 0: 53, 1: 53, 2: 53, 3: 53}
+
+
+def test_a_refit_forced_to_diverge_falls_back_and_is_named(prefect_harness, tmp_path, releases,
+                                                           monkeypatch):
+    from pipeline.errors import TrainingDivergedError
+    from pipeline.members.nf import finetune
+
+    def diverge(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise TrainingDivergedError("injected: validation NLL 30.64 at iteration 240")
+
+    monkeypatch.setattr(finetune, "train", diverge)
+    out, summary = _replay(tmp_path, releases)
+    refits = _dropped(summary, "refit")
+    assert refits and {t for t, _ in refits} <= {HOSP, ED}
+    assert all(name.startswith("nf-real 20") for _, name in refits)
+    assert all("injected: validation NLL 30.64" in why and "instead" in why
+               for why in refits.values())
+    assert _last(summary)["state"] == "Completed (degraded)"
+    assert set(_checked(out)["target"]) == {HOSP, ED}
+
+
+def _revised(releases, due: str):  # noqa: ANN001, ANN202
+    """The admissions release of ``due`` with California's settled weeks ×10."""
+    from pipeline.data.hub.nhsn_vintages import canonical_csv
+
+    out = []
+    for r in releases:
+        if r.target == HOSP and str(r.as_of) == due:
+            frame = pd.read_csv(io.BytesIO(r.payload), dtype={"location": str})
+            weeks = pd.to_datetime(frame["target_end_date"])
+            settled = (frame["location"] == "06") & (weeks < weeks.max() - pd.Timedelta(days=60))
+            frame.loc[settled, "value"] *= 10
+            r = dataclasses.replace(r, payload=canonical_csv(frame))
+        out.append(r)
+    return out
+
+
+def test_a_release_revising_one_location_holds_that_location_alone(prefect_harness, tmp_path,
+                                                                   releases):
+    out, summary = _replay(tmp_path, _revised(releases, DUE), start="2025-09-17")
+    last = _last(summary)
+    assert last["state"] != "Failed"
+    assert set(_checked(out)["target"]) == {HOSP, ED}
+    assert HOSP in last["published_targets"]
+    assert (HOSP, "06") in _dropped(summary, "location")
+
+
+def test_a_target_whose_last_release_is_five_weeks_old_is_left_out_and_said(
+        prefect_harness, tmp_path, releases, every_release):
+    """Admissions from 2025-09-10, the ED share's newest release 2025-08-20's."""
+    withheld = ([r for r in releases if r.target == HOSP]
+                + [r for r in every_release if r.target == ED and str(r.as_of) == "2025-08-20"])
+    out, summary = _replay(tmp_path, withheld)
+    last = _last(summary)
+    assert last["state"] == "Completed (degraded)" and last["published_targets"] == [HOSP]
+    assert _dropped(summary, "target") == {(ED, ED): (
+        "no current release: the newest, of 2025-08-20, is 5 weeks old (it serves the round "
+        "of 2025-08-23, not 2025-09-27)")}
+    assert "5 weeks old" in last["message"]
+    back = _checked(out)
+    assert set(back["target"]) == {HOSP}
+    folder = Path(last["model_output"]).parents[2]
+    report = (folder / "report.html").read_text()
+    assert "Not in this submission as planned: target wk inc covid prop ed visits" in report
+    facts = json.loads((folder / "summary.json").read_text())
+    assert facts["degraded"] and facts[ED]["published"] is False
+    assert facts[ED]["dropped"][0]["why"].endswith("not 2025-09-27)")
+
+
+def test_each_wednesday_sees_only_its_releases_and_a_rerun_replays_only_the_new_ones(
+        prefect_harness, tmp_path, releases):
+    out, first = _replay(tmp_path, releases, start="2025-09-17", end="2025-09-17")
+    assert [r["reference_date"] for r in first["rounds"]] == ["2025-09-20"]
+    # 2025-09-24's releases are not in the cache of 2025-09-17's round
+    assert not list((out / "releases").glob("2025-09-24-*"))
+    _, again = _replay(tmp_path, releases, start="2025-09-17", end=DUE)
+    assert [r["reference_date"] for r in again["rounds"]] == ["2025-09-20", "2025-09-27"]
+    assert again["rounds"][0] == first["rounds"][0]           # not replayed
+    assert again["rounds_due"] == again["rounds_published"] == 2
+    assert sorted(p.name for p in (out / "model-output" / "flowcast-nfhub").iterdir()) == [
+        "2025-09-20-flowcast-nfhub.csv", "2025-09-27-flowcast-nfhub.csv"]
