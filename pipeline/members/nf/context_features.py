@@ -36,7 +36,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.members.nf.model import HALF_CASE, LEVEL_SCALE, RealWindows
-from pipeline.members.nf.weekly import context_rows, weekly_targets
+from pipeline.members.nf.weekly import context_rows, cut_windows
 from pipeline.members.seasonal import SeasonalConfig, seasonal_growth, week_of_year
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.panel import Panel, weeks_ending
@@ -222,21 +222,10 @@ def vintage_windows(panel: Panel, sources: ContextSources, cutoff: pd.Timestamp,
         if not isinstance(history, WeeklyHistory) or len(history) != len(calendar):
             raise TargetError(f"{place}: the context flow reads weekly series on the panel's "
                               "calendar")
-        cases = history.cases
-        padded = np.concatenate([np.full(k_weeks - 1, np.nan), cases])
-        series = padded[origins[:, None] + np.arange(k_weeks)[None, :]]
+        series, target, ok = cut_windows(history, origins, k_weeks, horizon_weeks)
         other_all = np.concatenate([np.full(k_weeks - 1, np.nan), sources.other_weeks(
             panel.as_of, place, calendar[-1], len(calendar))])
         other = other_all[origins[:, None] + np.arange(k_weeks)[None, :]]
-        window = cases[origins[:, None] + np.arange(-1, horizon_weeks + 1)[None, :]]
-        counted = (np.concatenate([[0.0], np.nancumsum(cases)])[origins - 1]
-                   if history.depletes else np.zeros(origins.size))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            target = weekly_targets(window, counted,
-                                    np.full(origins.size, float(history.population)),
-                                    depletes=history.depletes)
-        ok = (np.isfinite(target).all(axis=1) & np.isfinite(window).all(axis=1)
-              & np.isfinite(series[:, -1]))
         inputs = WindowInputs(series[ok], other[ok], calendar[origins[ok]].to_numpy(),
                               climate[ok], np.full(int(ok.sum()), sources.people(place, history)))
         parts.append((inputs, target[ok], np.full(int(ok.sum()), place_offset + index)))

@@ -282,19 +282,8 @@ class WeeklyFlowMember:
             origins = np.arange(1, end - h + 1)
             if origins.size == 0:
                 continue
-            cases = history.cases
-            padded = np.concatenate([np.full(k - 1, np.nan), cases])
-            series = padded[origins[:, None] + np.arange(k)[None, :]]
-            window = cases[origins[:, None] + np.arange(-1, h + 1)[None, :]]
-            counted = (np.concatenate([[0.0], np.nancumsum(cases)])[origins - 1]
-                       if history.depletes else np.zeros(origins.size))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                target = weekly_targets(window, counted,
-                                        np.full(origins.size, float(history.population)),
-                                        depletes=history.depletes)
+            series, target, ok = cut_windows(history, origins, k, h)
             context, mask = context_rows(series, k)
-            ok = (np.isfinite(target).all(axis=1) & np.isfinite(series[:, -1])
-                  & np.isfinite(window).all(axis=1))
             contexts.append(context[ok])
             masks.append(mask[ok])
             targets.append(target[ok])
@@ -304,6 +293,27 @@ class WeeklyFlowMember:
                                np.empty((0, h), np.float32), np.empty(0, np.int64))
         return RealWindows(np.concatenate(contexts), np.concatenate(masks),
                            np.concatenate(targets), np.concatenate(places))
+
+
+def cut_windows(history: WeeklyHistory, origins: NDArray[np.int64], k_weeks: int,
+                horizon_weeks: int
+                ) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.bool_]]:
+    """At each origin (the index of a window's first target week): the ``k_weeks`` counts
+    before it (NaN before the series began), the flow's targets over the ``horizon_weeks``
+    (:func:`weekly_targets`), and which windows are whole (finite targets, counts and last
+    context week)."""
+    cases = history.cases
+    padded = np.concatenate([np.full(k_weeks - 1, np.nan), cases])
+    series = padded[origins[:, None] + np.arange(k_weeks)[None, :]]
+    window = cases[origins[:, None] + np.arange(-1, horizon_weeks + 1)[None, :]]
+    counted = (np.concatenate([[0.0], np.nancumsum(cases)])[origins - 1]
+               if history.depletes else np.zeros(origins.size))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        target = weekly_targets(window, counted, np.full(origins.size, float(history.population)),
+                                depletes=history.depletes)
+    whole = (np.isfinite(target).all(axis=1) & np.isfinite(window).all(axis=1)
+             & np.isfinite(series[:, -1]))
+    return series, target, whole
 
 
 def _window(cases: NDArray[np.float64], k_weeks: int) -> NDArray[np.float64]:
