@@ -34,13 +34,16 @@ Change = Callable[[pd.DataFrame], pd.DataFrame]
 class RoundFault:
     """A fault in the admissions release of 2025-09-24 (``change`` on its rows: ``date``,
     ``location``, ``value``); ``dropped``: the locations the round must leave out and name
-    (``expect`` in the reason of the first); ``kept``: locations that must be in the round."""
+    (``expect`` in the reason of the first); ``kept``: locations that must be in the round;
+    ``target_left_out``: admissions have no current release, so the round publishes the ED share
+    alone and names the admissions target as left out (issue 39 problem 7)."""
 
     name: str
     change: Change
     dropped: tuple[str, ...] = ()
     expect: str = ""
     kept: tuple[str, ...] = ()
+    target_left_out: bool = False
 
 
 def _tenfold(frame: pd.DataFrame) -> pd.DataFrame:
@@ -68,7 +71,7 @@ def round_faults() -> list[RoundFault]:
         RoundFault("round-one-location-later-week", _later_row, dropped=("06",),
                    expect="after the payload's last date 2025-09-13"),
         RoundFault("round-stale-release-held",
-                   lambda f: f[f["date"].astype(str) <= "2025-08-23"]),
+                   lambda f: f[f["date"].astype(str) <= "2025-08-23"], target_left_out=True),
     ]
 
 
@@ -121,26 +124,29 @@ def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult
                               f"round_published: false; raised {type(exc).__name__}: {exc}",
                               source="hub_round", issue=39,
                               detail={"round_published": False, "dropped": {}})
-    left_out = run.skipped()[HOSP_COVID]
+    left_out = run.skipped().get(HOSP_COVID, {})
+    said = {d.target: d.why for d in run.dropped if d.what == "target"}
     frame = pd.read_csv(published.model_output, dtype={"location": str})
     hosp = set(frame.loc[frame["target"] == HOSP_COVID, "location"])
     dropped = sorted(left_out)
-    passed = (published.model_output.is_file() and bool(hosp)
-              and dropped == sorted(fault.dropped)
-              and all(loc not in hosp for loc in fault.dropped)
-              and all(loc in hosp for loc in fault.kept)
-              and (not fault.dropped or fault.expect in left_out[fault.dropped[0]]))
+    if fault.target_left_out:       # not in the file, and said
+        passed = (published.model_output.is_file() and not hosp and HOSP_COVID in said
+                  and bool(set(frame["target"]) - {HOSP_COVID}))
+    else:
+        passed = (published.model_output.is_file() and bool(hosp)
+                  and dropped == sorted(fault.dropped)
+                  and all(loc not in hosp for loc in fault.dropped)
+                  and all(loc in hosp for loc in fault.kept)
+                  and (not fault.dropped or fault.expect in left_out[fault.dropped[0]]))
     note = (f"round_published: true ({published.reference_date}, {len(hosp)} locations of "
             f"{HOSP_COVID}); dropped: "
-            + ("; ".join(f"{why}" for why in left_out.values()) or "none"))
-    if not hosp:
-        note += (f"; {HOSP_COVID} is missing from the round file and not named (issue 39, "
-                 f"problem 7: a round without a target's current release must leave it out "
-                 f"and say so, issue 37's failure isolation on another branch)")
+            + ("; ".join([*left_out.values(), *(f"target {t}: {why}" for t, why in said.items())])
+               or "none"))
     return CaseResult(fault.name, passed, time.monotonic() - started, 0, note,
                       source="hub_round", issue=39,
                       detail={"round_published": True, "reference_date": published.reference_date,
-                              "dropped": {t: dict(d) for t, d in run.skipped().items()}})
+                              "dropped": {**{t: dict(d) for t, d in run.skipped().items()},
+                                          **{t: {"target": why} for t, why in said.items()}}})
 
 
 def run_all(scratch: Path) -> list[CaseResult]:
