@@ -213,3 +213,22 @@ def test_validator_refuses_a_file_holding_a_non_finite_value(tmp_path, hub, cell
     with pytest.raises(HubValidationError, match=rf"row 5: column 'value': {cell} is not a "
                                                  "finite number"):
         validate_model_output(written.path, hub["tasks"])
+
+
+def test_a_hub_config_folder_without_tasks_json_is_refused_not_passed_over(tmp_path,
+                                                                          monkeypatch):
+    """The run's own check (the deployment passes no CLI): a folder given without a
+    tasks.json is named, never replaced by the default hub's config; none given: the disease's
+    hub beside the checkout, and RSV has none."""
+    from pipeline.errors import ConfigError
+    from pipeline.hub_round.run import DEFAULT_HUB_CONFIGS, HUB_CONFIG_ENV, HubRunConfig
+
+    monkeypatch.delenv(HUB_CONFIG_ENV, raising=False)
+    with pytest.raises(ConfigError, match=f"hub_config {tmp_path}: no readable tasks.json"):
+        HubRunConfig(hub_config=str(tmp_path)).hub_config_dir()
+    monkeypatch.setenv(HUB_CONFIG_ENV, str(tmp_path))
+    with pytest.raises(ConfigError, match=f"\\${HUB_CONFIG_ENV} {tmp_path}"):
+        HubRunConfig().hub_config_dir()
+    monkeypatch.delenv(HUB_CONFIG_ENV)
+    assert HubRunConfig().hub_config_dir() == DEFAULT_HUB_CONFIGS["covid"]
+    assert HubRunConfig(disease="rsv").hub_config_dir() is None

@@ -104,13 +104,18 @@ class HubRunConfig:
     def hub_config_dir(self) -> Path | None:
         """The hub's ``hub-config`` folder: the option, ``$FLOWCAST_HUB_CONFIG``, or the
         disease's hub data beside the checkout (:data:`DEFAULT_HUB_CONFIGS`); None when none
-        is there."""
+        is there. A folder given (the option or the variable) without a ``tasks.json`` is a
+        :class:`ConfigError`, never passed over for the default: the file would be validated
+        against another hub's rules."""
+        for given, name in ((self.hub_config, "hub_config"),
+                            (os.environ.get(HUB_CONFIG_ENV), f"${HUB_CONFIG_ENV}")):
+            if given:
+                if not (Path(given) / "tasks.json").is_file():
+                    raise ConfigError(f"{name} {given}: no readable tasks.json in the folder "
+                                      "(give the hub's hub-config folder)")
+                return Path(given)
         default = DEFAULT_HUB_CONFIGS.get(self.disease)
-        for candidate in (self.hub_config, os.environ.get(HUB_CONFIG_ENV),
-                          str(default) if default else None):
-            if candidate and (Path(candidate) / "tasks.json").is_file():
-                return Path(candidate)
-        return None
+        return default if default and (default / "tasks.json").is_file() else None
 
 
 @dataclass(frozen=True, eq=False)
