@@ -14,10 +14,8 @@ leaving the target out *and saying so* is issue 37's failure isolation (another 
 """
 from __future__ import annotations
 
-import os
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +23,7 @@ import pandas as pd
 
 from bench.faults import CaseResult
 from bench.faults_nhsn import NHSN
+from pipeline.data.core.cache import data_folder
 from pipeline.data.hub.nhsn import HOSP_COVID
 
 Change = Callable[[pd.DataFrame], pd.DataFrame]
@@ -75,19 +74,6 @@ def round_faults() -> list[RoundFault]:
     ]
 
 
-@contextmanager
-def _data_dir(folder: Path) -> Iterator[None]:
-    before = os.environ.get("FLOWCAST_DATA_DIR")
-    os.environ["FLOWCAST_DATA_DIR"] = str(folder)
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop("FLOWCAST_DATA_DIR", None)
-        else:
-            os.environ["FLOWCAST_DATA_DIR"] = before
-
-
 def _seed_cache(folder: Path, fault: RoundFault) -> None:
     from pipeline.data.hub.target_import import import_hub_time_series, import_target_csv
     series = pd.read_parquet(NHSN / "time-series.parquet")
@@ -111,7 +97,7 @@ def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult
     data.mkdir(parents=True)
     models.mkdir(parents=True, exist_ok=True)
     (data / "models").symlink_to(models, target_is_directory=True)
-    with _data_dir(data):
+    with data_folder(data):
         try:
             _seed_cache(folder, fault)
             config = HubRunConfig(data_source="cache", output_dir=str(folder / "reports"),

@@ -47,7 +47,7 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
     import pandas as pd
 
     from pipeline.data.hub.target_import import import_hub_time_series
-    from pipeline.hub_round.replay import data_folder
+    from pipeline.data.core.cache import data_folder
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.nf.finetune import _refit_windows, refit_dates
     from pipeline.members.nf.model import SyntheticWindows, train_or_reuse_growth_model

@@ -28,14 +28,14 @@ import os
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from pipeline.data.core.cache import data_folder
 from pipeline.io import atomic_write_json
 from tests.browser import (browser_check, overflowing_text_boxes, pdf_page_images,
                            pdf_page_words)
@@ -49,19 +49,6 @@ CDPH_VINTAGES = (SHARED / "cdph" / "hhaeri__CA_State_COVID-19_Cases_Deaths_Tests
                  SHARED / "cdph" / "ofaye98__CSC508_Mentor_Class" / "covid19cases_test.csv")
 COUNTY, OTHERS = "Santa Cruz", ("Marin", "Monterey")
 COVID_SINCE, FLU_SINCE = "2025-08-01", "2025-01-01"
-
-
-@contextmanager
-def data_dir(root: Path) -> Iterator[None]:
-    before = os.environ.get("FLOWCAST_DATA_DIR")
-    os.environ["FLOWCAST_DATA_DIR"] = str(root / "data")
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop("FLOWCAST_DATA_DIR", None)
-        else:
-            os.environ["FLOWCAST_DATA_DIR"] = before
 
 
 def sf_report(root: Path) -> Any:
@@ -166,7 +153,7 @@ def measure(kind: str, make: Callable[[Path], Any]) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix=f"bench-reports-{kind}-") as tmp:
         root = Path(tmp)
         started = time.perf_counter()
-        with data_dir(root):
+        with data_folder(root / "data"):
             content, extra = make(root)
         files = write_report(content, root / "report")
         seconds = time.perf_counter() - started

@@ -154,6 +154,9 @@ def test_a_release_revising_one_location_holds_that_location_alone(prefect_harne
     assert set(_checked(out)["target"]) == {HOSP, ED}
     assert HOSP in last["published_targets"]
     assert (HOSP, "06") in _dropped(summary, "location")
+    # page 1 says the revision waits for review (the operator's `data accept-revisions`)
+    report = (Path(last["model_output"]).parents[2] / "report.html").read_text()
+    assert f"{HOSP}: revision of 06 waiting for review" in report
 
 
 def test_a_target_whose_last_release_is_five_weeks_old_is_left_out_and_said(

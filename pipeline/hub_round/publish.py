@@ -72,7 +72,7 @@ def round_frame(run: HubRun, tasks: Mapping[str, Any] | None = None) -> pd.DataF
     return compound_sample_ids(pd.concat(frames, ignore_index=True))
 
 
-def round_notices(run: HubRun) -> tuple[Notice, ...]:
+def dropped_and_held_notices(run: HubRun) -> tuple[Notice, ...]:
     """Page 1's notices beyond the locations left out: what the round dropped from its
     submission (a target, a member) or replaced (a refit), and the locations whose revised
     history waits for review (kept at their cached series)."""
@@ -178,7 +178,7 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
                                      model_id=config.model_id, data_vintage=vintage,
                                      warnings=notes, skipped=run.skipped(),
                                      config=dataclasses.asdict(config),
-                                     notices=round_notices(run))
+                                     notices=dropped_and_held_notices(run))
         write_report(content, staging)
         files = tuple(sorted(p.relative_to(staging).as_posix()
                              for p in staging.rglob("*") if p.is_file()))

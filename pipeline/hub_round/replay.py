@@ -21,7 +21,6 @@ with a later release, the same command replays the later weeks.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime as dt
 import json
@@ -30,14 +29,14 @@ import os
 import shutil
 import statistics
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import pandas as pd
 
-from pipeline.data.core.cache import DATA_DIR_ENV
+from pipeline.data.core.cache import data_folder
 from pipeline.data.hub.nhsn_vintages import (canonical_csv, cached_weekly_vintages,
                                              disease_targets, target_spec)
 from pipeline.data.hub.target_import import VintageImport, import_target_csv
@@ -128,20 +127,6 @@ def wednesdays(releases: Sequence[Release], start: dt.date | None = None,
     """The days with a release (the hub's Wednesdays), within ``start`` … ``end``."""
     days = sorted({r.as_of for r in releases})
     return [d for d in days if (start is None or d >= start) and (end is None or d <= end)]
-
-
-@contextlib.contextmanager
-def data_folder(path: Path) -> Iterator[None]:
-    """Run with ``path`` as the flowcast data folder (cache, model store, memo)."""
-    before = os.environ.get(DATA_DIR_ENV)
-    os.environ[DATA_DIR_ENV] = str(path)
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop(DATA_DIR_ENV, None)
-        else:
-            os.environ[DATA_DIR_ENV] = before
 
 
 def import_releases(releases: Sequence[Release], data_dir: Path, folder: Path

@@ -35,7 +35,7 @@ import json
 import logging
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, fields
 from datetime import UTC, date, datetime
 from pathlib import Path
@@ -83,6 +83,21 @@ def data_dir(override: str | os.PathLike[str] | None = None) -> Path:
     if override is not None:
         return Path(override)
     return Path(os.environ.get(DATA_DIR_ENV) or "data")
+
+
+@contextlib.contextmanager
+def data_folder(path: Path) -> Iterator[None]:
+    """Run with ``path`` as the flowcast data folder (cache, model store, memo): a replay's
+    week, a benchmark's scratch folder; the variable as it was afterwards."""
+    before = os.environ.get(DATA_DIR_ENV)
+    os.environ[DATA_DIR_ENV] = str(path)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(DATA_DIR_ENV, None)
+        else:
+            os.environ[DATA_DIR_ENV] = before
 
 
 def utc_now() -> datetime:

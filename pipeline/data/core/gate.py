@@ -410,21 +410,44 @@ def _bound_checks(rows: _Rows) -> list[tuple[NDArray[np.bool_], Message]]:
     return checks
 
 
+@dataclass(frozen=True)
+class _PlaceDateGrid:
+    """The clean, dated rows (``ok``) laid on a (places × dates) grid: each row's cell."""
+
+    ok: NDArray[np.bool_]
+    place_code: NDArray[np.intp]
+    date_code: NDArray[np.intp]
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, rows: _Rows, clean: NDArray[np.bool_]) -> _PlaceDateGrid | None:
+        ok = clean & ~np.asarray(rows.date.isna())
+        if not ok.any():
+            return None
+        places, place_code = np.unique(rows.place[ok].astype(str), return_inverse=True)
+        dates, date_code = np.unique(rows.date[ok].values, return_inverse=True)
+        return cls(ok, place_code, date_code, (len(places), len(dates)))
+
+    def grid(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``values`` of the rows on the grid, NaN where no clean row is."""
+        out = np.full(self.shape, np.nan)
+        out[self.place_code, self.date_code] = values[self.ok]
+        return out
+
+
 def _jump_checks(rows: _Rows, rule: JumpRule, clean: NDArray[np.bool_]
                  ) -> list[tuple[NDArray[np.bool_], Message]]:
     """Counts beyond their own history, on a (places × dates) grid of the clean rows."""
     checks: list[tuple[NDArray[np.bool_], Message]] = []
-    ok = clean & ~np.asarray(rows.date.isna())
-    if not ok.any():
+    cells = _PlaceDateGrid.of(rows, clean)
+    if cells is None:
         return checks
-    places, place_code = np.unique(rows.place[ok].astype(str), return_inverse=True)
-    dates, date_code = np.unique(rows.date[ok].values, return_inverse=True)
+    ok, place_code, date_code = cells.ok, cells.place_code, cells.date_code
     row_place = np.full(len(rows.frame), -1)
     row_date = np.full(len(rows.frame), -1)
     row_place[ok], row_date[ok] = place_code, date_code
     for bound in rows.rules.counts:
-        grid = np.full((len(places), len(dates)), np.nan)
-        grid[place_code, date_code] = rows.value[bound.column][ok]
+        grid = cells.grid(rows.value[bound.column])
         bounds = history_bounds(grid, rule)
         beyond = np.zeros(len(rows.frame), dtype=bool)
         beyond[ok] = grid[place_code, date_code] > bounds[place_code, date_code]
@@ -444,14 +467,12 @@ def _growth_checks(rows: _Rows, rule: GrowthRule, clean: NDArray[np.bool_]
     """Counts whose ``rule.days``-row sum grew beyond ``rule`` over the sum before, on a
     (places × dates) grid of the clean rows."""
     checks: list[tuple[NDArray[np.bool_], Message]] = []
-    ok = clean & ~np.asarray(rows.date.isna())
-    if not ok.any():
+    cells = _PlaceDateGrid.of(rows, clean)
+    if cells is None:
         return checks
-    places, place_code = np.unique(rows.place[ok].astype(str), return_inverse=True)
-    dates, date_code = np.unique(rows.date[ok].values, return_inverse=True)
+    ok, place_code, date_code = cells.ok, cells.place_code, cells.date_code
     for column in rule.columns:
-        grid = np.full((len(places), len(dates)), np.nan)
-        grid[place_code, date_code] = rows.value[column][ok]
+        grid = cells.grid(rows.value[column])
         now, before = growth_sums(grid, rule)
         at_now, at_before = now[place_code, date_code], before[place_code, date_code]
         beyond = np.zeros(len(rows.frame), dtype=bool)
