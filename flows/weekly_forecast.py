@@ -72,6 +72,8 @@ REPORTS_URL_ENV = "FLOWCAST_REPORTS_URL"
 # A run made from cached data because DataSF could not be reached finishes COMPLETED under this
 # state name, carries this tag and emits this event (automations can match any of the three).
 STALE_STATE_NAME = "Completed (stale data)"
+# A run whose published forecast went without a member (it failed: pipeline.members.isolation).
+DEGRADED_STATE_NAME = "Completed (degraded)"
 STALE_TAG = "stale-data"
 STALE_EVENT = "flowcast.forecast.stale-data"
 
@@ -175,7 +177,10 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     ``<output_dir>/<reference-date>/`` (a county's: ``<output_dir>/<county-slug>/<reference-date>/``).
 
     A run that had to fall back to cached data finishes in the state "Completed (stale data)",
-    is tagged ``stale-data`` and emits the event ``flowcast.forecast.stale-data``.
+    is tagged ``stale-data`` and emits the event ``flowcast.forecast.stale-data``. A run whose
+    published forecast went without a member that failed (an exception, non-finite or crossing
+    quantiles, its time limit: :mod:`pipeline.members.isolation`) finishes "Completed
+    (degraded)", its message naming the member and why (the same rule as a hub round).
 
     Args:
         preset: Forecast size. "default" is the product (about 15 min from scratch, about a minute
@@ -217,19 +222,27 @@ def weekly_forecast(preset: Literal["default", "tiny"] = "default",
     elapsed = time.monotonic() - started
     logger.info("weekly forecast %s done in %.1f s → %s", results.reference_date, elapsed,
                 published.folder)
+    dropped = results.weekly.dropped()       # members the guard left out (a hub round's rule)
     outcome: dict[str, object] = {
         "reference_date": results.reference_date, "place": config.data.place,
         "output_dir": str(published.folder),
         "files": list(published.files), "data_stale": results.stale,
         "model_key": results.models.key, "model_reused": results.models.reused,
-        "seconds": elapsed, "step_seconds": dict(results.timings)}
+        "seconds": elapsed, "step_seconds": dict(results.timings),
+        "degraded": bool(dropped), "dropped": [dataclasses.asdict(d) for d in dropped]}
+    left_out = "; ".join(d.line() for d in dropped)
+    if dropped:
+        logger.warning("forecast %s degraded: %s", results.reference_date, left_out)
     if not results.stale:
-        return outcome
+        return (Completed(name=DEGRADED_STATE_NAME, data=outcome,
+                          message=f"forecast {results.reference_date} degraded: {left_out}")
+                if dropped else outcome)
     logger.warning("forecast made from STALE cached data: %s", "; ".join(results.stale_notes))
     _mark_stale(results.reference_date, results.stale_notes, config.data.place)
     return Completed(name=STALE_STATE_NAME, data=outcome,
                      message=f"forecast {results.reference_date} made from cached data "
-                             f"({config.data.provider} unreachable)")
+                             f"({config.data.provider} unreachable)"
+                             + (f"; degraded: {left_out}" if dropped else ""))
 
 
 def flow_config(preset: str, *, encoder: str | None, data_source: DataSourceKind,

@@ -209,6 +209,45 @@ def test_fetch_fails_without_cache_fails_clearly_and_keeps_last_good(good_run, t
     assert after == before
 
 
+def test_a_member_that_fails_leaves_the_run_degraded_and_named(good_run, tmp_path, monkeypatch):
+    """The weekly run follows a hub round's rule (pipeline.members.isolation): a member that
+    raises is left out of the published forecast, the others average, and the run says so —
+    in its state, results.json and page 1 of the report."""
+    import shutil
+
+    from flows.weekly_forecast import DEGRADED_STATE_NAME, weekly_forecast
+    from pipeline.members.growth_regression import PooledGrowthMember
+
+    root, first = good_run
+    # the good run's cache and models, without its memo of member forecasts (read back, a
+    # memoised forecast would not meet the injected failure)
+    shutil.copytree(root / "data", tmp_path / "data",
+                    ignore=shutil.ignore_patterns("forecast-memo"))
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
+
+    def broken(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        raise RuntimeError("injected failure")
+
+    monkeypatch.setattr(PooledGrowthMember, "forecast", broken)
+    state = weekly_forecast(preset="tiny", data_source="cache",
+                            output_dir=str(tmp_path / "reports"), seed=0, return_state=True)
+    assert state.is_completed() and state.name == DEGRADED_STATE_NAME
+    assert "growth-qr" in state.message and "injected failure" in state.message
+    result = state.result()
+    assert result["model_reused"] and result["degraded"]
+    assert result["dropped"] == [{"what": "member", "target": "cases", "name": "growth-qr",
+                                  "why": "raised RuntimeError: injected failure"}]
+    out = Path(result["output_dir"])
+    assert json.loads((out / "results.json").read_text())["dropped"] == result["dropped"]
+    report = (out / "report.html").read_text()
+    assert "Member growth-qr left out of the published forecast" in report
+    # the forecast still stands on the other members: finite, and not the good run's
+    good = pd.read_csv(Path(first["output_dir"]) / "hub_forecast.csv")
+    degraded = pd.read_csv(out / "hub_forecast.csv")
+    assert np.isfinite(degraded["value"]).all() and len(degraded) == len(good)
+    assert not np.allclose(degraded["value"], good["value"])
+
+
 # ------------------------------------------------- run_forecast without Prefect == the flow
 
 def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_path,

@@ -89,15 +89,9 @@ class HubRoundsResult:
         return tuple(r.reference for r in self.rounds)
 
     def dropped_members(self, index: int = -1) -> dict[str, str]:
-        """The members the guard left out of round ``index`` (at one location or more), and
-        why (:mod:`pipeline.members.isolation`); a member with no forecast at all in that
-        round (the seasonal one before its climatology was released) too."""
-        failed = {name: failure.why for name, failure in self.backtest.failures.items()
-                  if failure.cells[:, index].any()}
-        made = self.backtest.forecasts[self.backtest.panel.count_target]   # the steps ≥ 1
-        silent = {name: "no forecast for this round" for name in self.backtest.members
-                  if name in made and name not in failed and np.isnan(made[name][:, index]).all()}
-        return failed | silent
+        """The members the guard left out of round ``index``, and why
+        (:meth:`BacktestResult.dropped_members`)."""
+        return self.backtest.dropped_members(index)
 
     def target_ends(self) -> NDArray[np.datetime64]:
         """``(R, H)`` the week each round's horizon ends."""

@@ -133,6 +133,17 @@ class BacktestResult:
             paths=None if self.paths is None else self.paths[keep],
             failures={n: MemberFailure(f.cells[keep], f.why) for n, f in self.failures.items()})
 
+    def dropped_members(self, index: int = -1) -> dict[str, str]:
+        """The members the guard left out at origin ``index`` (at one place or more), and why
+        (:mod:`pipeline.members.isolation`); a member with no forecast at all there (the
+        seasonal one before its climatology was released) too."""
+        failed = {name: failure.why for name, failure in self.failures.items()
+                  if failure.cells[:, index].any()}
+        made = self.forecasts[self.panel.count_target]
+        silent = {name: "no forecast for this round" for name in self.members
+                  if name in made and name not in failed and np.isnan(made[name][:, index]).all()}
+        return failed | silent
+
     # ------------------------------------------------------------------------ one cell's view
 
     def forecast_at(self, place: str, origin: pd.Timestamp, forecaster: str = PUBLISHED

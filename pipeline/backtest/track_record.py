@@ -25,6 +25,7 @@ from pipeline.backtest.result import BacktestResult, QuantileForecast
 from pipeline.combine.combiner import PUBLISHED, CombineConfig
 from pipeline.members.autoets import AutoETSMember
 from pipeline.members.base import Member
+from pipeline.members.isolation import Dropped
 from pipeline.members.published import MembersConfig, build_members
 from pipeline.nowcast.mixture import CompletionMixture, RunNowcast
 from pipeline.panels.history import History
@@ -72,6 +73,7 @@ class TrackRecord:
     model_reused: bool
     nowcast: RunNowcast | None = None       # the days still being reported, when nowcast
     memo_reads: tuple[int, int] | None = None   # forecasts read back from the memo, of all asked
+    built_without: tuple[Dropped, ...] = ()     # members not built, refits replaced (and why)
 
     @property
     def history(self) -> History:
@@ -96,6 +98,16 @@ class TrackRecord:
     def member_forecasts(self) -> dict[str, QuantileForecast]:
         """Every forecaster's forecast at the latest origin (members, references, published)."""
         return self.result.forecasters_at(self.place, self.origin)
+
+    def dropped(self) -> tuple[Dropped, ...]:
+        """What the published forecast at the latest origin went without, and why (the same
+        rule as a hub round's, :mod:`pipeline.members.isolation`): a member that could not be
+        built, a refit replaced by an earlier one, a member the guard left out there."""
+        target = self.result.panel.count_target
+        return self.built_without + tuple(
+            Dropped("member", target, name, why)
+            for name, why in self.result.dropped_members(-1).items()
+            if name in self.result.members)
 
     def summary(self) -> dict[str, Any]:
         """The backtest's summary (computed once: the report reads it a dozen times)."""
@@ -145,4 +157,5 @@ def track_record(panel: Panel, place: str, config: TrackRecordConfig, store_root
     result = run_backtest(OneVintage(panel), members, every, config.backtest_config(),
                           references=scored, reported=reported, progress=progress)
     reads = None if memo is None else (memo.hits, memo.hits + memo.misses)
-    return TrackRecord(place, result, chosen.model_key, chosen.reused, nowcast, reads)
+    return TrackRecord(place, result, chosen.model_key, chosen.reused, nowcast, reads,
+                       chosen.dropped)

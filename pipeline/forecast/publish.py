@@ -5,6 +5,8 @@ last good report. A California county's runs (``DataSourceConfig.county``) go to
 ``<output_dir>/<county-slug>/<reference-date>/``, with their own index, beside San Francisco's."""
 from __future__ import annotations
 
+import dataclasses
+
 import datetime as dt
 import time
 from dataclasses import dataclass
@@ -174,7 +176,10 @@ def results_summary(results: ForecastResults) -> dict[str, object]:
                                          fw["q0.975"].to_numpy(np.float64), strict=True)}
     return {"reference_date": results.reference_date,
             "data_vintage": results.vintage, "data_stale": results.stale,
-            "stale_notes": list(results.stale_notes), "model_key": results.models.key,
+            "stale_notes": list(results.stale_notes),
+            "degraded": bool(results.weekly.dropped()),
+            "dropped": [dataclasses.asdict(d) for d in results.weekly.dropped()],
+            "model_key": results.models.key,
             "model_reused": results.models.reused, "encoder": results.models.encoder,
             "forward_next_day": forward_next_day,
             "nll": results.nll.to_dict(orient="records"),

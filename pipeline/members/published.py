@@ -28,7 +28,8 @@ from pipeline.members.isolation import Dropped
 from pipeline.members.nf.growth import NFGrowthMember
 from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
                                        train_or_reuse_growth_model)
-from pipeline.members.nf.finetune import NF_REAL, FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.members.nf.finetune import (NF_REAL, FineTuneConfig, FineTunedGrowthMember,
+                                          fit_finetuned_member, refit_dates)
 from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMember
 from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
 from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextRefitConfig,
@@ -75,6 +76,7 @@ class ChosenMembers:
     members: list[Member]
     model_key: str | None
     reused: bool
+    dropped: tuple[Dropped, ...] = ()     # a member that could not be built, a refit replaced
 
 
 def finetune_pool(panel: Panel) -> list[EpiHistory]:
@@ -104,11 +106,29 @@ def build_members(config: MembersConfig, store_root: Path, panel: Panel,
     members.append(flow)
     pool = finetune_pool(panel)
     dates = refit_dates(list(origins), config.finetune.refit_every_weeks)
-    if config.include_real and pool and dates:
-        members.append(fit_finetuned_member(flow, synthetic, pool, dates, config.finetune,
-                                            store_root, progress,
-                                            newest_first=newest_refits_first))
-    return ChosenMembers(members, stored.key, stored.reused)
+    if not (config.include_real and pool and dates):
+        return ChosenMembers(members, stored.key, stored.reused)
+    target = panel.count_target
+    try:
+        refits = fit_finetuned_member(flow, synthetic, pool, dates, config.finetune, store_root,
+                                      progress, newest_first=newest_refits_first)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as error:  # noqa: BLE001 - isolation: the refits alone are lost
+        log.warning("nf-real could not be built and is left out: %s", error, exc_info=True)
+        return ChosenMembers(members, stored.key, stored.reused, (Dropped(
+            "member", target, NF_REAL, f"refits failed: {type(error).__name__}: {error}"),))
+    members.append(refits)
+    return ChosenMembers(members, stored.key, stored.reused,
+                         newest_refit_fallbacks(refits, target))
+
+
+def newest_refit_fallbacks(refits: FineTunedGrowthMember, target: str) -> tuple[Dropped, ...]:
+    """The refits that diverged and were replaced, where that matters to the newest forecast:
+    a refit date after the newest refit that trained."""
+    newest = max(refits.models, default=None)
+    return tuple(Dropped("refit", target, f"{NF_REAL} {date.date()}", why)
+                 for date, why in refits.fallbacks.items() if newest is None or date > newest)
 
 
 # ------------------------------------------------------------------- the hub's weekly panels
@@ -234,11 +254,7 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         else:
             members.append(refits)
             refitted = True
-            # a fallback matters to this round when the newest refit is one that diverged
-            newest = max(refits.models, default=None)
-            dropped += [Dropped("refit", target, f"{NF_REAL} {date.date()}", why)
-                        for date, why in refits.fallbacks.items()
-                        if newest is None or date > newest]
+            dropped += newest_refit_fallbacks(refits, target)
     lost = {d.name for d in dropped}     # a member that could not be built: the rest average
     published = tuple(n for n in published_names(config, target, refitted=refitted)
                       if n not in lost)

@@ -148,7 +148,8 @@ def page_one_headline(h: Headline) -> str:
 def weekly_notices(results: ForecastResults, today: dt.date, n_left_out_sections: int
                    ) -> tuple[Notice, ...]:
     """What this run left out or held, briefly (the full banner and notes are on page 2):
-    stale or old data, the places the gate left out of the pooled data, sections not drawn."""
+    stale or old data, the places the gate left out of the pooled data, the members the
+    published forecast went without (a hub round's rule), sections not drawn."""
     out = []
     last = pd.to_datetime(results.sir_frame["date"]).max().date()
     age = (today - last).days
@@ -164,6 +165,9 @@ def weekly_notices(results: ForecastResults, today: dt.date, n_left_out_sections
         out.append(Notice(NoticeKind.LEFT_OUT, f"{len(skipped)} place(s) left out of the "
                           f"pooled members' data by the validation gate: "
                           f"{', '.join(sorted(skipped))}."))
+    out += [Notice(NoticeKind.LEFT_OUT, f"Member {d.name} left out of the published forecast: "
+                   f"{d.why}." if d.what == "member" else f"Refit {d.name} replaced: {d.why}.")
+            for d in (weekly.dropped() if weekly is not None else ())]
     if n_left_out_sections:
         out.append(Notice(NoticeKind.NOTE, f"{n_left_out_sections} diagnostic section(s) could "
                           "not be drawn (named on page 2)."))
