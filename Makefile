@@ -13,10 +13,12 @@ export OMP_WAIT_POLICY := PASSIVE
 
 .PHONY: forecast hub test variants venv sysdeps bench clean-venv
 
+# --no-compile: byte-compiling every installed file (prefect, torch, scipy, ...) was a third of
+# the install; Python compiles the modules a run imports, once, when it first imports them.
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet --no-compile torch==2.13.0
+	$(PY) -m pip install --quiet --no-compile -e '.[dev]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -59,12 +61,16 @@ forecast: venv sysdeps
 hub:
 	$(MAKE) forecast FORECAST_ARGS="--hub covid $(FORECAST_ARGS)"
 
-# The type check first (pyright over pipeline/ and flows/, settings in pyproject.toml): zero errors.
-# Then whole files to two workers (a file's module fixtures are built once), longest files first
-# (the order tests/conftest.py collects them in; xdist's own reorder by test count is off).
+# The type check (pyright over pipeline/ and flows/, settings in pyproject.toml: zero errors)
+# beside the tests, in the time the test workers wait on servers and sockets; its report follows
+# theirs, and either failing fails the target. The tests go as whole files to two workers (a
+# file's module fixtures are built once), longest files first (the order tests/conftest.py
+# collects them in; xdist's own reorder by test count is off).
 test: venv sysdeps
-	$(VENV)/bin/pyright
-	$(VENV)/bin/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	@$(VENV)/bin/pyright > $(VENV)/pyright.log 2>&1 & types=$$!; \
+	$(VENV)/bin/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder; tests=$$?; \
+	wait $$types; typed=$$?; echo "pyright:"; cat $(VENV)/pyright.log; \
+	test $$tests -eq 0 -a $$typed -eq 0
 
 # The report's Table 5 columns beyond the run's own model: train the paper's variants once
 # (Dask workers, flows/scale_out.py); the weekly forecast scores every variant in the model cache.

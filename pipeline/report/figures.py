@@ -73,9 +73,10 @@ _RC: dict[RcKeyType, Any] = {
 
 def _figure(height_in: float, nrows: int = 1, ncols: int = 1, *,
             sharex: bool | Literal["none", "all", "row", "col"] = False,
-            width_in: float = FULL_WIDTH_IN) -> tuple[Figure, NDArray]:
+            width_in: float = FULL_WIDTH_IN,
+            layout: Literal["constrained"] | None = "constrained") -> tuple[Figure, NDArray]:
     with matplotlib.rc_context(_RC):
-        fig = Figure(figsize=(width_in, height_in), dpi=DPI, layout="constrained")
+        fig = Figure(figsize=(width_in, height_in), dpi=DPI, layout=layout)
         FigureCanvasAgg(fig)
         axes = fig.subplots(nrows, ncols, sharex=sharex, squeeze=False)
     return fig, axes
