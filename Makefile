@@ -15,10 +15,12 @@ export OMP_WAIT_POLICY := PASSIVE
 
 # --no-compile: byte-compiling every installed file (prefect, torch, scipy, ...) was a third of
 # the install; Python compiles the modules a run imports, once, when it first imports them.
+# --no-build-isolation: the package builds with the venv's own setuptools and wheel (installed
+# beside torch) instead of a throw-away build environment made on every install.
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --no-compile torch==2.13.0
-	$(PY) -m pip install --quiet --no-compile -e '.[dev]'
+	$(PY) -m pip install --quiet --no-compile torch==2.13.0 'setuptools>=68' wheel
+	$(PY) -m pip install --quiet --no-compile --no-build-isolation -e '.[dev]'
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -74,16 +74,23 @@ def _dropped(summary, what: str) -> dict[tuple[str, str], str]:  # noqa: ANN001
             if d["what"] == what}
 
 
-def test_members_that_raise_or_return_nan_are_dropped_and_the_baseline_is_the_floor(
+def test_members_that_fail_and_a_refit_that_diverges_are_dropped_and_named(
         prefect_harness, tmp_path, releases, monkeypatch):
-    """Admissions' two published members both fail (nf-weekly raises, seasonal returns a NaN
-    median): the round is still published, naming both, its admissions the hub baseline's."""
+    """One round meets three failures at once: admissions' two published members both fail
+    (nf-weekly raises, seasonal returns a NaN median) and every nf-real fine-tune diverges. The
+    round is still published, naming each; its admissions are the hub baseline's (the floor),
+    and the refits fall back to the base flow."""
+    from pipeline.errors import TrainingDivergedError
     from pipeline.members.base import MemberForecast
+    from pipeline.members.nf import finetune
     from pipeline.members.nf.weekly import WeeklyFlowMember
     from pipeline.members.seasonal import SeasonalGrowthMember
 
     def broken(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         raise RuntimeError("injected failure")
+
+    def diverge(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise TrainingDivergedError("injected: validation NLL 30.64 at iteration 240")
 
     forecast = SeasonalGrowthMember.forecast
 
@@ -94,6 +101,7 @@ def test_members_that_raise_or_return_nan_are_dropped_and_the_baseline_is_the_fl
 
     monkeypatch.setattr(WeeklyFlowMember, "forecast", broken)
     monkeypatch.setattr(SeasonalGrowthMember, "forecast", nan)
+    monkeypatch.setattr(finetune, "train", diverge)
     out, summary = _replay(tmp_path, releases)
     last = _last(summary)
     assert summary["rounds_failed"] == 0 and last["state"] == "Completed (degraded)"
@@ -102,6 +110,11 @@ def test_members_that_raise_or_return_nan_are_dropped_and_the_baseline_is_the_fl
     assert dropped[(HOSP, "seasonal")].startswith("non-finite quantiles in ")
     assert dropped[(ED, "seasonal")].startswith("non-finite quantiles in ")
     assert "member nf-weekly (wk inc covid hosp): raised RuntimeError" in last["message"]
+    refits = _dropped(summary, "refit")
+    assert refits and {t for t, _ in refits} <= {HOSP, ED}
+    assert all(name.startswith("nf-real 20") for _, name in refits)
+    assert all("injected: validation NLL 30.64" in why and "instead" in why
+               for why in refits.values())
     back = _checked(out)
     assert back.groupby("target")["location"].nunique().to_dict() == {HOSP: 53, ED: 51}
     # without the floor (the hub baseline where every published member failed) admissions
@@ -109,25 +122,6 @@ def test_members_that_raise_or_return_nan_are_dropped_and_the_baseline_is_the_fl
     hosp = back[(back["target"] == HOSP) & (back["output_type"] == "quantile")]
     assert hosp.groupby("horizon")["location"].nunique().to_dict() == {
         -1: 53, 0: 53, 1: 53, 2: 53, 3: 53}
-
-
-def test_a_refit_forced_to_diverge_falls_back_and_is_named(prefect_harness, tmp_path, releases,
-                                                           monkeypatch):
-    from pipeline.errors import TrainingDivergedError
-    from pipeline.members.nf import finetune
-
-    def diverge(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        raise TrainingDivergedError("injected: validation NLL 30.64 at iteration 240")
-
-    monkeypatch.setattr(finetune, "train", diverge)
-    out, summary = _replay(tmp_path, releases)
-    refits = _dropped(summary, "refit")
-    assert refits and {t for t, _ in refits} <= {HOSP, ED}
-    assert all(name.startswith("nf-real 20") for _, name in refits)
-    assert all("injected: validation NLL 30.64" in why and "instead" in why
-               for why in refits.values())
-    assert _last(summary)["state"] == "Completed (degraded)"
-    assert set(_checked(out)["target"]) == {HOSP, ED}
 
 
 def _revised(releases, due: str):  # noqa: ANN001, ANN202
@@ -144,19 +138,6 @@ def _revised(releases, due: str):  # noqa: ANN001, ANN202
             r = dataclasses.replace(r, payload=canonical_csv(frame))
         out.append(r)
     return out
-
-
-def test_a_release_revising_one_location_holds_that_location_alone(prefect_harness, tmp_path,
-                                                                   releases):
-    out, summary = _replay(tmp_path, _revised(releases, DUE), start="2025-09-17")
-    last = _last(summary)
-    assert last["state"] != "Failed"
-    assert set(_checked(out)["target"]) == {HOSP, ED}
-    assert HOSP in last["published_targets"]
-    assert (HOSP, "06") in _dropped(summary, "location")
-    # page 1 says the revision waits for review (the operator's `data accept-revisions`)
-    report = (Path(last["model_output"]).parents[2] / "report.html").read_text()
-    assert f"{HOSP}: revision of 06 waiting for review" in report
 
 
 def test_a_target_whose_last_release_is_five_weeks_old_is_left_out_and_said(
@@ -181,15 +162,26 @@ def test_a_target_whose_last_release_is_five_weeks_old_is_left_out_and_said(
     assert facts[ED]["dropped"][0]["why"].endswith("not 2025-09-27)")
 
 
-def test_each_wednesday_sees_only_its_releases_and_a_rerun_replays_only_the_new_ones(
+def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location_alone(
         prefect_harness, tmp_path, releases):
-    out, first = _replay(tmp_path, releases, start="2025-09-17", end="2025-09-17")
+    """2025-09-17's round, then a rerun to 2025-09-24 whose admissions release revises
+    California's settled weeks tenfold: the rerun replays only the new Wednesday, and that
+    round holds California alone (named, and said on page 1) while the rest go live."""
+    revised = _revised(releases, DUE)
+    out, first = _replay(tmp_path, revised, start="2025-09-17", end="2025-09-17")
     assert [r["reference_date"] for r in first["rounds"]] == ["2025-09-20"]
     # 2025-09-24's releases are not in the cache of 2025-09-17's round
     assert not list((out / "releases").glob("2025-09-24-*"))
-    _, again = _replay(tmp_path, releases, start="2025-09-17", end=DUE)
+    _, again = _replay(tmp_path, revised, start="2025-09-17", end=DUE)
     assert [r["reference_date"] for r in again["rounds"]] == ["2025-09-20", "2025-09-27"]
     assert again["rounds"][0] == first["rounds"][0]           # not replayed
     assert again["rounds_due"] == again["rounds_published"] == 2
     assert sorted(p.name for p in (out / "model-output" / "flowcast-nfhub").iterdir()) == [
         "2025-09-20-flowcast-nfhub.csv", "2025-09-27-flowcast-nfhub.csv"]
+    last = _last(again)
+    assert last["state"] != "Failed" and HOSP in last["published_targets"]
+    assert set(_checked(out)["target"]) == {HOSP, ED}
+    assert (HOSP, "06") in _dropped(again, "location")
+    # page 1 says the revision waits for review (the operator's `data accept-revisions`)
+    report = (Path(last["model_output"]).parents[2] / "report.html").read_text()
+    assert f"{HOSP}: revision of 06 waiting for review" in report
