@@ -205,8 +205,9 @@ def derived_scores(targets: Any) -> dict[str, Any]:
 
 def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, float, float]:
     """Every round in real time: the published members, and as variants the flow alone and
-    the published members with the hub baseline or growth-qr, or the refitted flow with
-    growth-qr; seconds to build the members and to forecast."""
+    the published members with the hub baseline or growth-qr, the refitted flow with growth-qr,
+    and the context flow alone, with the seasonal member, and with both; seconds to build the
+    members and to forecast."""
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import CombineConfig
@@ -226,7 +227,12 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     variants = (Variant("v-flow-alone", reach, ("nf-weekly",)),
                 Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
                 Variant("v-flow+growth-qr", reach, (refit, "growth-qr")),
-                Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")))
+                Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
+                # the context flow (issue 38), alone and in the ED share's published pair
+                Variant("v-nf-context alone", reach, ("nf-context",)),
+                Variant("v-nf-context+seasonal", reach, ("nf-context", "seasonal")),
+                Variant("v-nf-context+nf-weekly+seasonal", reach,
+                        ("nf-context", "nf-weekly", "seasonal")))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=seed),
                             references=members.references)
