@@ -174,3 +174,30 @@ def test_a_diverged_refit_falls_back_to_the_one_before(monkeypatch):
 @dataclasses.dataclass(frozen=True)
 class _FakeFlow:
     estimator: object = None
+
+
+def test_only_what_changes_the_submission_degrades_a_round():
+    """A target or a published member left out (or the refit of a published member replaced)
+    degrades the round; nf-real's refit replaced while nf-real is scored beside the hub's
+    average, or a location the gate left out, is named in ``dropped`` but does not."""
+    from pipeline.hub_round.run import HubRun, HubRunConfig, hub_members_preset
+    from pipeline.members.isolation import Dropped
+
+    hosp, ed = "wk inc covid hosp", "wk inc covid prop ed visits"
+    config = HubRunConfig(members=hub_members_preset("tiny"))
+    assert "nf-real" not in (*config.members.published, *config.members.published_share)
+
+    def run(*dropped: Dropped) -> HubRun:
+        return HubRun(config, {}, {}, "", True, {}, dropped)
+
+    beside = Dropped("refit", hosp, "nf-real 2025-09-20", "diverged; the refit of 2025-08-23 "
+                     "instead")
+    gate = Dropped("location", ed, "72", "no week in the last 8")
+    assert not run(beside, gate).degraded and run(beside, gate).degraded_message() == ""
+    flow = Dropped("member", hosp, "nf-weekly", "raised RuntimeError: injected failure")
+    stale = Dropped("target", ed, ed, "no current release")
+    degraded = run(beside, flow, gate, stale)
+    assert degraded.degraded
+    assert degraded.degraded_message() == (
+        f"target {ed}: no current release; member nf-weekly ({hosp}): raised RuntimeError: "
+        "injected failure")

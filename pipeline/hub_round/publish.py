@@ -74,14 +74,16 @@ def round_frame(run: HubRun, tasks: Mapping[str, Any] | None = None) -> pd.DataF
 
 def dropped_and_held_notices(run: HubRun) -> tuple[Notice, ...]:
     """Page 1's notices beyond the locations left out: what the round dropped from its
-    submission (a target, a member) or replaced (a refit), and the locations whose revised
-    history waits for review (kept at their cached series)."""
+    submission (a target, a published member) or replaced (a published member's refit), and
+    the locations whose revised history waits for review (left out of the round until the
+    operator accepts the revision or the source takes it back; their accepted series is kept
+    in the archive)."""
     kinds = {"target": NoticeKind.LEFT_OUT, "member": NoticeKind.LEFT_OUT,
              "refit": NoticeKind.NOTE}
     dropped = [Notice(kinds[d.what], f"Not in this submission as planned: {d.line()}")
-               for d in run.dropped if d.what in kinds]
+               for d in run.dropped if d.what in kinds and run.in_submission(d)]
     held = [Notice(NoticeKind.HELD, f"{p.target}: revision of {location} waiting for review "
-                                    f"({why}); its cached series is used")
+                                    f"({why}); left out until reviewed")
             for p in run.provenance.values() for location, why in p.held.items()]
     return tuple(dropped + held)
 

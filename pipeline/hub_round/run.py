@@ -39,7 +39,7 @@ from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targ
 from pipeline.errors import ConfigError, OfflineError
 from pipeline.members.nf.finetune import FineTuneConfig
 from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
-from pipeline.members.published import HubMembersConfig, build_hub_members
+from pipeline.members.published import HubMembersConfig, build_hub_members, published_names
 from pipeline.members.nf.weekly import WeeklyFlowConfig
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
 from pipeline.members.isolation import Dropped
@@ -147,16 +147,28 @@ class HubRun:
         reference = pd.Timestamp(self.reference_date)
         return tuple(t for t, r in self.results.items() if r.rounds[-1].reference == reference)
 
+    def in_submission(self, item: Dropped) -> bool:
+        """Whether ``item`` changed the submission as planned: a target left out, or a member
+        of the published average (or its refit) left out or replaced. A member scored beside
+        the average (nf-real of the hub) is named in ``dropped`` but leaves the file as it
+        was; a location left out is the gate's, said apart."""
+        if item.what in ("target", "location"):
+            return item.what == "target"
+        member = item.name.split(" ")[0]       # a refit is named "<member> <date>"
+        return member in published_names(self.config.members, item.target, refitted=True)
+
     @property
     def degraded(self) -> bool:
-        """Whether the round left a target or a member out (or fell back from a refit)."""
-        return any(d.what != "location" for d in self.dropped)
+        """Whether the round left a target or a published member out (or replaced the refit
+        of one)."""
+        return any(self.in_submission(d) for d in self.dropped)
 
     def degraded_message(self) -> str:
-        """The run state's message: what was left out and why, targets first."""
+        """The run state's message: what was left out of the submission and why, targets
+        first."""
         order = {"target": 0, "member": 1, "refit": 2, "location": 3}
         lines = [d.line() for d in sorted(self.dropped, key=lambda d: order[d.what])
-                 if d.what != "location"]
+                 if self.in_submission(d)]
         return "; ".join(lines)
 
     @property
