@@ -775,12 +775,10 @@ def _totals(results: list[CaseResult]) -> dict[str, int]:
 
 
 SOURCES = ("datasf", "cdph", "nhsn", "hub_round", "import")
-# Issue 39's round cases (round_published, dropped per case, bench.faults_round); a round that
-# must publish without a target depends on issue 37's failure isolation (another branch).
-HUB_ROUND_NOTE = ("rounds on the tiny preset from the cache after a faulted newer admissions "
-                  "release; round-stale-release-held fails here: the round file then holds no "
-                  "admissions and names nothing (problem 7), which issue 37's failure isolation "
-                  "(another branch) is to mend")
+# Issue 39's round cases (round_published, dropped per case, bench.faults_round)
+HUB_ROUND_NOTE = ("rounds on the tiny preset from the cache after a faulted newer release of "
+                  "admissions or the ED share; each records whether the round was published "
+                  "and what it left out (per target: location -> why, or the target itself)")
 
 
 def main() -> int:
