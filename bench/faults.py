@@ -96,7 +96,7 @@ def api_rows(key: str = "cases", datasf_dir: Path = DATASF) -> Rows:
             values = stamps.dt.strftime("%Y-%m-%dT%H:%M:%S.000")
         out[spec_field.api] = values
     out = out.sort_values(spec.date.api, ignore_index=True)
-    return out.to_dict(orient="records")
+    return [{str(k): v for k, v in r.items()} for r in out.to_dict(orient="records")]
 
 
 def cases_api_rows() -> Rows:
@@ -115,7 +115,7 @@ class Seen:
 
 
 class _Handler(BaseHTTPRequestHandler):
-    server: _Server
+    server: _Server  # pyright: ignore[reportIncompatibleVariableOverride] - the real type
     protocol_version = "HTTP/1.1"
 
     def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - quiet
