@@ -46,6 +46,10 @@ HOLDS_FILE = "held-locations.json"
 # why a location is held: its settled weeks revised beyond the policy, or the location missing
 # from a newer release altogether (issue 39: one state missing used to refuse the whole release)
 HoldKind = Literal["revision", "missing"]
+# More places held at once than this share of the source's places is a broken payload, held (or
+# refused) whole: on the real releases at most 4 of 53 hub locations (FluSight) and 1 of 58
+# counties (CDPH's four-month step) are held by one release.
+MAX_HELD_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,14 @@ class Hold:
     reason: str
     until: str | None = None
     kind: HoldKind = "revision"
+
+    def note(self) -> str:
+        """How a vintage read without this place names it (its ``skipped``)."""
+        if self.kind == "missing":
+            return (f"{self.location}: missing from the release of {self.since} (its series of "
+                    f"{self.reference} kept until it is back): {self.reason}")
+        return (f"{self.location}: revision held for review since the release of {self.since} "
+                f"(its series of {self.reference} kept): {self.reason}")
 
     def covers(self, as_of: str) -> bool:
         """Is a vintage released on ``as_of`` (ISO date) read without this location?"""

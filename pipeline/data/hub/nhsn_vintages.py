@@ -36,7 +36,8 @@ from pipeline.data.core.revision_policy import (HELD, RevisionPolicy, describe_b
 from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
-from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
+from pipeline.data.hub.held_locations import (MAX_HELD_SHARE, Hold, Holds, read_holds,
+                                                write_holds)
 from pipeline.data.hub.locations import (JURISDICTION_LOCATION, NAME_LOCATION,
                                          NOT_HUB_JURISDICTIONS, POPULATION, US, hub_location)
 from pipeline.data.hub.release import refuse_future, refuse_implausible
@@ -336,9 +337,6 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: Re
     return Successor(held, missing)
 
 
-MAX_HELD_SHARE = 0.25
-
-
 def _missing_locations(new: WeeklyVintage, cached: WeeklyVintage,
                        references: Mapping[str, WeeklyVintage]) -> dict[str, str]:
     """The locations of the live vintage (or held, with a reference) that ``new`` lacks
@@ -405,14 +403,6 @@ def _location_revised(new: WeeklyVintage, reference: WeeklyVintage, location: st
                                                f"{reference.as_of.date()})")
 
 
-def _held_note(hold: Hold) -> str:
-    if hold.kind == "missing":
-        return (f"{hold.location}: missing from the release of {hold.since} (its series of "
-                f"{hold.reference} kept until it is back): {hold.reason}")
-    return (f"{hold.location}: revision held for review since the release of {hold.since} (its "
-            f"series of {hold.reference} kept): {hold.reason}")
-
-
 def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
     """``vintage`` without the locations held at its release date, each named in ``skipped``
     ("revision held for review since …")."""
@@ -420,7 +410,7 @@ def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
     if not held:
         return vintage
     frame = vintage.frame[~vintage.frame["location"].isin(list(held))].reset_index(drop=True)
-    skipped = {**vintage.skipped, **{loc: _held_note(h) for loc, h in held.items()}}
+    skipped = {**vintage.skipped, **{loc: h.note() for loc, h in held.items()}}
     return WeeklyVintage(vintage.target, vintage.as_of, frame, dict(sorted(skipped.items())),
                          vintage.source, vintage.derived, vintage.missing)
 
