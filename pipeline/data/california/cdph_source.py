@@ -22,13 +22,20 @@ against the live one:
 * it may not end earlier (an older vintage) nor start later, nor drop a county;
 * days older than ``open_days`` (28) before the live vintage's last day are *settled*: each
   county's ``cases``, ``deaths`` and ``reported_cases`` there may change by at most
-  ``max(settled_abs, settled_rel × cached)`` = max(100, 50 %); the statewide total of each column
-  over the common days may fall by at most 2 %. Breaking either holds the payload for review
-  (``held/``; ``--accept-revisions`` takes it after review).
+  ``max(settled_abs, settled_rel × cached)`` = max(100, 50 %). Judged **county by county**
+  (issue 39, as the hub's locations, :mod:`pipeline.data.hub.held_locations`): a county beyond
+  it is held alone — the vintage goes live for the others, the county keeps its last accepted
+  series (its reference, against which later vintages judge it) and is named in every vintage
+  read from then on ("Los Angeles: revision held for review since the release of …"), until a
+  later vintage agrees with that reference again or the operator accepts it
+  (:func:`accept_county_revisions`; ``--accept-revisions`` accepts every county). More than a
+  quarter of the counties at once, or the statewide total of the other counties' common days
+  falling by more than 2 %, holds the whole payload for review (``held/``).
 
 Measured on the six real vintages: weekly successors revise settled days by at most 58 cases
 (none beyond the tolerance); the four-month step 2021-04-28 → 2021-09-06 revises one settled day
-beyond it (Los Angeles 2020-06-21, 1,043 → 1,573 cases), so it is held unless accepted.
+beyond it (Los Angeles 2020-06-21, 1,043 → 1,573 cases): Los Angeles is held, the other 57
+counties go live (the whole vintage used to be held unless accepted).
 
 The validation gate runs before any commit and on every read of a cached vintage: a county that
 fails it is skipped and named (``CDPHVintage.skipped``, and a note on the provenance), the other
@@ -39,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -52,14 +60,17 @@ import requests
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
                                       utc_now, RevisionRefusedError)
-from pipeline.data.core.revision_policy import RevisionPolicy, refuse_revisions
+from pipeline.data.core.revision_policy import (HELD, RevisionPolicy, describe_breaks,
+                                                refuse_revisions, settled_breaks)
 from pipeline.data.california.cdph import (COUNT_COLUMNS, CDPHFormatError, CDPHVintage,
                                            parse_cdph_csv)
 from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
                                            CHHSClientConfig, CKANResourceSpec)
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.core.vintages import Committed, VintageArchive
-from pipeline.errors import DataSourceError, OfflineError, ValidationError
+from pipeline.data.hub.held_locations import (MAX_HELD_SHARE, Hold, Holds, read_holds,
+                                               write_holds)
+from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
 
 log = logging.getLogger(__name__)
 
@@ -134,8 +145,37 @@ def validate_cdph_payload(data: bytes, source: str) -> CDPHVintage:
 
 
 def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
-                         policy: RevisionPolicy = DEFAULT_POLICY) -> None:
-    """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (module doc)."""
+                         policy: RevisionPolicy = DEFAULT_POLICY, *,
+                         references: Mapping[str, CDPHVintage] | None = None) -> dict[str, str]:
+    """The counties of ``new`` to hold for review (county -> why), judged one by one: each
+    against ``cached`` (the live vintage), a county already held against its reference
+    vintage (``references``). Raise :class:`RevisionRefusedError` unless ``new`` may replace
+    ``cached`` at all (module doc): older, shrinking, a county dropped, a county failing the
+    gate in a payload of the same date, the statewide total of the other counties falling
+    beyond the policy, or more than a quarter of the counties revised (held whole)."""
+    key = SPEC.key
+    refs = references or {}
+    _refuse_cdph_shape(new, cached)
+    held = _counties_revised(new, cached, policy, last=cached.as_of,
+                             counties=[c for c in new.counties if c not in refs])
+    for county, reference in refs.items():
+        if county in new.counties:
+            held |= {c: f"{why} (against its series in the vintage of "
+                        f"{reference.as_of.date()})" for c, why in _counties_revised(
+                            new, reference, policy, last=reference.as_of,
+                            counties=[county]).items()}
+    if len(held) > MAX_HELD_SHARE * len(cached.counties):
+        raise RevisionRefusedError(
+            f"{key}: {len(held)} of the {len(cached.counties)} counties revise settled days "
+            f"beyond the policy (more than {MAX_HELD_SHARE:.0%}: the vintage is held whole); "
+            f"e.g. {next(iter(held.values()))}; {HELD}", hold=True)
+    _refuse_statewide_drop(new, cached, policy, judged_alone={*held, *refs})
+    return held
+
+
+def _refuse_cdph_shape(new: CDPHVintage, cached: CDPHVintage) -> None:
+    """What no county-by-county judgement can mend (the first lines of
+    :func:`check_cdph_successor`)."""
     key = SPEC.key
     if new.as_of < cached.as_of:
         raise RevisionRefusedError(
@@ -159,15 +199,86 @@ def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
             f"{key}: {worse[0]} passes the validation gate in the cached vintage of "
             f"{cached.as_of.date()} but fails it in a new payload of the same date "
             f"({new.skipped[worse[0]]}); cached copy kept")
-    common = cached.frame.merge(new.frame, on=["area", "date"], suffixes=("", "_new"))
+
+
+def _common_days(new: CDPHVintage, reference: CDPHVintage, counties: Sequence[str]
+                 ) -> pd.DataFrame:
+    """The county-days of ``counties`` both vintages hold, the reference's counts beside the
+    new ones (``<column>_new``)."""
+    mine = new.frame[new.frame["area"].isin(counties)]
+    theirs = reference.frame[reference.frame["area"].isin(counties)]
+    return theirs.merge(mine, on=["area", "date"], suffixes=("", "_new"))
+
+
+def _counties_revised(new: CDPHVintage, reference: CDPHVintage, policy: RevisionPolicy, *,
+                      last: pd.Timestamp, counties: Sequence[str]) -> dict[str, str]:
+    """Each of ``counties`` whose settled days in ``new`` break ``policy`` against
+    ``reference`` (whose last day is ``last``), with why: every column judged over every
+    common county-day at once, the counties that break described one by one."""
+    common = _common_days(new, reference, counties)
+    dates = common["date"].to_numpy()
+    breaks = {column: settled_breaks(common[column].to_numpy(np.int64),
+                                     common[f"{column}_new"].to_numpy(np.int64), dates,
+                                     policy=policy, last=last) for column in COUNT_COLUMNS}
+    any_break = np.logical_or.reduce(list(breaks.values()))
+    held: dict[str, str] = {}
+    areas = common["area"].astype(str).to_numpy()
+    for county in sorted(set(areas[any_break].tolist())):    # the few that break
+        mine = areas == county
+        column = next(c for c in COUNT_COLUMNS if (breaks[c] & mine).any())
+        rows = common[mine]
+        held[county] = describe_breaks(
+            SPEC.key, column, rows[column].to_numpy(np.int64),
+            rows[f"{column}_new"].to_numpy(np.int64), breaks[column][mine], policy=policy,
+            last=last, cells="county-day",
+            example=lambda i, rows=rows: f"{county} {pd.Timestamp(rows['date'].iloc[i]).date()}")
+    return held
+
+
+def _refuse_statewide_drop(new: CDPHVintage, cached: CDPHVintage, policy: RevisionPolicy, *,
+                           judged_alone: set[str]) -> None:
+    """The statewide total of each column over the common days of the counties not judged
+    alone (held, or judged against their own reference) may fall by at most the policy's
+    share: a whole-file event, refused whole."""
+    others = [c for c in new.counties if c not in judged_alone]
+    common = _common_days(new, cached, others)
     for column in COUNT_COLUMNS:
         refuse_revisions(
-            key, column, common[column].to_numpy(np.int64),
+            SPEC.key, column, common[column].to_numpy(np.int64),
             common[f"{column}_new"].to_numpy(np.int64), common["date"].to_numpy(),
             policy=policy, last=cached.as_of, cells="county-day",
             over="the counties' common days",
             example=lambda i: (f"{common['area'].iloc[i]} "
                                f"{pd.Timestamp(common['date'].iloc[i]).date()}"))
+
+
+def with_county_holds(vintage: CDPHVintage, holds: Holds) -> CDPHVintage:
+    """``vintage`` without the counties held at its date, each named in ``skipped``."""
+    held = holds.at(str(vintage.as_of.date()))
+    if not held:
+        return vintage
+    frame = vintage.frame[~vintage.frame["area"].isin(list(held))].reset_index(drop=True)
+    skipped = {**vintage.skipped, **{county: h.note() for county, h in held.items()}}
+    return dataclasses.replace(vintage, frame=frame, skipped=dict(sorted(skipped.items())))
+
+
+def counties_waiting(data_dir: str | os.PathLike[str] | None = None) -> dict[str, Hold]:
+    """The counties whose revision waits for review, each with its hold."""
+    return read_holds(DatasetCache.default(data_dir).directory(SPEC)).waiting()
+
+
+def accept_county_revisions(counties: Sequence[str],
+                            data_dir: str | os.PathLike[str] | None = None) -> dict[str, Hold]:
+    """The operator accepts the waiting revision of each of ``counties`` alone: from the live
+    vintage on, they read as released. Returns the holds ended."""
+    cache = DatasetCache.default(data_dir)
+    manifest = cache.read_manifest(SPEC)
+    if manifest is None:
+        raise ConfigError("no cached CDPH county vintage: nothing to accept")
+    folder = cache.directory(SPEC)
+    holds = read_holds(folder)
+    write_holds(folder, holds.accepted(tuple(counties), live=manifest.last_date[:10]))
+    return {c: holds.waiting()[c] for c in counties}
 
 
 def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | None:
@@ -186,17 +297,26 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
     """Store an already validated vintage (:meth:`VintageArchive.commit`, under the cache lock):
     live if the revision policy allows it against the live copy; older than the live one,
     archived (``older="archive"``, imports) or refused (``"refuse"``, a live portal going
-    back). A vintage the policy refuses is held for review (the error names where) and the cache
+    back). A county revised beyond the policy is held alone (:mod:`pipeline.data.hub.
+    held_locations`: its accepted series kept, named), the vintage live for the others; a
+    vintage the policy refuses whole is held for review (the error names where) and the cache
     is unchanged."""
+    folder = cache.directory(SPEC)
+    holds = read_holds(folder)
+    found: dict[str, str] = {}
+    reference: list[str] = []
+
     def check(live: CachedPayload | None) -> None:
         if live is None or accept_revisions:
             return
         cached = _cached_vintage(live, cache)
         if cached is not None:
-            check_cdph_successor(vintage, cached, policy)
+            found.update(check_cdph_successor(vintage, cached, policy,
+                                              references=_references(cache, holds)))
+            reference.append(str(cached.as_of.date()))
 
     frame = vintage.frame
-    return archive(cache).commit(
+    committed = archive(cache).commit(
         payload, as_of=vintage.as_of.date(), suffix="csv",
         older="archive" if older == "archive" and not accept_revisions else "refuse",
         check=check, accept_hint="`flowcast data fetch --source chhs --accept-revisions` (or "
@@ -205,6 +325,24 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
         first_date=str(frame["date"].min().date()), last_date=str(vintage.as_of.date()),
         data_as_of=None, final_cumulative=None, final_url=final_url,
         lock_timeout_s=lock_timeout_s)
+    if committed.action == "live":
+        as_of = str(vintage.as_of.date())
+        after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accept_revisions else
+                 holds.opened(found, since=as_of, reference=reference[0] if reference else as_of))
+        if after != holds:
+            write_holds(folder, after)
+    return committed
+
+
+def _references(cache: DatasetCache, holds: Holds) -> dict[str, CDPHVintage]:
+    """Each waiting county's reference vintage (its last accepted series), from the archive."""
+    waiting = holds.waiting()
+    if not waiting:
+        return {}
+    kept = archive(cache)
+    by_date = {str(as_of): path for as_of, path in kept.listing()}
+    return {county: parse_cached(cache, kept.read(by_date[h.reference]), str(by_date[h.reference]))
+            for county, h in waiting.items() if h.reference in by_date}
 
 
 def archive(cache: DatasetCache) -> VintageArchive:
@@ -247,7 +385,8 @@ def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad
     if cached is None:
         raise no_cache_error("CDPH county data", cache.directory(SPEC), why,
                              fetch="flowcast data fetch --source chhs", otherwise=_IMPORT_HINT)
-    vintage = parse_cached(cache, cached.payload, str(cached.path))
+    vintage = with_county_holds(parse_cached(cache, cached.payload, str(cached.path)),
+                                read_holds(cache.directory(SPEC)))
     stale = cached.manifest.age_days(now)
     data_age = (now.date() - date.fromisoformat(cached.manifest.last_date[:10])).days
     notes = ((why,) if why else ()) + (
@@ -271,6 +410,7 @@ def _fetch_live(cache: DatasetCache, config: CDPHConfig, session: requests.Sessi
                                accept_revisions=config.accept_revisions, policy=config.policy,
                                lock_timeout_s=config.lock_timeout_s)
     assert committed.manifest is not None  # older="refuse": live or refused, never archived
+    vintage = with_county_holds(vintage, read_holds(cache.directory(SPEC)))
     notes = (f"CKAN resource {fetched.resource.id or fetched.resource.name}, last modified "
              f"{fetched.resource.last_modified or 'unknown'}",)
     return CDPHLoad(vintage, _provenance(committed.manifest, vintage, from_cache=False,
@@ -313,10 +453,10 @@ def cached_vintages(data_dir: str | os.PathLike[str] | None = None) -> list[CDPH
     :class:`~pipeline.data.core.cache.CacheDamagedError`). A cache filled before ``vintages/``
     existed still yields its live copy."""
     cache = DatasetCache.default(data_dir)
-    kept = archive(cache)
+    kept, holds = archive(cache), read_holds(cache.directory(SPEC))
     vintages: list[CDPHVintage] = []
     for as_of, path in kept.listing():
-        vintage = parse_cached(cache, kept.read(path), str(path))
+        vintage = with_county_holds(parse_cached(cache, kept.read(path), str(path)), holds)
         if vintage.as_of.date() != as_of:
             raise CDPHFormatError(f"cached CDPH vintage {path} ends {vintage.as_of.date()}, not "
                                   f"on the date in its name")
@@ -426,7 +566,8 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
 
 
 __all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance",
-           "CheckedExport", "cached_vintages", "check_cdph_successor",
+           "CheckedExport", "accept_county_revisions", "cached_vintages", "check_cdph_successor",
+           "counties_waiting", "with_county_holds",
            "commit_vintage", "import_cdph_exports", "is_cdph_export",
            "load_cdph", "load_cdph_vintage", "store_cdph_exports", "validate_cdph_exports",
            "validate_cdph_payload"]
