@@ -208,7 +208,14 @@ def test_a_county_revised_on_import_is_held_alone_until_accepted(data_dir):
         kept[-1].county("Los Angeles")
     assert load_cdph_vintage(CDPHConfig(data_dir=data_dir), offline=True).counties == \
         kept[-1].counties
-    accept_county_revisions(["Los Angeles"], data_dir)
+    status = run("status")       # the CLI names it and how to accept it ($FLOWCAST_DATA_DIR)
+    assert ("Los Angeles: revision waiting since the vintage of 2021-09-06 (`flowcast data "
+            "accept-revisions --cdph 'Los Angeles'`)") in " ".join(status.output.split())
+    assert run("accept-revisions", "Los Angeles").exit_code == 1     # --cdph or --target
+    accepted = run("accept-revisions", "--cdph", "Los Angeles")
+    assert accepted.exit_code == 0, accepted.output
+    assert "accepted CDPH Los Angeles: its revision held since the release of 2021-09-06" in \
+        " ".join(accepted.output.split())
     assert counties_waiting(data_dir) == {}
     assert "Los Angeles" in cached_vintages(data_dir)[-1].counties
     with pytest.raises(ConfigError, match="no revision waits for Alameda"):
