@@ -366,3 +366,19 @@ def test_an_ed_share_release_without_the_us_row_goes_live_without_the_us(tmp_pat
     assert newest.skipped == {"US": "US: no national row in the release; a share cannot be "
                                     "summed from the states: the national forecast is left out"}
     assert revisions_waiting(ed, data) == {}
+
+
+def test_no_national_row_and_a_state_missing_leaves_the_us_out_by_name():
+    """Admissions without the US row are summed from the states only when every state reports:
+    with California missing too, the US is left out and named (not a sum of 51 states)."""
+    from datetime import date
+    from pipeline.data.hub.nhsn_vintages import canonical_csv, parse_vintage
+    frame = release("2025-09-24").assign(target_end_date=lambda f: pd.to_datetime(
+        f["target_end_date"]))
+    payload = canonical_csv(frame[~frame["location"].isin(["US", "06"])])
+    vintage = parse_vintage(TARGETS[HOSP_COVID], payload, suffix="csv",
+                            as_of=date(2025, 9, 24), source="t")
+    assert vintage.derived == {} and len(vintage.locations) == 51
+    assert vintage.skipped == {"US": "US: no national row in the release; the states do not all "
+                                     "report (1 missing, e.g. 06): the national forecast is left "
+                                     "out"}

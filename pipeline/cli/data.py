@@ -324,7 +324,8 @@ def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
             typer.echo(f"  {held} payload(s) held for review in "
                        f"{cache.directory(spec) / 'held'}")
         for location, hold in revisions_waiting(target, cache.root).items():
-            typer.echo(f"  {location}: revision waiting since the release of {hold.since} "
+            what = "missing" if hold.kind == "missing" else "revision waiting"
+            typer.echo(f"  {location}: {what} since the release of {hold.since} "
                        f"(`flowcast data accept-revisions --target '{target}' {location}`): "
                        f"{hold.reason}")
 
