@@ -7,7 +7,8 @@ at the resource's download URL. Then each fault in turn: HTTP 500 and 429 (with 
 Retry-After longer than the client waits, a truncated body (short of its Content-Length, and cut
 without one), HTML instead of the CSV or the JSON, a resource missing from the package, a gzip
 bomb, a bad gzip body, a missing column, a dropped county, a shrunk date range (a real older
-vintage; a later first day), an implausible count, a revision of settled days (held for review), a
+vintage; a later first day), an implausible count, a revision of one county's settled days (that
+county held alone, the others live; sixteen counties at once: the file held for review), a
 refused connection, a server dripping bytes past the deadline, a redirect to another host and a
 download URL on another host. Everything goes through the real ``requests`` stack.
 
