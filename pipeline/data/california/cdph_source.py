@@ -16,26 +16,14 @@ transactional store of :mod:`pipeline.data.core.cache`)::
     vintages/<as-of>-<sha[:16]>.csv every vintage ever accepted, immutable (nowcasting needs them)
     held/payload-<sha[:16]>.csv     payloads the revision policy refused, with .reason.json
 
-Revision policy (a :class:`~pipeline.data.core.revision_policy.RevisionPolicy`), a new vintage
-against the live one:
-
-* it may not end earlier (an older vintage) nor start later, nor drop a county;
-* days older than ``open_days`` (28) before the live vintage's last day are *settled*: each
-  county's ``cases``, ``deaths`` and ``reported_cases`` there may change by at most
-  ``max(settled_abs, settled_rel × cached)`` = max(100, 50 %). Judged **county by county**
-  (issue 39, as the hub's locations, :mod:`pipeline.data.hub.held_locations`): a county beyond
-  it is held alone — the vintage goes live for the others, the county keeps its last accepted
-  series (its reference, against which later vintages judge it) and is named in every vintage
-  read from then on ("Los Angeles: revision held for review since the release of …"), until a
-  later vintage agrees with that reference again or the operator accepts it
-  (:func:`accept_county_revisions`; ``--accept-revisions`` accepts every county). More than a
-  quarter of the counties at once, or the statewide total of the other counties' common days
-  falling by more than 2 %, holds the whole payload for review (``held/``).
-
-Measured on the six real vintages: weekly successors revise settled days by at most 58 cases
-(none beyond the tolerance); the four-month step 2021-04-28 → 2021-09-06 revises one settled day
-beyond it (Los Angeles 2020-06-21, 1,043 → 1,573 cases): Los Angeles is held, the other 57
-counties go live (the whole vintage used to be held unless accepted).
+Revision policy (a :class:`~pipeline.data.core.revision_policy.RevisionPolicy`, judged county by
+county: :mod:`pipeline.data.california.county_revisions`): a new vintage against the live one may
+not end earlier, start later nor drop a county; a county whose settled days change beyond
+max(100, 50 %) is held alone (named in every vintage read from then on, its accepted series
+kept; :func:`accept_county_revisions` after review), the vintage live for the others; more than
+a quarter of the counties, or the other counties' statewide total falling by more than 2 %,
+holds the payload for review (``held/``; ``--accept-revisions`` takes it). On the six real
+vintages the four-month step 2021-04-28 → 2021-09-06 holds Los Angeles alone.
 
 The validation gate runs before any commit and on every read of a cached vintage: a county that
 fails it is skipped and named (``CDPHVintage.skipped``, and a note on the provenance), the other
@@ -46,7 +34,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import dataclasses
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -54,22 +41,20 @@ from dataclasses import dataclass, field
 from datetime import date, datetime
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import requests
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
-                                      utc_now, RevisionRefusedError)
-from pipeline.data.core.revision_policy import (HELD, RevisionPolicy, describe_breaks,
-                                                refuse_revisions, settled_breaks)
-from pipeline.data.california.cdph import (COUNT_COLUMNS, CDPHFormatError, CDPHVintage,
-                                           parse_cdph_csv)
+                                      utc_now)
+from pipeline.data.core.revision_policy import RevisionPolicy
+from pipeline.data.california.cdph import CDPHFormatError, CDPHVintage, parse_cdph_csv
 from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
                                            CHHSClientConfig, CKANResourceSpec)
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.core.vintages import Committed, VintageArchive
-from pipeline.data.hub.held_locations import (MAX_HELD_SHARE, Hold, Holds, read_holds,
-                                               write_holds)
+from pipeline.data.california.county_revisions import (DEFAULT_POLICY, check_cdph_successor,
+                                                     with_county_holds)
+from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
 from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
 
 log = logging.getLogger(__name__)
@@ -80,7 +65,6 @@ _IMPORT_HINT = (f"import a downloaded covid19cases_test.csv ({SPEC.download_url(
                 f"`flowcast data import FILE`")
 
 
-DEFAULT_POLICY = RevisionPolicy(open_days=28, settled_abs=100, settled_rel=0.5, max_total_drop=0.02)
 
 
 @dataclass(frozen=True)
@@ -141,125 +125,7 @@ def validate_cdph_payload(data: bytes, source: str) -> CDPHVintage:
     return parse_cdph_csv(data, source)
 
 
-# ---------------------------------------------------------------------------- revision policy
-
-
-def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
-                         policy: RevisionPolicy = DEFAULT_POLICY, *,
-                         references: Mapping[str, CDPHVintage] | None = None) -> dict[str, str]:
-    """The counties of ``new`` to hold for review (county -> why), judged one by one: each
-    against ``cached`` (the live vintage), a county already held against its reference
-    vintage (``references``). Raise :class:`RevisionRefusedError` unless ``new`` may replace
-    ``cached`` at all (module doc): older, shrinking, a county dropped, a county failing the
-    gate in a payload of the same date, the statewide total of the other counties falling
-    beyond the policy, or more than a quarter of the counties revised (held whole)."""
-    key = SPEC.key
-    refs = references or {}
-    _refuse_cdph_shape(new, cached)
-    held = _counties_revised(new, cached, policy, last=cached.as_of,
-                             counties=[c for c in new.counties if c not in refs])
-    for county, reference in refs.items():
-        if county in new.counties:
-            held |= {c: f"{why} (against its series in the vintage of "
-                        f"{reference.as_of.date()})" for c, why in _counties_revised(
-                            new, reference, policy, last=reference.as_of,
-                            counties=[county]).items()}
-    if len(held) > MAX_HELD_SHARE * len(cached.counties):
-        raise RevisionRefusedError(
-            f"{key}: {len(held)} of the {len(cached.counties)} counties revise settled days "
-            f"beyond the policy (more than {MAX_HELD_SHARE:.0%}: the vintage is held whole); "
-            f"e.g. {next(iter(held.values()))}; {HELD}", hold=True)
-    _refuse_statewide_drop(new, cached, policy, judged_alone={*held, *refs})
-    return held
-
-
-def _refuse_cdph_shape(new: CDPHVintage, cached: CDPHVintage) -> None:
-    """What no county-by-county judgement can mend (the first lines of
-    :func:`check_cdph_successor`)."""
-    key = SPEC.key
-    if new.as_of < cached.as_of:
-        raise RevisionRefusedError(
-            f"{key}: last date moves backwards: new vintage ends {new.as_of.date()}, the cached "
-            f"copy {cached.as_of.date()} (an older vintage); cached copy kept")
-    new_first, old_first = new.frame["date"].min(), cached.frame["date"].min()
-    if new_first > old_first:
-        raise RevisionRefusedError(
-            f"{key}: date range shrinks: new vintage starts {new_first.date()}, the cached copy "
-            f"{old_first.date()}; cached copy kept")
-    # a county the gate skipped in the new vintage is there, only not usable: not "dropped"
-    dropped = sorted(set(cached.counties) - set(new.counties) - set(new.skipped))
-    if dropped:
-        raise RevisionRefusedError(
-            f"{key}: county dropped: {', '.join(dropped)} in the cached vintage of "
-            f"{cached.as_of.date()} but not in the new one ({len(new.counties)} counties); "
-            f"cached copy kept")
-    worse = sorted(set(cached.counties) & set(new.skipped))
-    if worse and new.as_of == cached.as_of:
-        raise RevisionRefusedError(
-            f"{key}: {worse[0]} passes the validation gate in the cached vintage of "
-            f"{cached.as_of.date()} but fails it in a new payload of the same date "
-            f"({new.skipped[worse[0]]}); cached copy kept")
-
-
-def _common_days(new: CDPHVintage, reference: CDPHVintage, counties: Sequence[str]
-                 ) -> pd.DataFrame:
-    """The county-days of ``counties`` both vintages hold, the reference's counts beside the
-    new ones (``<column>_new``)."""
-    mine = new.frame[new.frame["area"].isin(counties)]
-    theirs = reference.frame[reference.frame["area"].isin(counties)]
-    return theirs.merge(mine, on=["area", "date"], suffixes=("", "_new"))
-
-
-def _counties_revised(new: CDPHVintage, reference: CDPHVintage, policy: RevisionPolicy, *,
-                      last: pd.Timestamp, counties: Sequence[str]) -> dict[str, str]:
-    """Each of ``counties`` whose settled days in ``new`` break ``policy`` against
-    ``reference`` (whose last day is ``last``), with why: every column judged over every
-    common county-day at once, the counties that break described one by one."""
-    common = _common_days(new, reference, counties)
-    dates = common["date"].to_numpy()
-    breaks = {column: settled_breaks(common[column].to_numpy(np.int64),
-                                     common[f"{column}_new"].to_numpy(np.int64), dates,
-                                     policy=policy, last=last) for column in COUNT_COLUMNS}
-    any_break = np.logical_or.reduce(list(breaks.values()))
-    held: dict[str, str] = {}
-    areas = common["area"].astype(str).to_numpy()
-    for county in sorted(set(areas[any_break].tolist())):    # the few that break
-        mine = areas == county
-        column = next(c for c in COUNT_COLUMNS if (breaks[c] & mine).any())
-        rows = common[mine]
-        held[county] = describe_breaks(
-            SPEC.key, column, rows[column].to_numpy(np.int64),
-            rows[f"{column}_new"].to_numpy(np.int64), breaks[column][mine], policy=policy,
-            last=last, cells="county-day",
-            example=lambda i, rows=rows: f"{county} {pd.Timestamp(rows['date'].iloc[i]).date()}")
-    return held
-
-
-def _refuse_statewide_drop(new: CDPHVintage, cached: CDPHVintage, policy: RevisionPolicy, *,
-                           judged_alone: set[str]) -> None:
-    """The statewide total of each column over the common days of the counties not judged
-    alone (held, or judged against their own reference) may fall by at most the policy's
-    share: a whole-file event, refused whole."""
-    others = [c for c in new.counties if c not in judged_alone]
-    common = _common_days(new, cached, others)
-    for column in COUNT_COLUMNS:
-        refuse_revisions(
-            SPEC.key, column, common[column].to_numpy(np.int64),
-            common[f"{column}_new"].to_numpy(np.int64), common["date"].to_numpy(),
-            policy=policy, last=cached.as_of, cells="county-day",
-            over="the counties' common days",
-            example=lambda i: (f"{common['area'].iloc[i]} "
-                               f"{pd.Timestamp(common['date'].iloc[i]).date()}"))
-
-
-def with_county_holds(vintage: CDPHVintage, holds: Holds) -> CDPHVintage:
-    """``vintage`` without the counties held at its date, each named in ``skipped``."""
-    held = holds.at(str(vintage.as_of.date()))
-    if not held:
-        return vintage
-    frame = vintage.frame[~vintage.frame["area"].isin(list(held))].reset_index(drop=True)
-    skipped = {**vintage.skipped, **{county: h.note() for county, h in held.items()}}
-    return dataclasses.replace(vintage, frame=frame, skipped=dict(sorted(skipped.items())))
+# ---------------------------------------------------------------------------- held counties
 
 
 def counties_waiting(data_dir: str | os.PathLike[str] | None = None) -> dict[str, Hold]:
