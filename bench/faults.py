@@ -96,7 +96,7 @@ def api_rows(key: str = "cases", datasf_dir: Path = DATASF) -> Rows:
             values = stamps.dt.strftime("%Y-%m-%dT%H:%M:%S.000")
         out[spec_field.api] = values
     out = out.sort_values(spec.date.api, ignore_index=True)
-    return out.to_dict(orient="records")
+    return [{str(k): v for k, v in r.items()} for r in out.to_dict(orient="records")]
 
 
 def cases_api_rows() -> Rows:
@@ -115,7 +115,7 @@ class Seen:
 
 
 class _Handler(BaseHTTPRequestHandler):
-    server: _Server
+    server: _Server  # pyright: ignore[reportIncompatibleVariableOverride] - the real type
     protocol_version = "HTTP/1.1"
 
     def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - quiet
@@ -775,12 +775,10 @@ def _totals(results: list[CaseResult]) -> dict[str, int]:
 
 
 SOURCES = ("datasf", "cdph", "nhsn", "hub_round", "import")
-# Issue 39's round cases (round_published, dropped per case, bench.faults_round); a round that
-# must publish without a target depends on issue 37's failure isolation (another branch).
-HUB_ROUND_NOTE = ("rounds on the tiny preset from the cache after a faulted newer admissions "
-                  "release; round-stale-release-held fails here: the round file then holds no "
-                  "admissions and names nothing (problem 7), which issue 37's failure isolation "
-                  "(another branch) is to mend")
+# Issue 39's round cases (round_published, dropped per case, bench.faults_round)
+HUB_ROUND_NOTE = ("rounds on the tiny preset from the cache after a faulted newer release of "
+                  "admissions or the ED share; each records whether the round was published "
+                  "and what it left out (per target: location -> why, or the target itself)")
 
 
 def main() -> int:

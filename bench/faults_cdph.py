@@ -7,7 +7,8 @@ at the resource's download URL. Then each fault in turn: HTTP 500 and 429 (with 
 Retry-After longer than the client waits, a truncated body (short of its Content-Length, and cut
 without one), HTML instead of the CSV or the JSON, a resource missing from the package, a gzip
 bomb, a bad gzip body, a missing column, a dropped county, a shrunk date range (a real older
-vintage; a later first day), an implausible count, a revision of settled days (held for review), a
+vintage; a later first day), an implausible count, a revision of one county's settled days (that
+county held alone, the others live; sixteen counties at once: the file held for review), a
 refused connection, a server dripping bytes past the deadline, a redirect to another host and a
 download URL on another host. Everything goes through the real ``requests`` stack.
 
@@ -96,6 +97,20 @@ def revised_settled(frame: pd.DataFrame) -> pd.DataFrame:
     days = (frame["area"] == "Los Angeles") & frame["date"].between("2021-01-04", "2021-01-10")
     frame.loc[days, "cases"] = (frame.loc[days, "cases"].astype(float) * 3).map(str)
     return frame
+
+
+def revised_counties(n: int) -> Callable[[pd.DataFrame], pd.DataFrame]:
+    """The ``n`` most populous counties' cases of 2021-01-04 (settled) times three, as
+    Los Angeles' in :func:`revised_settled` (within the gate's bounds): a broken payload when
+    more than a quarter of the counties."""
+    def change(frame: pd.DataFrame) -> pd.DataFrame:
+        counties = frame[(frame["area_type"] == "County") & (frame["date"] == "2021-01-04")]
+        people = pd.to_numeric(counties["population"], errors="coerce")
+        biggest = counties.assign(people=people).nlargest(n, "people")["area"]
+        days = frame["area"].isin(list(biggest)) & (frame["date"] == "2021-01-04")
+        frame.loc[days, "cases"] = (frame.loc[days, "cases"].astype(float) * 3).map(str)
+        return frame
+    return change
 
 
 def ramp(frame: pd.DataFrame, area: str = "San Francisco") -> pd.DataFrame:
@@ -235,6 +250,7 @@ class Fault:
     held: bool = False
     base_url: Callable[[], str] | None = None
     skipped: str | None = None
+    held_alone: bool = False      # the skipped county is one of the 58, held alone
     hold_lock: bool = False
     max_seconds: float | None = None
     issue: int = 19
@@ -290,9 +306,14 @@ def faults() -> list[Fault]:
               "San Francisco: implausible count 5,000,000 in 'cases' on 2021-06-01: more than "
               "5% of the population 873,965 (2020 Census) in one day",
               download=_poisoned("San Francisco", "2021-06-01", "cases", "5000000.0")),
+        # a county revised beyond the policy is held alone, the others go live (issue 39)
         Fault("revised-settled-days",
               "revision beyond policy: 'cases' changed on 7 settled county-day(s)",
-              download=lambda s, o: body(edited(revised_settled)), held=True),
+              download=lambda s, o: body(edited(revised_settled)), skipped="Los Angeles",
+              held_alone=True),
+        Fault("sixteen-counties-revised-held-whole", "16 of the 58 counties revise settled "
+              "days beyond the policy (more than 25%: the vintage is held whole)",
+              download=lambda s, o: body(edited(revised_counties(16))), held=True, issue=39),
         Fault("connection-refused", "Connection refused", base_url=closed_port, max_seconds=1.5),
         Fault("drip-past-deadline", "within the request deadline",
               download=lambda s, o: trickle([{"x": "y" * 100}]),
@@ -389,7 +410,8 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
                               after)
             outcome = (not loaded.provenance.from_cache
                        and fault.expect in loaded.vintage.skipped.get(fault.skipped, "")
-                       and fault.expect in note and len(loaded.vintage.counties) == 58)
+                       and fault.expect in note
+                       and len(loaded.vintage.counties) == 58 - fault.held_alone)
         held_ok = bool(held_files(data_dir)) == fault.held
         passed = (outcome and lost == 0 and held_ok and not left
                   and str(loaded.vintage.as_of.date()) == "2021-11-04" and not other.seen

@@ -160,6 +160,13 @@ def many_revised(rows: Rows) -> Rows:
     return rows
 
 
+def _without_states(n: int) -> Callable[[Rows], Rows]:
+    """The newer release without the first ``n`` states' rows (a broken payload)."""
+    from pipeline.data.hub.locations import HUB_LOCATIONS
+    gone = {h.jurisdiction for h in HUB_LOCATIONS[1:1 + n]}
+    return lambda rows: [r for r in rows if r["jurisdiction"] not in gone]
+
+
 def newer_faults() -> list[Newer]:
     nation_name = lambda r: r.get("geography") == "United States"  # noqa: E731
     return [
@@ -210,7 +217,7 @@ def newer_faults() -> list[Newer]:
         Newer("one-unknown-name-beside-real-ones", "'ZZ' is not one of the 53",
               lambda r: r + [{**x, "jurisdiction": "ZZ"} for x in r if x["jurisdiction"] == "OH"],
               "live", skipped="ZZ"),
-        # 6. no national row: admissions take the states' sum; a share cannot (cache kept)
+        # 6. no national row: admissions take the states' sum; a share cannot (below)
         Newer("no-national-row", "no national row in the release: the national value is the "
               "sum of the 52 states", lambda r: [x for x in r if x["jurisdiction"] != "USA"],
               "live", derived="US"),
@@ -218,8 +225,22 @@ def newer_faults() -> list[Newer]:
               "on 2025-09-20: the national value is the sum of the 52 states",
               set_newest("Infinity", where=lambda r: r["jurisdiction"] == "USA"), "live",
               derived="US"),
-        Newer("ed-no-national-row", "location dropped: US",
-              lambda r: [x for x in r if not nation_name(x)], "cache", target=ED_COVID),
+        # a share's states go live without the US, which is left out and named (issue 39)
+        Newer("ed-no-national-row", "US: no national row in the release; a share cannot be "
+              "summed from the states: the national forecast is left out",
+              lambda r: [x for x in r if not nation_name(x)], "live", target=ED_COVID,
+              skipped="US"),
+        # a location missing from a newer release is held alone, its last series kept
+        Newer("one-state-missing-from-newer-release", "06: missing from the release of "
+              "2025-09-24 (its series of 2025-09-17 kept until it is back)",
+              lambda r: [x for x in r if x["jurisdiction"] != "CA"], "live", skipped="06"),
+        Newer("ed-one-state-missing-from-newer-release", "06: missing from the release of "
+              "2025-09-24 (its series of 2025-09-17 kept until it is back)",
+              lambda r: [x for x in r if x["geography"] != "California"], "live",
+              target=ED_COVID, skipped="06"),
+        Newer("fourteen-states-missing-refused-whole", "14 of the 53 locations are missing from "
+              "the release of 2025-09-24 (more than 25%: a broken payload, refused)",
+              _without_states(14), "cache"),
         # 8. dates from the future
         Newer("every-location-a-week-in-2031", "is after the vintage's date",
               lambda r: [{**x, "weekendingdate": "2031-01-04T00:00:00.000"}

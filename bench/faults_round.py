@@ -2,15 +2,18 @@
 left out is named (``round_published``, ``dropped`` per case).
 
 Each case imports the hub's real releases of 2025-09-10 and 2025-09-17 (both targets) and the
-ED share's of 2025-09-24 into a fresh ``FLOWCAST_DATA_DIR``, then the admissions release of
-2025-09-24 with one fault (``import_target_csv``), and runs the round from the cache on the
-``tiny`` preset through the library (``run_hub_round``, ``publish_hub_round``: what the
-``hub_forecast`` flow runs, without Prefect), validated against the hub's ``tasks.json``. The
-models are trained once into a store every case shares.
+other target's of 2025-09-24 into a fresh ``FLOWCAST_DATA_DIR``, then the faulted target's
+release of 2025-09-24 with one fault (``import_target_csv``; admissions unless the case says
+the ED share), and runs the round from the cache on the ``tiny`` preset through the library
+(``run_hub_round``, ``publish_hub_round``: what the ``hub_forecast`` flow runs, without
+Prefect), validated against the hub's ``tasks.json``. The models are trained once into a store
+every case shares. A location left out must be named both in the panel's ``skipped`` and in
+``HubRun.dropped``, and the other target's file rows keep their US.
 
-``round-stale-release-held`` (problem 7) fails on this branch: the admissions release is stale
-and held, the round's file (of the ED share's week) then holds no admissions and names nothing;
-leaving the target out *and saying so* is issue 37's failure isolation (another branch).
+Cases: a settled revision held alone, no national row (admissions: the US from the states), an
+NA week, one location's later row, one state missing from the newer release (admissions and
+the ED share: held alone), the ED share without its national row (the states published, the US
+left out and said), and a stale admissions release (the target left out and said, problem 7).
 """
 from __future__ import annotations
 
@@ -24,18 +27,19 @@ import pandas as pd
 from bench.faults import CaseResult
 from bench.faults_nhsn import NHSN
 from pipeline.data.core.cache import data_folder
-from pipeline.data.hub.nhsn import HOSP_COVID
+from pipeline.data.hub.nhsn import ED_COVID, HOSP_COVID
 
 Change = Callable[[pd.DataFrame], pd.DataFrame]
 
 
 @dataclass(frozen=True)
 class RoundFault:
-    """A fault in the admissions release of 2025-09-24 (``change`` on its rows: ``date``,
-    ``location``, ``value``); ``dropped``: the locations the round must leave out and name
-    (``expect`` in the reason of the first); ``kept``: locations that must be in the round;
-    ``target_left_out``: admissions have no current release, so the round publishes the ED share
-    alone and names the admissions target as left out (issue 39 problem 7)."""
+    """A fault in ``target``'s release of 2025-09-24 (``change`` on its rows: ``date``,
+    ``location``, ``value``); ``dropped``: the locations the round must leave out of that
+    target and name, in ``HubRun.dropped`` too (``expect`` in the reason of the first);
+    ``kept``: locations that must be in the round; ``target_left_out``: the target has no
+    current release, so the round publishes the other alone and names the target as left out
+    (issue 39 problem 7)."""
 
     name: str
     change: Change
@@ -43,6 +47,7 @@ class RoundFault:
     expect: str = ""
     kept: tuple[str, ...] = ()
     target_left_out: bool = False
+    target: str = HOSP_COVID
 
 
 def _tenfold(frame: pd.DataFrame) -> pd.DataFrame:
@@ -60,6 +65,10 @@ def _later_row(frame: pd.DataFrame) -> pd.DataFrame:
     return frame[(frame["date"] != newest) | (frame["location"] == "06")]
 
 
+def _without(location: str) -> Change:
+    return lambda frame: frame[frame["location"] != location]
+
+
 def round_faults() -> list[RoundFault]:
     return [
         RoundFault("round-location-revised-held-alone", _tenfold, dropped=("06",),
@@ -69,6 +78,16 @@ def round_faults() -> list[RoundFault]:
         RoundFault("round-na-week-keeps-its-state", _na_week, kept=("25",)),
         RoundFault("round-one-location-later-week", _later_row, dropped=("06",),
                    expect="after the payload's last date 2025-09-13"),
+        # a location missing from a newer release: held alone, the round publishes the others
+        RoundFault("round-one-state-missing", _without("06"), dropped=("06",),
+                   expect="06: missing from the release of 2025-09-24", kept=("US", "36")),
+        RoundFault("round-ed-one-state-missing", _without("06"), dropped=("06",),
+                   expect="06: missing from the release of 2025-09-24", kept=("US", "36"),
+                   target=ED_COVID),
+        # the ED share without its national row: the states published, the US left out, said
+        RoundFault("round-ed-no-national-row", _without("US"), dropped=("US",),
+                   expect="a share cannot be summed from the states", kept=("06", "36"),
+                   target=ED_COVID),
         RoundFault("round-stale-release-held",
                    lambda f: f[f["date"].astype(str) <= "2025-08-23"], target_left_out=True),
     ]
@@ -79,14 +98,14 @@ def _seed_cache(folder: Path, fault: RoundFault) -> None:
     series = pd.read_parquet(NHSN / "time-series.parquet")
     as_of = series["as_of"].astype(str)
     recent = series[(as_of >= "2025-09-10")
-                    & ~((as_of == "2025-09-24") & (series["target"] == HOSP_COVID))]
+                    & ~((as_of == "2025-09-24") & (series["target"] == fault.target))]
     recent.to_parquet(folder / "time-series.parquet")
     import_hub_time_series(folder / "time-series.parquet")
-    newest = series[(as_of == "2025-09-24") & (series["target"] == HOSP_COVID)]
+    newest = series[(as_of == "2025-09-24") & (series["target"] == fault.target)]
     rows = newest[["target_end_date", "location", "observation"]].rename(
         columns={"target_end_date": "date", "observation": "value"}).reset_index(drop=True)
     fault.change(rows).to_csv(folder / "newest.csv", index=False)
-    import_target_csv(folder / "newest.csv", target=HOSP_COVID, as_of="2025-09-24")
+    import_target_csv(folder / "newest.csv", target=fault.target, as_of="2025-09-24")
 
 
 def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult:
@@ -110,27 +129,33 @@ def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult
                               f"round_published: false; raised {type(exc).__name__}: {exc}",
                               source="hub_round", issue=39,
                               detail={"round_published": False, "dropped": {}})
-    left_out = run.skipped().get(HOSP_COVID, {})
+    target = fault.target
+    left_out = run.skipped().get(target, {})
     said = {d.target: d.why for d in run.dropped if d.what == "target"}
+    named = sorted(d.name for d in run.dropped if d.what == "location" and d.target == target)
     frame = pd.read_csv(published.model_output, dtype={"location": str})
-    hosp = set(frame.loc[frame["target"] == HOSP_COVID, "location"])
+    hosp = set(frame.loc[frame["target"] == target, "location"])
+    other = set(frame.loc[frame["target"] != target, "location"])   # the unfaulted target
     dropped = sorted(left_out)
     if fault.target_left_out:       # not in the file, and said
-        passed = (published.model_output.is_file() and not hosp and HOSP_COVID in said
-                  and bool(set(frame["target"]) - {HOSP_COVID}))
+        passed = (published.model_output.is_file() and not hosp and target in said
+                  and bool(set(frame["target"]) - {target}))
     else:
         passed = (published.model_output.is_file() and bool(hosp)
-                  and dropped == sorted(fault.dropped)
+                  and dropped == sorted(fault.dropped) == named
                   and all(loc not in hosp for loc in fault.dropped)
                   and all(loc in hosp for loc in fault.kept)
+                  and "US" in other
                   and (not fault.dropped or fault.expect in left_out[fault.dropped[0]]))
     note = (f"round_published: true ({published.reference_date}, {len(hosp)} locations of "
-            f"{HOSP_COVID}); dropped: "
+            f"{target}); dropped: "
             + ("; ".join([*left_out.values(), *(f"target {t}: {why}" for t, why in said.items())])
                or "none"))
     return CaseResult(fault.name, passed, time.monotonic() - started, 0, note,
                       source="hub_round", issue=39,
                       detail={"round_published": True, "reference_date": published.reference_date,
+                              "locations": {t: int(n) for t, n in frame.groupby("target")[
+                                  "location"].nunique().items()},
                               "dropped": {**{t: dict(d) for t, d in run.skipped().items()},
                                           **{t: {"target": why} for t, why in said.items()}}})
 

@@ -7,6 +7,7 @@ case asserting the message and that the cache bytes are unchanged; import, vinta
 Offline and fast (a few seconds per group)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -28,8 +29,9 @@ from bench.faults_cdph import (CDPH, DOWNLOAD_PATH, GOOD_VINTAGE, FakeCKAN, clie
 from pipeline.cli.data import data_app
 from pipeline.data.core.cache import CacheDamagedError, DatasetCache, RevisionRefusedError
 from pipeline.data.california.cdph import CDPHFormatError, parse_cdph_csv, read_cdph_csv
-from pipeline.data.california.cdph_source import (SPEC, CDPHConfig, cached_vintages,
-                                                  check_cdph_successor, import_cdph_exports,
+from pipeline.data.california.cdph_source import (SPEC, CDPHConfig, accept_county_revisions,
+                                                  cached_vintages, check_cdph_successor,
+                                                  counties_waiting, import_cdph_exports,
                                                   is_cdph_export, load_cdph, load_cdph_vintage,
                                                   peek_columns, vintages_dir)
 from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
@@ -162,17 +164,62 @@ def test_shared_gate_refuses_an_absurd_day_and_keeps_corrections():
 def test_weekly_real_successors_pass_the_revision_policy(vintages):
     ordered = [vintages[f] for f in VINTAGES]
     for older, newer in zip(ordered[1:], ordered[2:], strict=False):
-        check_cdph_successor(newer, older)
+        assert check_cdph_successor(newer, older) == {}   # no county held
 
 
-def test_four_month_step_revises_a_settled_day_beyond_policy(vintages):
-    with pytest.raises(RevisionRefusedError, match=r"'cases' changed on 1 settled county-day\(s\)"
-                       r" \(on or before 2021-03-31\).*Los Angeles 2020-06-21 1,043 -> 1,573"
-                       ) as caught:
-        check_cdph_successor(vintages["Cricelio23__The-Role-of-SARS-CoV-2-Testing-on-"
-                                      "Hospitalizations-in-California"],
-                             vintages["Chithra1996__GTProject1"])
+def test_four_month_step_holds_los_angeles_alone(vintages):
+    """The four-month step revises one settled day of one county beyond the policy: that county
+    is held alone (the whole vintage used to be); more than a quarter of the counties revised
+    at once still holds the whole vintage."""
+    older = vintages["Chithra1996__GTProject1"]
+    newer = vintages["Cricelio23__The-Role-of-SARS-CoV-2-Testing-on-Hospitalizations-in-"
+                     "California"]
+    held = check_cdph_successor(newer, older)
+    assert list(held) == ["Los Angeles"]
+    assert ("'cases' changed on 1 settled county-day(s) (on or before 2021-03-31) by more than "
+            "max(100, 50%), e.g. Los Angeles 2020-06-21 1,043 -> 1,573") in held["Los Angeles"]
+    # judged against its own reference (the vintage before), Los Angeles breaks there too
+    assert list(check_cdph_successor(newer, newer, references={"Los Angeles": older})) == \
+        ["Los Angeles"]
+    frame = newer.frame.copy()
+    sixteen = frame["area"].isin(older.counties[:16]) & (frame["date"] == "2020-12-01")
+    frame.loc[sixteen, "cases"] = frame.loc[sixteen, "cases"] * 3 + 200
+    with pytest.raises(RevisionRefusedError, match=r"1[67] of the 58 counties revise settled days "
+                                                   r"beyond the policy \(more than 25%") as caught:
+        check_cdph_successor(dataclasses.replace(newer, frame=frame), older)
     assert caught.value.hold
+
+
+def test_a_county_revised_on_import_is_held_alone_until_accepted(data_dir):
+    """The real vintages imported in order without --accept-revisions: all six go live,
+    Los Angeles is held from 2021-09-06 (its series of 2021-04-28 kept, judged against it by
+    every later vintage) and named; accepting it alone brings it back."""
+    files = [path_of(f) for f in VINTAGES]
+    summaries = import_cdph_exports(files, data_dir)
+    assert [s.action for s in summaries] == ["imported"] * 6
+    [(county, hold)] = counties_waiting(data_dir).items()
+    assert (county, hold.since, hold.reference) == ("Los Angeles", "2021-09-06", "2021-04-28")
+    kept = cached_vintages(data_dir)
+    assert [len(v.counties) for v in kept] == [58, 57, 57, 57, 57, 57]
+    assert kept[-1].skipped["Los Angeles"].startswith(
+        "Los Angeles: revision held for review since the release of 2021-09-06 (its series of "
+        "2021-04-28 kept)")
+    with pytest.raises(CDPHFormatError, match="Los Angeles is skipped in the CDPH vintage"):
+        kept[-1].county("Los Angeles")
+    assert load_cdph_vintage(CDPHConfig(data_dir=data_dir), offline=True).counties == \
+        kept[-1].counties
+    status = run("status")       # the CLI names it and how to accept it ($FLOWCAST_DATA_DIR)
+    assert ("Los Angeles: revision waiting since the vintage of 2021-09-06 (`flowcast data "
+            "accept-revisions --cdph 'Los Angeles'`)") in " ".join(status.output.split())
+    assert run("accept-revisions", "Los Angeles").exit_code == 1     # --cdph or --target
+    accepted = run("accept-revisions", "--cdph", "Los Angeles")
+    assert accepted.exit_code == 0, accepted.output
+    assert "accepted CDPH Los Angeles: its revision held since the release of 2021-09-06" in \
+        " ".join(accepted.output.split())
+    assert counties_waiting(data_dir) == {}
+    assert "Los Angeles" in cached_vintages(data_dir)[-1].counties
+    with pytest.raises(ConfigError, match="no revision waits for Alameda"):
+        accept_county_revisions(["Alameda"], data_dir)
 
 
 # ------------------------------------------------------------------ the CKAN client
@@ -263,22 +310,23 @@ def test_concurrent_imports_of_an_older_and_a_newer_vintage_both_land(tmp_path):
     assert result.passed, result.note
 
 
-def test_held_revision_is_taken_after_review(data_dir):
+def test_a_revised_county_is_held_alone_and_taken_after_review(data_dir):
     revised = edited(revised_settled)
     with FakeCKAN() as portal:
-        load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
+        good = load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
         portal.download = lambda h: h.send_body(200, revised, "text/csv")
         held = load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir))
-        assert held.provenance.from_cache and "held for review" in held.provenance.notes[0]
-        [payload] = held_files(data_dir)
-        assert f"payload held in {payload}" in held.provenance.notes[0]
-        assert payload.read_bytes() == revised
+        assert not held.provenance.from_cache and not held_files(data_dir)
+        assert "Los Angeles" not in held.vintage.counties and len(held.vintage.counties) == 57
+        assert held.vintage.skipped["Los Angeles"].startswith(
+            "Los Angeles: revision held for review since the release of 2021-11-04")
+        assert list(counties_waiting(data_dir)) == ["Los Angeles"]
         taken = load_cdph(CDPHConfig(client=client_config(portal.url), data_dir=data_dir,
                                      accept_revisions=True))
-    assert not taken.provenance.from_cache
+    assert not taken.provenance.from_cache and counties_waiting(data_dir) == {}
     day = (pd.Timestamp("2021-01-04") - pd.Timestamp("2020-02-01")).days
     assert int(taken.vintage.county("Los Angeles").cases[day]) == 3 * int(
-        held.vintage.county("Los Angeles").cases[day])
+        good.vintage.county("Los Angeles").cases[day])
 
 
 def test_rejected_payload_without_a_cache_writes_nothing(data_dir):

@@ -34,3 +34,20 @@ def test_a_round_after_a_release_that_revises_one_location_publishes_without_it(
     assert result.detail["round_published"] is True
     dropped = result.detail["dropped"]
     assert isinstance(dropped, dict) and list(dropped[HOSP_COVID]) == ["06"]
+
+
+@pytest.mark.slow
+def test_a_round_after_an_ed_share_release_without_the_us_row_publishes_the_states(tmp_path):
+    """The hub round (tiny preset, from the cache) after an ED-share release of 2025-09-24
+    without its national row: published with the 50 states' shares and the US's admissions;
+    the ED share's US left out, named in the panel's skipped and in ``HubRun.dropped``
+    (reconciliation neither spreads nor needs a national total for a share)."""
+    from bench.faults_round import round_faults, run_round_fault
+    from pipeline.data.hub.nhsn import ED_COVID
+    fault = next(f for f in round_faults() if f.name == "round-ed-no-national-row")
+    result = run_round_fault(fault, tmp_path / "round", tmp_path / "models")
+    assert result.passed, result.note
+    dropped = result.detail["dropped"]
+    assert isinstance(dropped, dict) and list(dropped[ED_COVID]) == ["US"]
+    assert dropped[HOSP_COVID] == {}
+    assert result.detail["locations"] == {HOSP_COVID: 53, ED_COVID: 50}

@@ -100,7 +100,8 @@ def test_release_dates_staleness_and_whole_release_events():
     assert "every one of the 53 locations reads 0 for the week ending 2025-09-20" in str(
         implausible_event(zero, counts=True))
     fall = frame.copy()
-    fall.loc[last & (fall["location"] == "US"), "value"] *= 0.2
+    us_now = last & (fall["location"] == "US")
+    fall["value"] = fall["value"].where(~us_now, fall["value"] * 0.2)
     assert "the national value falls 82% in the week ending 2025-09-20 (9,990 -> 1,768.8)" in \
         str(implausible_event(fall, counts=True))
 
@@ -283,3 +284,101 @@ def test_a_future_dated_live_vintage_left_by_an_older_flowcast_blocks_nothing(tm
     done = import_target_csv(write(release("2025-09-24"), tmp_path, "new"), target=HOSP_COVID,
                              as_of="2025-09-24", data_dir=data).vintages[0]
     assert done.action == "live", done.note
+
+
+def test_a_state_missing_from_a_newer_release_is_held_alone_until_it_is_back(tmp_path):
+    """Issue 39: California missing from the release of 2025-09-17 used to refuse the whole
+    release ("location dropped"). Now the other 52 go live, California is held with its series
+    of 2025-09-10 as reference and named; when the release of 2025-09-24 has it again (and
+    agrees with that reference), the hold ends by itself."""
+    data = tmp_path / "data"
+
+    def imported(as_of: str, frame: pd.DataFrame) -> str:
+        done = import_target_csv(write(frame, tmp_path, as_of), target=HOSP_COVID, as_of=as_of,
+                                 data_dir=data).vintages[0]
+        return done.action
+    assert imported("2025-09-10", release("2025-09-10")) == "live"
+    without_ca = release("2025-09-17")
+    assert imported("2025-09-17", without_ca[without_ca["location"] != "06"]) == "live"
+    [hold] = revisions_waiting(HOSP_COVID, data).values()
+    assert (hold.location, hold.kind, hold.since, hold.reference) == \
+        ("06", "missing", "2025-09-17", "2025-09-10")
+    newest = cached_weekly_vintages(HOSP_COVID, data)[-1]
+    assert len(newest.locations) == 52 and "06" not in newest.locations
+    assert newest.skipped == {"06": "06: missing from the release of 2025-09-17 (its series of "
+                                    "2025-09-10 kept until it is back): wk inc covid hosp: no "
+                                    "row of 06 in the release of 2025-09-17"}
+    # back in the next release, judged against its series of 2025-09-10: the hold ends
+    assert imported("2025-09-24", release("2025-09-24")) == "live"
+    assert revisions_waiting(HOSP_COVID, data) == {}
+    vintages = cached_weekly_vintages(HOSP_COVID, data)
+    assert [len(v.locations) for v in vintages] == [53, 52, 53]
+
+
+def test_a_state_missing_again_stays_held_and_many_missing_refuse_the_release(tmp_path):
+    data = tmp_path / "data"
+    import_target_csv(write(release("2025-09-10"), tmp_path, "a"), target=HOSP_COVID,
+                      as_of="2025-09-10", data_dir=data)
+    for as_of in ("2025-09-17", "2025-09-24"):
+        frame = release(as_of)
+        done = import_target_csv(write(frame[frame["location"] != "06"], tmp_path, as_of),
+                                 target=HOSP_COVID, as_of=as_of, data_dir=data).vintages[0]
+        assert done.action == "live"
+    [hold] = revisions_waiting(HOSP_COVID, data).values()
+    assert (hold.location, hold.since, hold.reference) == ("06", "2025-09-17", "2025-09-10")
+    assert "06" not in cached_weekly_vintages(HOSP_COVID, data)[-1].locations
+    # fourteen states missing (more than a quarter of 53): a broken payload, refused whole
+    data2 = tmp_path / "data2"
+    import_target_csv(write(release("2025-09-17"), tmp_path, "b"), target=HOSP_COVID,
+                      as_of="2025-09-17", data_dir=data2)
+    frame = release("2025-09-24")
+    gone = sorted(set(frame["location"]) - {"US"})[:14]
+    done = import_target_csv(write(frame[~frame["location"].isin(gone)], tmp_path, "c"),
+                             target=HOSP_COVID, as_of="2025-09-24", data_dir=data2).vintages[0]
+    assert done.action == "refused"
+    assert ("14 of the 53 locations are missing from the release of 2025-09-24 (more than 25%: "
+            "a broken payload, refused)") in done.note
+    assert revisions_waiting(HOSP_COVID, data2) == {}
+    # a payload of the same date without a location is refused, as before
+    same = import_target_csv(write(release("2025-09-17").query("location != '06'"), tmp_path,
+                                   "d"), target=HOSP_COVID, as_of="2025-09-17",
+                             data_dir=data2).vintages[0]
+    assert same.action == "refused" and "location dropped: 06" in same.note
+
+
+def test_an_ed_share_release_without_the_us_row_goes_live_without_the_us(tmp_path):
+    """A share cannot be summed from the states: the release without its national row went
+    unused ("location dropped: US"); now the states go live and the US is left out, named."""
+    ed = "wk inc covid prop ed visits"
+    table = pd.read_parquet(NHSN)
+    data = tmp_path / "data"
+    for as_of in ("2025-09-17", "2025-09-24"):
+        frame = table[(table["target"] == ed) & (table["as_of"].astype(str) == as_of)]
+        frame = frame[["target_end_date", "location", "observation"]].rename(
+            columns={"observation": "value"})
+        if as_of == "2025-09-24":
+            frame = frame[frame["location"] != "US"]
+        done = import_target_csv(write(frame, tmp_path, f"ed-{as_of}"), target=ed,
+                                 as_of=as_of, data_dir=data).vintages[0]
+        assert done.action == "live", done.note
+    newest = cached_weekly_vintages(ed, data)[-1]
+    assert "US" not in newest.locations and len(newest.locations) == 50
+    assert newest.skipped == {"US": "US: no national row in the release; a share cannot be "
+                                    "summed from the states: the national forecast is left out"}
+    assert revisions_waiting(ed, data) == {}
+
+
+def test_no_national_row_and_a_state_missing_leaves_the_us_out_by_name():
+    """Admissions without the US row are summed from the states only when every state reports:
+    with California missing too, the US is left out and named (not a sum of 51 states)."""
+    from datetime import date
+    from pipeline.data.hub.nhsn_vintages import canonical_csv, parse_vintage
+    frame = release("2025-09-24").assign(target_end_date=lambda f: pd.to_datetime(
+        f["target_end_date"]))
+    payload = canonical_csv(frame[~frame["location"].isin(["US", "06"])])
+    vintage = parse_vintage(TARGETS[HOSP_COVID], payload, suffix="csv",
+                            as_of=date(2025, 9, 24), source="t")
+    assert vintage.derived == {} and len(vintage.locations) == 51
+    assert vintage.skipped == {"US": "US: no national row in the release; the states do not all "
+                                     "report (1 missing, e.g. 06): the national forecast is left "
+                                     "out"}

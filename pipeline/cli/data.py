@@ -274,7 +274,7 @@ def _manifest(cache: DatasetCache, spec: CacheSpec, label: str
 
 
 def _status_chhs(cache: DatasetCache, now: datetime) -> None:
-    from pipeline.data.california.cdph_source import SPEC, vintages_dir
+    from pipeline.data.california.cdph_source import SPEC, counties_waiting, vintages_dir
     label = f"{SPEC.key} ({SPEC.dataset_id})"
     typer.echo(f"cache: {cache.root.resolve() / SPEC.cache_folder}")
     readable, manifest = _manifest(cache, SPEC, label)
@@ -295,6 +295,9 @@ def _status_chhs(cache: DatasetCache, now: datetime) -> None:
     if held:
         typer.echo(f"  {len(held)} payload(s) held for review in "
                    f"{cache.directory(SPEC) / 'held'}")
+    for county, hold in counties_waiting(cache.root).items():
+        typer.echo(f"  {county}: revision waiting since the vintage of {hold.since} "
+                   f"(`flowcast data accept-revisions --cdph '{county}'`): {hold.reason}")
 
 
 def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
@@ -321,7 +324,8 @@ def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
             typer.echo(f"  {held} payload(s) held for review in "
                        f"{cache.directory(spec) / 'held'}")
         for location, hold in revisions_waiting(target, cache.root).items():
-            typer.echo(f"  {location}: revision waiting since the release of {hold.since} "
+            what = "missing" if hold.kind == "missing" else "revision waiting"
+            typer.echo(f"  {location}: {what} since the release of {hold.since} "
                        f"(`flowcast data accept-revisions --target '{target}' {location}`): "
                        f"{hold.reason}")
 
@@ -329,21 +333,27 @@ def _status_nhsn(cache: DatasetCache, now: datetime) -> None:
 @data_app.command("accept-revisions")
 def accept_revisions_command(
     locations: list[str] = typer.Argument(..., help="Hub locations (codes such as 22, or "
-                                                    "postal abbreviations such as LA) whose "
-                                                    "waiting revision you have reviewed."),
-    target: str = typer.Option(..., "--target", metavar="TARGET",
-                               help="The hub target, e.g. 'wk inc flu hosp'."),
+                                                    "postal abbreviations such as LA), or with "
+                                                    "--cdph California counties (Los Angeles), "
+                                                    "whose waiting revision you have reviewed."),
+    target: str | None = typer.Option(None, "--target", metavar="TARGET",
+                                      help="The hub target, e.g. 'wk inc flu hosp'."),
+    cdph: bool = typer.Option(False, "--cdph", help="The locations are CDPH counties."),
 ) -> None:
     """Accept the revised history of these locations alone (held by the revision policy while
     the rest of each release went live): from the live vintage on, they are read again."""
+    from pipeline.data.california.cdph_source import accept_county_revisions
     from pipeline.data.hub.nhsn_vintages import accept_location_revisions
+    if (target is None) == (not cdph):
+        _fail(ConfigError("give either --target TARGET (hub locations) or --cdph (counties)"))
     try:
-        ended = accept_location_revisions(target, locations)
+        ended = (accept_county_revisions(locations) if cdph else
+                 accept_location_revisions(str(target), locations))
     except FlowcastError as exc:
         _fail(exc)
     for location, hold in ended.items():
-        typer.echo(f"accepted {target} {location}: its revision held since the release of "
-                   f"{hold.since} is live from the current vintage on")
+        typer.echo(f"accepted {'CDPH' if cdph else target} {location}: its revision held since "
+                   f"the release of {hold.since} is live from the current vintage on")
 
 
 @data_app.command("counties")

@@ -16,19 +16,14 @@ transactional store of :mod:`pipeline.data.core.cache`)::
     vintages/<as-of>-<sha[:16]>.csv every vintage ever accepted, immutable (nowcasting needs them)
     held/payload-<sha[:16]>.csv     payloads the revision policy refused, with .reason.json
 
-Revision policy (a :class:`~pipeline.data.core.revision_policy.RevisionPolicy`), a new vintage
-against the live one:
-
-* it may not end earlier (an older vintage) nor start later, nor drop a county;
-* days older than ``open_days`` (28) before the live vintage's last day are *settled*: each
-  county's ``cases``, ``deaths`` and ``reported_cases`` there may change by at most
-  ``max(settled_abs, settled_rel × cached)`` = max(100, 50 %); the statewide total of each column
-  over the common days may fall by at most 2 %. Breaking either holds the payload for review
-  (``held/``; ``--accept-revisions`` takes it after review).
-
-Measured on the six real vintages: weekly successors revise settled days by at most 58 cases
-(none beyond the tolerance); the four-month step 2021-04-28 → 2021-09-06 revises one settled day
-beyond it (Los Angeles 2020-06-21, 1,043 → 1,573 cases), so it is held unless accepted.
+Revision policy (a :class:`~pipeline.data.core.revision_policy.RevisionPolicy`, judged county by
+county: :mod:`pipeline.data.california.county_revisions`): a new vintage against the live one may
+not end earlier, start later nor drop a county; a county whose settled days change beyond
+max(100, 50 %) is held alone (named in every vintage read from then on, its accepted series
+kept; :func:`accept_county_revisions` after review), the vintage live for the others; more than
+a quarter of the counties, or the other counties' statewide total falling by more than 2 %,
+holds the payload for review (``held/``; ``--accept-revisions`` takes it). On the six real
+vintages the four-month step 2021-04-28 → 2021-09-06 holds Los Angeles alone.
 
 The validation gate runs before any commit and on every read of a cached vintage: a county that
 fails it is skipped and named (``CDPHVintage.skipped``, and a note on the provenance), the other
@@ -46,20 +41,21 @@ from dataclasses import dataclass, field
 from datetime import date, datetime
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import requests
 
 from pipeline.data.core.cache import (CachedPayload, CacheManifest, DatasetCache, SourceKind,
-                                      utc_now, RevisionRefusedError)
-from pipeline.data.core.revision_policy import RevisionPolicy, refuse_revisions
-from pipeline.data.california.cdph import (COUNT_COLUMNS, CDPHFormatError, CDPHVintage,
-                                           parse_cdph_csv)
+                                      utc_now)
+from pipeline.data.core.revision_policy import RevisionPolicy
+from pipeline.data.california.cdph import CDPHFormatError, CDPHVintage, parse_cdph_csv
 from pipeline.data.california.chhs import (BASE_URL_ENV, CDPH_COUNTIES, CHHSClient,
                                            CHHSClientConfig, CKANResourceSpec)
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, no_cache_error
 from pipeline.data.core.vintages import Committed, VintageArchive
-from pipeline.errors import DataSourceError, OfflineError, ValidationError
+from pipeline.data.california.county_revisions import (DEFAULT_POLICY, check_cdph_successor,
+                                                     with_county_holds)
+from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
+from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +65,6 @@ _IMPORT_HINT = (f"import a downloaded covid19cases_test.csv ({SPEC.download_url(
                 f"`flowcast data import FILE`")
 
 
-DEFAULT_POLICY = RevisionPolicy(open_days=28, settled_abs=100, settled_rel=0.5, max_total_drop=0.02)
 
 
 @dataclass(frozen=True)
@@ -130,44 +125,26 @@ def validate_cdph_payload(data: bytes, source: str) -> CDPHVintage:
     return parse_cdph_csv(data, source)
 
 
-# ---------------------------------------------------------------------------- revision policy
+# ---------------------------------------------------------------------------- held counties
 
 
-def check_cdph_successor(new: CDPHVintage, cached: CDPHVintage,
-                         policy: RevisionPolicy = DEFAULT_POLICY) -> None:
-    """Raise :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` (module doc)."""
-    key = SPEC.key
-    if new.as_of < cached.as_of:
-        raise RevisionRefusedError(
-            f"{key}: last date moves backwards: new vintage ends {new.as_of.date()}, the cached "
-            f"copy {cached.as_of.date()} (an older vintage); cached copy kept")
-    new_first, old_first = new.frame["date"].min(), cached.frame["date"].min()
-    if new_first > old_first:
-        raise RevisionRefusedError(
-            f"{key}: date range shrinks: new vintage starts {new_first.date()}, the cached copy "
-            f"{old_first.date()}; cached copy kept")
-    # a county the gate skipped in the new vintage is there, only not usable: not "dropped"
-    dropped = sorted(set(cached.counties) - set(new.counties) - set(new.skipped))
-    if dropped:
-        raise RevisionRefusedError(
-            f"{key}: county dropped: {', '.join(dropped)} in the cached vintage of "
-            f"{cached.as_of.date()} but not in the new one ({len(new.counties)} counties); "
-            f"cached copy kept")
-    worse = sorted(set(cached.counties) & set(new.skipped))
-    if worse and new.as_of == cached.as_of:
-        raise RevisionRefusedError(
-            f"{key}: {worse[0]} passes the validation gate in the cached vintage of "
-            f"{cached.as_of.date()} but fails it in a new payload of the same date "
-            f"({new.skipped[worse[0]]}); cached copy kept")
-    common = cached.frame.merge(new.frame, on=["area", "date"], suffixes=("", "_new"))
-    for column in COUNT_COLUMNS:
-        refuse_revisions(
-            key, column, common[column].to_numpy(np.int64),
-            common[f"{column}_new"].to_numpy(np.int64), common["date"].to_numpy(),
-            policy=policy, last=cached.as_of, cells="county-day",
-            over="the counties' common days",
-            example=lambda i: (f"{common['area'].iloc[i]} "
-                               f"{pd.Timestamp(common['date'].iloc[i]).date()}"))
+def counties_waiting(data_dir: str | os.PathLike[str] | None = None) -> dict[str, Hold]:
+    """The counties whose revision waits for review, each with its hold."""
+    return read_holds(DatasetCache.default(data_dir).directory(SPEC)).waiting()
+
+
+def accept_county_revisions(counties: Sequence[str],
+                            data_dir: str | os.PathLike[str] | None = None) -> dict[str, Hold]:
+    """The operator accepts the waiting revision of each of ``counties`` alone: from the live
+    vintage on, they read as released. Returns the holds ended."""
+    cache = DatasetCache.default(data_dir)
+    manifest = cache.read_manifest(SPEC)
+    if manifest is None:
+        raise ConfigError("no cached CDPH county vintage: nothing to accept")
+    folder = cache.directory(SPEC)
+    holds = read_holds(folder)
+    write_holds(folder, holds.accepted(tuple(counties), live=manifest.last_date[:10]))
+    return {c: holds.waiting()[c] for c in counties}
 
 
 def _cached_vintage(live: CachedPayload, cache: DatasetCache) -> CDPHVintage | None:
@@ -186,17 +163,26 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
     """Store an already validated vintage (:meth:`VintageArchive.commit`, under the cache lock):
     live if the revision policy allows it against the live copy; older than the live one,
     archived (``older="archive"``, imports) or refused (``"refuse"``, a live portal going
-    back). A vintage the policy refuses is held for review (the error names where) and the cache
+    back). A county revised beyond the policy is held alone (:mod:`pipeline.data.hub.
+    held_locations`: its accepted series kept, named), the vintage live for the others; a
+    vintage the policy refuses whole is held for review (the error names where) and the cache
     is unchanged."""
+    folder = cache.directory(SPEC)
+    holds = read_holds(folder)
+    found: dict[str, str] = {}
+    reference: list[str] = []
+
     def check(live: CachedPayload | None) -> None:
         if live is None or accept_revisions:
             return
         cached = _cached_vintage(live, cache)
         if cached is not None:
-            check_cdph_successor(vintage, cached, policy)
+            found.update(check_cdph_successor(vintage, cached, policy,
+                                              references=_references(cache, holds)))
+            reference.append(str(cached.as_of.date()))
 
     frame = vintage.frame
-    return archive(cache).commit(
+    committed = archive(cache).commit(
         payload, as_of=vintage.as_of.date(), suffix="csv",
         older="archive" if older == "archive" and not accept_revisions else "refuse",
         check=check, accept_hint="`flowcast data fetch --source chhs --accept-revisions` (or "
@@ -205,6 +191,24 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
         first_date=str(frame["date"].min().date()), last_date=str(vintage.as_of.date()),
         data_as_of=None, final_cumulative=None, final_url=final_url,
         lock_timeout_s=lock_timeout_s)
+    if committed.action == "live":
+        as_of = str(vintage.as_of.date())
+        after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accept_revisions else
+                 holds.opened(found, since=as_of, reference=reference[0] if reference else as_of))
+        if after != holds:
+            write_holds(folder, after)
+    return committed
+
+
+def _references(cache: DatasetCache, holds: Holds) -> dict[str, CDPHVintage]:
+    """Each waiting county's reference vintage (its last accepted series), from the archive."""
+    waiting = holds.waiting()
+    if not waiting:
+        return {}
+    kept = archive(cache)
+    by_date = {str(as_of): path for as_of, path in kept.listing()}
+    return {county: parse_cached(cache, kept.read(by_date[h.reference]), str(by_date[h.reference]))
+            for county, h in waiting.items() if h.reference in by_date}
 
 
 def archive(cache: DatasetCache) -> VintageArchive:
@@ -247,7 +251,8 @@ def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad
     if cached is None:
         raise no_cache_error("CDPH county data", cache.directory(SPEC), why,
                              fetch="flowcast data fetch --source chhs", otherwise=_IMPORT_HINT)
-    vintage = parse_cached(cache, cached.payload, str(cached.path))
+    vintage = with_county_holds(parse_cached(cache, cached.payload, str(cached.path)),
+                                read_holds(cache.directory(SPEC)))
     stale = cached.manifest.age_days(now)
     data_age = (now.date() - date.fromisoformat(cached.manifest.last_date[:10])).days
     notes = ((why,) if why else ()) + (
@@ -271,6 +276,7 @@ def _fetch_live(cache: DatasetCache, config: CDPHConfig, session: requests.Sessi
                                accept_revisions=config.accept_revisions, policy=config.policy,
                                lock_timeout_s=config.lock_timeout_s)
     assert committed.manifest is not None  # older="refuse": live or refused, never archived
+    vintage = with_county_holds(vintage, read_holds(cache.directory(SPEC)))
     notes = (f"CKAN resource {fetched.resource.id or fetched.resource.name}, last modified "
              f"{fetched.resource.last_modified or 'unknown'}",)
     return CDPHLoad(vintage, _provenance(committed.manifest, vintage, from_cache=False,
@@ -313,10 +319,10 @@ def cached_vintages(data_dir: str | os.PathLike[str] | None = None) -> list[CDPH
     :class:`~pipeline.data.core.cache.CacheDamagedError`). A cache filled before ``vintages/``
     existed still yields its live copy."""
     cache = DatasetCache.default(data_dir)
-    kept = archive(cache)
+    kept, holds = archive(cache), read_holds(cache.directory(SPEC))
     vintages: list[CDPHVintage] = []
     for as_of, path in kept.listing():
-        vintage = parse_cached(cache, kept.read(path), str(path))
+        vintage = with_county_holds(parse_cached(cache, kept.read(path), str(path)), holds)
         if vintage.as_of.date() != as_of:
             raise CDPHFormatError(f"cached CDPH vintage {path} ends {vintage.as_of.date()}, not "
                                   f"on the date in its name")
@@ -426,7 +432,8 @@ def store_cdph_exports(checked: Sequence[CheckedExport],
 
 
 __all__ = ["BASE_URL_ENV", "CDPHConfig", "CDPHImportSummary", "CDPHLoad", "CDPHProvenance",
-           "CheckedExport", "cached_vintages", "check_cdph_successor",
+           "CheckedExport", "accept_county_revisions", "cached_vintages", "check_cdph_successor",
+           "counties_waiting", "with_county_holds",
            "commit_vintage", "import_cdph_exports", "is_cdph_export",
            "load_cdph", "load_cdph_vintage", "store_cdph_exports", "validate_cdph_exports",
            "validate_cdph_payload"]

@@ -20,9 +20,16 @@ Louisiana's week ending 2022-02-19 from 39 to 170 admissions and Ohio's weeks en
 and 2023-07-29 (11 -> 218, 9 -> 117); the whole release used to be held, and every release
 after it (27 of 59). Now those two locations are held and the other 51 go live.
 
+A location **missing** from a newer release altogether (no row at all, and not one the gate
+skipped) is held the same way (``kind`` "missing"): it keeps its last accepted series as its
+reference, is named in every vintage read from then on ("missing from the release of …"), and
+the release goes live for the others; when it is back, it is judged against that reference.
+A release missing more than a quarter of the locations is a broken payload, refused whole.
+
 Kept as ``<dataset dir>/held-locations.json`` (written atomically): for each location, its holds
 as ``since`` (the release that was held), ``reference`` (the release its accepted series is
-from), ``until`` (the release from which it reads again; null while waiting) and ``reason``.
+from), ``until`` (the release from which it reads again; null while waiting), ``reason`` and ``kind``
+("revision" or "missing"; files written before it read as "revision").
 """
 from __future__ import annotations
 
@@ -30,11 +37,19 @@ import json
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 from pipeline.errors import ConfigError
 from pipeline.io import atomic_write_text
 
 HOLDS_FILE = "held-locations.json"
+# why a location is held: its settled weeks revised beyond the policy, or the location missing
+# from a newer release altogether (issue 39: one state missing used to refuse the whole release)
+HoldKind = Literal["revision", "missing"]
+# More places held at once than this share of the source's places is a broken payload, held (or
+# refused) whole: on the real releases at most 4 of 53 hub locations (FluSight) and 1 of 58
+# counties (CDPH's four-month step) are held by one release.
+MAX_HELD_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -47,6 +62,15 @@ class Hold:
     reference: str
     reason: str
     until: str | None = None
+    kind: HoldKind = "revision"
+
+    def note(self) -> str:
+        """How a vintage read without this place names it (its ``skipped``)."""
+        if self.kind == "missing":
+            return (f"{self.location}: missing from the release of {self.since} (its series of "
+                    f"{self.reference} kept until it is back): {self.reason}")
+        return (f"{self.location}: revision held for review since the release of {self.since} "
+                f"(its series of {self.reference} kept): {self.reason}")
 
     def covers(self, as_of: str) -> bool:
         """Is a vintage released on ``as_of`` (ISO date) read without this location?"""
@@ -67,14 +91,18 @@ class Holds:
         """The locations a vintage released on ``as_of`` is read without."""
         return {h.location: h for h in self.entries if h.covers(as_of)}
 
-    def opened(self, found: Mapping[str, str], *, since: str, reference: str) -> Holds:
+    def opened(self, found: Mapping[str, str], *, since: str, reference: str,
+               missing: Mapping[str, str] | None = None) -> Holds:
         """These holds after a release of ``since`` judged ``found`` (location -> why) beyond
-        the policy: new holds opened (against ``reference``), holds no longer breaking ended."""
-        waiting = self.waiting()
-        ended = [replace(h, until=since) if h.until is None and h.location not in found else h
+        the policy and left ``missing`` (location -> why) out: new holds opened (against
+        ``reference``), holds no longer breaking nor missing ended (a location that is back
+        and agrees with its reference reads again)."""
+        waiting, gone = self.waiting(), dict(missing or {})
+        held = {**found, **gone}
+        ended = [replace(h, until=since) if h.until is None and h.location not in held else h
                  for h in self.entries]
-        new = [Hold(loc, since, reference, why) for loc, why in sorted(found.items())
-               if loc not in waiting]
+        new = [Hold(loc, since, reference, why, kind="missing" if loc in gone else "revision")
+               for loc, why in sorted(held.items()) if loc not in waiting]
         return Holds((*ended, *new))
 
     def accepted(self, locations: tuple[str, ...], *, live: str) -> Holds:

@@ -36,7 +36,8 @@ from pipeline.data.core.revision_policy import (HELD, RevisionPolicy, describe_b
 from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
-from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
+from pipeline.data.hub.held_locations import (MAX_HELD_SHARE, Hold, Holds, read_holds,
+                                                write_holds)
 from pipeline.data.hub.locations import (JURISDICTION_LOCATION, NAME_LOCATION,
                                          NOT_HUB_JURISDICTIONS, POPULATION, US, hub_location)
 from pipeline.data.hub.release import refuse_future, refuse_implausible
@@ -227,40 +228,45 @@ def parse_vintage(spec: TargetSpec, data: bytes, *, suffix: str, as_of: date,
                               "location": gated.frame["place"].astype(str).to_numpy(),
                               "value": value}).sort_values(
             ["target_end_date", "location"], ignore_index=True)
-        frame, derived = _national_from_states(frame, spec, dict(gated.skipped))
+        frame, derived, left_out = _national_from_states(frame, spec, dict(gated.skipped))
         if len(_PARSED) >= _PARSED_LIMIT:
             _PARSED.pop(next(iter(_PARSED)))
         _PARSED[key] = WeeklyVintage(spec.target, pd.Timestamp(as_of), frame,
-                                     dict(gated.skipped), derived=derived,
-                                     missing=dict(gated.missing))
+                                     {**gated.skipped, **left_out},
+                                     derived=derived, missing=dict(gated.missing))
     parsed = _PARSED[key]
     return WeeklyVintage(parsed.target, parsed.as_of, parsed.frame, parsed.skipped, source,
                          parsed.derived, parsed.missing)
 
 
 def _national_from_states(frame: pd.DataFrame, spec: TargetSpec, skipped: Mapping[str, str]
-                          ) -> tuple[pd.DataFrame, dict[str, str]]:
+                          ) -> tuple[pd.DataFrame, dict[str, str], dict[str, str]]:
     """A release of admissions without a national row (or whose national row the gate
     skipped): the US is the sum of the 52 states, on every week all of them report (issue 39,
     problem 6: every round failed). On the real releases the states sum to the US row within
     0.2 % (COVID-19, every week of the release of 2025-09-24; median 0.03 %). A share (the ED
-    visits) cannot be summed, nor a week with a state missing: the US is then left out, and
-    the revision policy names it."""
+    visits) cannot be summed, nor a week with a state missing: the US is then left out and
+    named (the third value: location -> why, for the vintage's ``skipped``), the states' release
+    goes live and the round publishes them without a national forecast."""
     states = [loc for loc in POPULATION if loc != US]
-    if spec.kind != "admissions" or US in set(frame["location"]):
-        return frame, {}
+    if US in set(frame["location"]):
+        return frame, {}, {}
     wide = frame.pivot_table(index="target_end_date", columns="location", values="value")
-    if not set(states) <= set(wide.columns):
-        return frame, {}
-    total = wide[states].dropna().sum(axis=1)
-    if total.empty:
-        return frame, {}
+    absent = [loc for loc in states if loc not in wide.columns]
+    total = wide[states].dropna().sum(axis=1) if not absent else pd.Series(dtype=np.float64)
+    if spec.kind != "admissions" or total.empty:
+        why = ("a share cannot be summed from the states" if spec.kind != "admissions" else
+               f"the states do not all report ({len(absent)} missing, e.g. "
+               f"{', '.join(absent[:3])})" if absent else "no week on which every state reports")
+        gate_note = skipped.get(US)
+        return frame, {}, {US: f"{gate_note or 'US: no national row in the release'}; {why}: "
+                               f"the national forecast is left out"}
     national = pd.DataFrame({"target_end_date": total.index.to_numpy("datetime64[ns]"),
                              "location": US, "value": total.to_numpy(np.float64)})
     why = skipped.get(US, "no national row in the release")
     note = f"{why}: the national value is the sum of the 52 states ({len(total)} weeks)"
     return (pd.concat([frame, national], ignore_index=True).sort_values(
-        ["target_end_date", "location"], ignore_index=True), {US: note})
+        ["target_end_date", "location"], ignore_index=True), {US: note}, {})
 
 
 def canonical_csv(frame: pd.DataFrame) -> bytes:
@@ -297,18 +303,30 @@ def policy_of(spec: TargetSpec) -> RevisionPolicy:
     return ADMISSIONS_POLICY if spec.kind == "admissions" else ED_POLICY
 
 
+@dataclass(frozen=True)
+class Successor:
+    """A newer release judged location by location against the live one: the locations whose
+    settled weeks it revises beyond the policy, and those it leaves out altogether (each
+    location -> why); both are held alone, the release live for the others."""
+
+    revised: Mapping[str, str] = field(default_factory=dict)
+    missing: Mapping[str, str] = field(default_factory=dict)
+
+
 def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: RevisionPolicy,
                            *, references: Mapping[str, WeeklyVintage] | None = None
-                           ) -> dict[str, str]:
-    """The locations of ``new`` to hold for review (location -> why), judged one by one: each
-    against ``cached`` (the live vintage), or a held location against its reference vintage
-    (``references``). Raise :class:`RevisionRefusedError` unless ``new`` may replace
-    ``cached`` at all: older, shrinking, a location dropped, a location failing the gate in a
-    payload of the same date, or more than a quarter of the locations revised beyond
-    ``policy`` (a broken payload, held whole)."""
+                           ) -> Successor:
+    """The locations of ``new`` to hold for review, judged one by one: each against ``cached``
+    (the live vintage), or a held location against its reference vintage (``references``);
+    a location of either that ``new`` lacks (and the gate did not skip) is missing. Raise
+    :class:`RevisionRefusedError` unless ``new`` may replace ``cached`` at all: older,
+    shrinking, a location dropped or failing the gate in a payload of the same date, more than
+    a quarter of the locations missing (a broken payload, refused) or revised beyond
+    ``policy`` (held whole)."""
+    refs = references or {}
     _refuse_shape(new, cached)
-    held = {loc: why for loc, why in (_location_revised(new, (references or {}).get(loc, cached),
-                                                        loc, policy)
+    missing = _missing_locations(new, cached, refs)
+    held = {loc: why for loc, why in (_location_revised(new, refs.get(loc, cached), loc, policy)
                                       for loc in new.locations) if why is not None}
     if len(held) > MAX_HELD_SHARE * len(POPULATION):
         first = next(iter(held.values()))
@@ -316,10 +334,29 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: Re
                                    f"locations revise settled weeks beyond the policy (more than "
                                    f"{MAX_HELD_SHARE:.0%}: the release is held whole); e.g. "
                                    f"{first}; {HELD}", hold=True)
-    return held
+    return Successor(held, missing)
 
 
-MAX_HELD_SHARE = 0.25
+def _missing_locations(new: WeeklyVintage, cached: WeeklyVintage,
+                       references: Mapping[str, WeeklyVintage]) -> dict[str, str]:
+    """The locations of the live vintage (or held, with a reference) that ``new`` lacks
+    altogether, each with why: held alone. One missing from a payload of the same date, or
+    more than :data:`MAX_HELD_SHARE` of the locations missing, refuses ``new``."""
+    known = set(cached.locations) | set(references)
+    gone = sorted(known - set(new.locations) - set(new.skipped))
+    if not gone:
+        return {}
+    t, day = new.target, new.as_of.date()
+    if new.as_of == cached.as_of:
+        raise RevisionRefusedError(f"{t}: location dropped: {', '.join(gone)} in the cached "
+                                   f"vintage of {cached.as_of.date()} but not in a new payload "
+                                   f"of the same date; cached copy kept")
+    if len(gone) > MAX_HELD_SHARE * len(POPULATION):
+        raise RevisionRefusedError(f"{t}: {len(gone)} of the {len(POPULATION)} locations are "
+                                   f"missing from the release of {day} (more than "
+                                   f"{MAX_HELD_SHARE:.0%}: a broken payload, refused), e.g. "
+                                   f"{', '.join(gone[:5])}; cached copy kept")
+    return {loc: f"{t}: no row of {loc} in the release of {day}" for loc in gone}
 
 
 def _refuse_shape(new: WeeklyVintage, cached: WeeklyVintage) -> None:
@@ -338,11 +375,6 @@ def _refuse_shape(new: WeeklyVintage, cached: WeeklyVintage) -> None:
         raise RevisionRefusedError(f"{t}: last week moves backwards: new vintage ends "
                                    f"{new.last_week.date()}, the cached copy "
                                    f"{cached.last_week.date()}; cached copy kept")
-    dropped = sorted(set(cached.locations) - set(new.locations) - set(new.skipped))
-    if dropped:
-        raise RevisionRefusedError(f"{t}: location dropped: {', '.join(dropped)} in the cached "
-                                   f"vintage of {cached.as_of.date()} but not in the new one; "
-                                   f"cached copy kept")
     worse = sorted(set(cached.locations) & set(new.skipped))
     if worse and new.as_of == cached.as_of:
         raise RevisionRefusedError(f"{t}: {worse[0]} passes the validation gate in the cached "
@@ -378,9 +410,7 @@ def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
     if not held:
         return vintage
     frame = vintage.frame[~vintage.frame["location"].isin(list(held))].reset_index(drop=True)
-    skipped = {**vintage.skipped, **{
-        loc: f"{loc}: revision held for review since the release of {h.since} (its series of "
-             f"{h.reference} kept): {h.reason}" for loc, h in held.items()}}
+    skipped = {**vintage.skipped, **{loc: h.note() for loc, h in held.items()}}
     return WeeklyVintage(vintage.target, vintage.as_of, frame, dict(sorted(skipped.items())),
                          vintage.source, vintage.derived, vintage.missing)
 
@@ -416,7 +446,7 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
     refuse_future(vintage.as_of.date(), day, source=source)
     folder = cache.directory(spec)
     holds = read_holds(folder)
-    found: dict[str, str] = {}
+    found: list[Successor] = []
     reference: list[str] = []
 
     def check(live: CachedPayload | None) -> None:
@@ -432,7 +462,7 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
                         spec.target, cached.as_of.date())   # stored by an older flowcast
             cached = None
         if cached is not None:
-            found.update(check_weekly_successor(vintage, cached, policy_of(spec),
+            found.append(check_weekly_successor(vintage, cached, policy_of(spec),
                                                 references=_references(cache, spec, holds)))
             reference.append(str(cached.as_of.date()))
 
@@ -448,8 +478,10 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
         final_cumulative=None, final_url=final_url, lock_timeout_s=lock_timeout_s)
     if committed.action == "live":
         as_of = str(vintage.as_of.date())
+        judged = found[0] if found else Successor()
         after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accept_revisions else
-                 holds.opened(found, since=as_of, reference=reference[0] if reference else as_of))
+                 holds.opened(judged.revised, since=as_of, missing=judged.missing,
+                              reference=reference[0] if reference else as_of))
         if after != holds:
             write_holds(folder, after)
     return committed
