@@ -219,7 +219,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     # no ED-share vintage of influenza in the shared data: the seasonal member reads the
     # admissions' own earlier seasons (its climatology left empty)
     members = build_hub_members(HubMembersConfig(), default_store_root(), vintages, (),
-                                target=HOSP_FLU)
+                                target=HOSP_FLU, seasonal_own_seasons=True)
     t_members = time.perf_counter() - started
     reach = CombineConfig(beyond_reach="reachable-members")
     names = [m.name for m in members.published]

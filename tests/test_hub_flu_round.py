@@ -38,6 +38,12 @@ def test_an_in_season_flu_round_is_flusights(tmp_path, monkeypatch):
     from pipeline.hub_round.publish import publish_hub_round
     config, run = _round(tmp_path, monkeypatch, "2025-02-05", "2025-02-19")
     assert list(run.results) == ["wk inc flu hosp"]          # no influenza ED vintage
+    # without it the seasonal member reads the admissions' own earlier seasons: it forecasts
+    # every location of the round (a climatology it waited for left it silent, and the
+    # published average was the flow alone)
+    assert "seasonal" not in run.results["wk inc flu hosp"].dropped_members()
+    seasonal = run.results["wk inc flu hosp"].backtest.forecasts["wk inc flu hosp"]["seasonal"]
+    assert np.isfinite(seasonal[:, -1]).all()
     published = publish_hub_round(run)
     assert published.reference_date == "2025-02-22"
     folder = published.folder

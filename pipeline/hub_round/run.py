@@ -53,6 +53,11 @@ HUB_CONFIG_ENV = "FLOWCAST_HUB_CONFIG"
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 DEFAULT_HUB_CONFIG = SHARED_DATA / "nhsn" / "hub-config"
 Disease = Literal["covid", "flu", "rsv"]
+# Whether the seasonal member's climatology is the disease's ED share (COVID-19: NSSP's
+# vintages, measured on the 44 design rounds, bench/results/nhsn.json) or the admissions' own
+# earlier seasons (influenza: FluSight's data hold no ED vintage; measured on its 59 rounds,
+# bench/results/flusight.json; RSV: no hub config, refused)
+SEASONAL_READS_ED_SHARE: dict[Disease, bool] = {"covid": True, "flu": False, "rsv": False}
 # each disease's hub config beside the checkout: the CDC COVID-19 hub's, FluSight's; none of
 # the RSV hub is in reach, so an RSV round is refused by name (no unvalidated file)
 DEFAULT_HUB_CONFIGS: dict[str, Path] = {"covid": DEFAULT_HUB_CONFIG,
@@ -215,8 +220,9 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
                         "; ".join(f"{p} ({why})" for p, why in loaded.skipped.items()))
     vintages = {t: load_vintages(t) if t in provenance else [] for t in targets}
     seconds["data"] = time.perf_counter() - started
-    # the ED share's vintages are the seasonal member's climatology; without them (FluSight's
-    # data hold no influenza ED vintage) it reads the admissions' own earlier seasons
+    # the ED share's vintages are COVID-19's seasonal climatology (none released yet: no
+    # seasonal forecast); influenza's seasonal member reads the admissions' own earlier seasons
+    # (FluSight's data hold no influenza ED vintage: SEASONAL_READS_ED_SHARE)
     climatology = next((v for t, v in vintages.items() if is_share(t)), [])
     dropped = [Dropped("target", t, t, f"no release of it yet ({missing[t]})") for t in missing]
     results: dict[str, HubRoundsResult] = {}
@@ -225,6 +231,8 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
                                     climatology, progress, target=target,
+                                    seasonal_own_seasons=not SEASONAL_READS_ED_SHARE[
+                                        config.disease],
                                     other_signal=next((v for t, v in vintages.items()
                                                        if t != target and v), None))
         model_key, reused = members.model_key, reused and members.reused

@@ -200,8 +200,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
                       climatology: Sequence[tuple[pd.Timestamp, Panel]],
                       progress: ProgressReporter | None = None, *,
                       target: str,
-                      other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None = None
-                      ) -> HubMembers:
+                      other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None = None,
+                      seasonal_own_seasons: bool = False) -> HubMembers:
     """The hub forecast's members (docs/forecasting.md "The hub forecast"): the weekly flow
     (model store), that flow fine-tuned at the refit dates among the vintages' last weeks on
     the windows of the vintage of each (``nf-real``), the context flow refitted globally on
@@ -209,7 +209,9 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     ``other_signal``, by default the ``climatology`` for admissions and none for the share),
     the seasonal member on the ``climatology`` vintages (the ED-visit share), the hub baseline
     and growth-qr pooled over the 53 locations; :func:`published_names` chooses the average's
-    members for ``target``."""
+    members for ``target``. ``seasonal_own_seasons``: the seasonal member reads the target's own
+    earlier seasons instead of the ``climatology`` (influenza: no ED vintage in FluSight's
+    data)."""
     synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
     stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
                                          synthetic=synthetic)
@@ -224,8 +226,9 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     dates = refit_dates(sorted({panel.last_date for _, panel in vintages}),
                         config.finetune.refit_every_weeks)
     members: list[Member] = [
-        flow, SeasonalGrowthMember(tuple(climatology), config.seasonal,
-                                   climatology_required=True),
+        flow, (SeasonalGrowthMember((), config.seasonal) if seasonal_own_seasons else
+               SeasonalGrowthMember(tuple(climatology), config.seasonal,
+                                    climatology_required=True)),
         HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
         PooledGrowthMember(config.regression)]
     dropped: list[Dropped] = []
