@@ -286,9 +286,6 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")
-    # the seasonal member on the target's own earlier seasons (influenza's climatology): it
-    # forecasts the rounds before the ED share's first release too
-    own = SeasonalGrowthMember((), name="seasonal-own-seasons")
     names = [m.name for m in members.published]
     reach = CombineConfig(beyond_reach="reachable-members")
     variants = (
@@ -313,22 +310,17 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
-        Variant("v-published, seasonal on own seasons", reach,
-                (*[n for n in names if n != "seasonal"], own.name)),
-        Variant("v-nf-context+seasonal on own seasons", reach, ("nf-context", own.name)),
     )
-    built = {m.name for m in (*members.published, *members.references)} | {pseudo.name,
-                                                                           own.name}
+    built = {m.name for m in (*members.published, *members.references)} | {pseudo.name}
     variants = tuple(v for v in variants if set(v.members or ()) <= built)
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
-                            references=(*members.references, pseudo, own,
+                            references=(*members.references, pseudo,
                                         *[m for _, m in ablated]))
     t_backtest = time.perf_counter() - started - t_members - t_ablations
     ours = ours_all = result.scores()
     board_names = [PUBLISHED, UNRECONCILED, *[m.name for m in members.published],
-                   *[m.name for m in (*members.references, pseudo, own)],
-                   *[v.name for v in variants]]
+                   *[m.name for m in (*members.references, pseudo)], *[v.name for v in variants]]
     ours = ours[ours["model_id"].isin(board_names)]
     per_model = {}
     for name in board_names:
