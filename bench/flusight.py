@@ -204,10 +204,11 @@ def derived_scores(targets: Any) -> dict[str, Any]:
 
 
 def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, float, float]:
-    """Every round in real time: the published members, and as variants the flow alone and
-    the published members with the hub baseline or growth-qr, the refitted flow with growth-qr,
-    and the context flow alone, with the seasonal member, and with both; seconds to build the
-    members and to forecast."""
+    """Every round in real time: the published members (the context flow, the weekly flow and
+    the seasonal member), and as variants the weekly flow alone, with the seasonal member (the
+    rule published until 2026-11) and with the hub baseline or growth-qr, and the context flow
+    alone, with the seasonal member and with growth-qr; seconds to build the members and to
+    forecast."""
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import CombineConfig
@@ -222,17 +223,17 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                                 target=HOSP_FLU, seasonal_own_seasons=True)
     t_members = time.perf_counter() - started
     reach = CombineConfig(beyond_reach="reachable-members")
-    names = [m.name for m in members.published]
-    refit = "nf-real" if "nf-real" in names else "nf-weekly"
+    pair = ("nf-weekly", "seasonal")        # COVID-19's admissions pair
     variants = (Variant("v-flow-alone", reach, ("nf-weekly",)),
-                Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
-                Variant("v-flow+growth-qr", reach, (refit, "growth-qr")),
-                Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
+                Variant("v-nf-weekly+seasonal (published for influenza until 2026-11)", reach,
+                        pair),
+                Variant("v-flow+seasonal+baseline", reach, (*pair, "hub-baseline")),
+                Variant("v-flow+growth-qr", reach, ("nf-weekly", "growth-qr")),
+                Variant("v-flow+seasonal+growth-qr", reach, (*pair, "growth-qr")),
                 # the context flow (issue 38), alone and in the ED share's published pair
                 Variant("v-nf-context alone", reach, ("nf-context",)),
                 Variant("v-nf-context+seasonal", reach, ("nf-context", "seasonal")),
-                Variant("v-nf-context+nf-weekly+seasonal", reach,
-                        ("nf-context", "nf-weekly", "seasonal")))
+                Variant("v-nf-context+growth-qr", reach, ("nf-context", "growth-qr")))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=seed),
                             references=members.references)

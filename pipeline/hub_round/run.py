@@ -160,7 +160,9 @@ class HubRun:
         if item.what in ("target", "location"):
             return item.what == "target"
         member = item.name.split(" ")[0]       # a refit is named "<member> <date>"
-        return member in published_names(self.config.members, item.target, refitted=True)
+        return member in published_names(
+            self.config.members, item.target, refitted=True,
+            own_seasons=not SEASONAL_READS_ED_SHARE[self.config.disease])
 
     @property
     def degraded(self) -> bool:

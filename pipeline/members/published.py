@@ -158,16 +158,25 @@ class HubMembersConfig:
     # alone against nf-real's 0.755, and with the seasonal member 0.591 against nf-real +
     # seasonal's 0.655 (pairwise relative WIS, the 15 ED rounds; bench/results/nhsn.json)
     published_share: tuple[str, ...] = (NF_CONTEXT, SEASONAL)
+    # Admissions whose seasonal member reads their own earlier seasons (influenza: 0.939 alone,
+    # the weakest member there): the context flow joins the pair. Over FluSight's 59 rounds the
+    # three scored 0.695 against the pair's 0.756, better in both seasons (0.768 / 0.668
+    # against 0.815 / 0.737 in 2023-24 / 2024-25; the context flow alone 0.808 / 0.633;
+    # bench/results/flusight.json). On COVID-19's admissions the three scored 0.803 against
+    # the pair's 0.796: there the seasonal member reads the ED share and stays a pair.
+    published_own_seasons: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL)
     flow_samples: int = 1000
     baseline_samples: int = BASELINE_SAMPLES
 
 
-def published_names(config: HubMembersConfig, target: str, *, refitted: bool
-                    ) -> tuple[str, ...]:
-    """The members of ``target``'s published average (``config.published``, or
-    ``published_share`` for a share): the weekly flow stands in for its refit while no refit
-    date has come (``refitted`` False)."""
-    published = config.published_share if is_share(target) else config.published
+def published_names(config: HubMembersConfig, target: str, *, refitted: bool,
+                    own_seasons: bool = False) -> tuple[str, ...]:
+    """The members of ``target``'s published average (``config.published``; ``published_share``
+    for a share; ``published_own_seasons`` for admissions whose seasonal member reads their own
+    earlier seasons): the weekly flow stands in for its refit while no refit date has come
+    (``refitted`` False)."""
+    published = (config.published_share if is_share(target)
+                 else config.published_own_seasons if own_seasons else config.published)
     if refitted or NF_REAL not in published:
         return published
     return tuple(dict.fromkeys(NF_WEEKLY if n == NF_REAL else n for n in published))
@@ -259,7 +268,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
             refitted = True
             dropped += newest_refit_fallbacks(refits, target)
     lost = {d.name for d in dropped}     # a member that could not be built: the rest average
-    published = tuple(n for n in published_names(config, target, refitted=refitted)
+    published = tuple(n for n in published_names(config, target, refitted=refitted,
+                                                 own_seasons=seasonal_own_seasons)
                       if n not in lost)
     unknown = [n for n in published if n not in {m.name for m in members}]
     if unknown:
