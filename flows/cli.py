@@ -65,10 +65,17 @@ def forecast_command(
         return
 
     from pipeline.cli.hub_options import writable_output_dir
-    try:  # a misspelt county or an unwritable --output-dir fails here, before Prefect starts
+    from pipeline.errors import OfflineError
+    from pipeline.forecast.config import DataSourceConfig
+    from pipeline.forecast.sources import require_offline_data
+    # a misspelt county, an unwritable --output-dir or an empty cache offline fails here,
+    # before Prefect starts
+    try:
         county = california_county(county) if county is not None else None
         writable_output_dir(output_dir)
-    except ConfigError as error:
+        if value(data_source) == "cache":
+            require_offline_data(DataSourceConfig(kind="cache", county=county))
+    except (ConfigError, OfflineError) as error:
         typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from None
 

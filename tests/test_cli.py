@@ -71,7 +71,7 @@ def test_makefile_forecast_target_calls_flowcast_forecast():
 @pytest.mark.slow  # a fresh process imports the whole CLI and starts Prefect's temporary server
 def test_forecast_without_data_fails_in_one_line(tmp_path):
     """`flowcast forecast` as a user runs it (a process); no cache, offline: exit 1 and one
-    error line that names the fix."""
+    error line that names the fix, before any work."""
     import os
     import subprocess
     import sys
@@ -86,6 +86,27 @@ def test_forecast_without_data_fails_in_one_line(tmp_path):
     errors = [line for line in run.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "flowcast data import" in errors[0], run.stderr[-2000:]
     assert not (tmp_path / "reports").exists() or not any((tmp_path / "reports").iterdir())
+    # found before any work: no Prefect server was started (it would have made its home)
+    assert not (tmp_path / "prefect-home").exists()
+
+
+def test_an_empty_cache_is_named_before_any_work_for_sf_and_a_county(tmp_path, monkeypatch,
+                                                                     datasf_dir):
+    """The offline pre-flight (``require_offline_data``) raises the run's own error for San
+    Francisco and for a county, and passes once the cache holds the data."""
+    from pipeline.errors import OfflineError
+    from pipeline.forecast.config import DataSourceConfig
+    from pipeline.forecast.sources import import_exports, require_offline_data
+
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
+    with pytest.raises(OfflineError, match=r"no cached DataSF cases data .* No usable DataSF"):
+        require_offline_data(DataSourceConfig(kind="cache"))
+    with pytest.raises(OfflineError, match=r"no cached CDPH county data .* no forecast for "
+                                           r"Los Angeles"):
+        require_offline_data(DataSourceConfig(kind="cache", county="Los Angeles"))
+    require_offline_data(DataSourceConfig(kind="live"))        # live: the fetch decides
+    import_exports([str(datasf_dir)])
+    require_offline_data(DataSourceConfig(kind="cache"))
 
 
 # ------------------------------------------------------------------------------- smc filter

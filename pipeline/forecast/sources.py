@@ -21,10 +21,10 @@ from pipeline.data.california.chhs import CHHSClientConfig
 from pipeline.data.sf.csv_import import ImportSummary, detect_dataset, import_csv_exports
 from pipeline.data.sf.datasf import ClientConfig
 from pipeline.data.sf.payloads import read_csv_bytes
-from pipeline.data.sf.series import (DatasetProvenance, DataVintage, SeriesProvenance, SFDataConfig,
+from pipeline.data.sf.series import (require_sf_cached, DatasetProvenance, DataVintage, SeriesProvenance, SFDataConfig,
                                      SFSeries, load_sf_series, trim_trailing_days)
 from pipeline.data.sf.sir_transform import SIRConversionConfig, SIRSeries, to_sir
-from pipeline.data.california.cdph_source import (CDPHConfig, CDPHProvenance, import_cdph_exports,
+from pipeline.data.california.cdph_source import (require_cdph_cached, CDPHConfig, CDPHProvenance, import_cdph_exports,
                                                   load_cdph, load_cdph_vintage)
 from pipeline.panels.history import EpiHistory, history_from_county, history_from_frames
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
@@ -89,9 +89,32 @@ def load_series(source: DataSourceConfig, *,
     try:
         return load_sf_series(data_config, offline=source.kind != "live", session=session)
     except OfflineError as exc:
-        raise OfflineError(f"{exc} No usable DataSF data, so no forecast was made; the last good "
-                           "report is unchanged. Import the exports with `flowcast data import "
-                           "FILE...` (or run with data source 'import').") from exc
+        raise no_usable_data(exc, source) from exc
+
+
+def no_usable_data(error: OfflineError, source: DataSourceConfig) -> OfflineError:
+    """The run's error when the cache holds nothing to forecast from: what, and the fix."""
+    if source.county is None:
+        return OfflineError(f"{error} No usable DataSF data, so no forecast was made; the last "
+                            "good report is unchanged. Import the exports with `flowcast data "
+                            "import FILE...` (or run with data source 'import').")
+    return OfflineError(f"{error} No usable CDPH data, so no forecast for {source.county} was "
+                        "made; the last good report is unchanged.")
+
+
+def require_offline_data(source: DataSourceConfig) -> None:
+    """A cache-only run (``source.kind`` "cache"): the error it would end in when the cache
+    holds nothing to forecast from, raised before any work (the flow would meet it only after
+    starting Prefect and its tasks)."""
+    if source.kind != "cache":
+        return
+    try:
+        if source.county is None:
+            require_sf_cached()
+        else:
+            require_cdph_cached()
+    except OfflineError as exc:
+        raise no_usable_data(exc, source) from exc
 
 
 def load_county_series(source: DataSourceConfig, *,
@@ -113,8 +136,7 @@ def load_county_series(source: DataSourceConfig, *,
         loaded = load_cdph(CDPHConfig(client=client), offline=source.kind != "live",
                            session=session)
     except OfflineError as exc:
-        raise OfflineError(f"{exc} No usable CDPH data, so no forecast for {source.county} was "
-                           "made; the last good report is unchanged.") from exc
+        raise no_usable_data(exc, source) from exc
     return county_series(loaded.vintage.county(source.county), loaded.provenance,
                          trailing_days=source.trailing_days)
 

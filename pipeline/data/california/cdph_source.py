@@ -246,11 +246,23 @@ def _provenance(manifest: CacheManifest, vintage: CDPHVintage, *, from_cache: bo
         notes=notes + skipped_note(vintage), skipped=dict(vintage.skipped))
 
 
+def _no_cache(cache: DatasetCache, why: str | None) -> OfflineError:
+    return no_cache_error("CDPH county data", cache.directory(SPEC), why,
+                          fetch="flowcast data fetch --source chhs", otherwise=_IMPORT_HINT)
+
+
+def require_cdph_cached(config: CDPHConfig | None = None) -> None:
+    """The error an offline read would end in, now and without reading anything (a run checks
+    before any work)."""
+    cache = DatasetCache.default((config or CDPHConfig()).data_dir)
+    if not cache.has(SPEC):
+        raise _no_cache(cache, None)
+
+
 def _from_cache(cache: DatasetCache, now: datetime, why: str | None) -> CDPHLoad:
     cached = cache.load(SPEC)
     if cached is None:
-        raise no_cache_error("CDPH county data", cache.directory(SPEC), why,
-                             fetch="flowcast data fetch --source chhs", otherwise=_IMPORT_HINT)
+        raise _no_cache(cache, why)
     vintage = with_county_holds(parse_cached(cache, cached.payload, str(cached.path)),
                                 read_holds(cache.directory(SPEC)))
     stale = cached.manifest.age_days(now)

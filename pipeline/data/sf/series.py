@@ -169,14 +169,28 @@ def _fetch_live(spec: DatasetSpec, client: DataSFClient, cache: DatasetCache,
                                   notes=validated.report.warnings)
 
 
+def _no_cache(spec: DatasetSpec, cache: DatasetCache, why: str | None) -> OfflineError:
+    return no_cache_error(f"DataSF {spec.key} data ({spec.dataset_id})", cache.directory(spec),
+                          why, fetch="flowcast data fetch",
+                          otherwise=f"import a DataSF CSV export ({spec.export_url()}) with "
+                                    f"`flowcast data import FILE`")
+
+
+def require_sf_cached(config: SFDataConfig | None = None) -> None:
+    """The error an offline read would end in, now and without reading anything: the first
+    dataset the series reads that the cache does not hold (a run checks before any work)."""
+    config = config if config is not None else SFDataConfig()
+    cache = DatasetCache.default(config.data_dir)
+    missing = [DATASETS[key] for key in config.datasets if not cache.has(DATASETS[key])]
+    if missing:
+        raise _no_cache(missing[0], cache, None)
+
+
 def _from_cache(spec: DatasetSpec, cache: DatasetCache, gap_policy: GapPolicy,
                 now: datetime, why: str | None) -> tuple[ValidatedFrame, DatasetProvenance]:
     cached = cache.load(spec)
     if cached is None:
-        raise no_cache_error(f"DataSF {spec.key} data ({spec.dataset_id})", cache.directory(spec),
-                             why, fetch="flowcast data fetch",
-                             otherwise=f"import a DataSF CSV export ({spec.export_url()}) with "
-                                       f"`flowcast data import FILE`")
+        raise _no_cache(spec, cache, why)
     validated = validate_frame(_decode_payload(cached), spec, source=str(cached.path),
                                gap_policy=gap_policy)
     stale = cached.manifest.age_days(now)
