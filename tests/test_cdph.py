@@ -294,7 +294,7 @@ def test_fault_falls_back_to_the_untouched_cache(name, data_dir):
     if fault.skipped is None:
         assert "using cache, fetched 0 days ago (its last day, 2021-11-04" in result.note
     else:  # the new payload, the made-up county skipped by name, nothing of the cache lost
-        assert "validation gate skipped 1 county(ies)" in result.note
+        assert "1 county(ies) left out of the vintage" in result.note
     assert result.bytes_lost == 0
     assert result.passed, result
     # Bounded by the client's deadlines, not by the server (the drip would take 4 s more);
@@ -394,7 +394,7 @@ def test_a_county_reporting_an_absurd_population_is_skipped_by_name(data_dir, tm
     bad.write_bytes(edited(lambda f: with_population(f, "Alpine", "0")))
     [summary] = import_cdph_exports([bad], data_dir)
     assert summary.action == "imported" and summary.counties == 57
-    assert ("validation gate skipped 1 county(ies) of the vintage of 2021-11-04: Alpine: its "
+    assert ("1 county(ies) left out of the vintage of 2021-11-04: Alpine: its "
             "population '0' is not within 25% of the 2020 Census figure 1,204") in summary.note
 
 

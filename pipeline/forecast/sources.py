@@ -229,9 +229,9 @@ def load_reference_places(min_population: int = REFERENCE_MIN_POPULATION,
                     "San Francisco series alone; `flowcast data import` the CDPH files", exc)
         return ReferencePlaces({}, {})
     last = vintage.as_of - pd.Timedelta(days=drop_days)
-    if vintage.skipped:  # failed the validation gate: not in vintage.counties, so not pooled
-        log.warning("the pooled members leave out %d county(ies) the validation gate skipped: "
-                    "%s", len(vintage.skipped), "; ".join(vintage.skipped.values()))
+    if vintage.skipped:  # failed the gate or held for review: not in vintage.counties
+        log.warning("the pooled members leave out %d county(ies) (each with why): %s",
+                    len(vintage.skipped), "; ".join(vintage.skipped.values()))
     return ReferencePlaces({c: history_from_county(vintage.county(c)).up_to(last)
                             for c in vintage.counties_with_population(min_population)},
                            dict(vintage.skipped))

@@ -225,10 +225,11 @@ def parse_cached(cache: DatasetCache, data: bytes, source: str) -> CDPHVintage:
 
 
 def skipped_note(vintage: CDPHVintage) -> tuple[str, ...]:
-    """The provenance note naming the counties the gate skipped (none: no note)."""
+    """The provenance note naming the counties left out, each with why: the validation gate
+    skipped it, or its revision is held for review (none: no note)."""
     if not vintage.skipped:
         return ()
-    return (f"validation gate skipped {len(vintage.skipped)} county(ies) of the vintage of "
+    return (f"{len(vintage.skipped)} county(ies) left out of the vintage of "
             f"{vintage.as_of.date()}: " + "; ".join(vintage.skipped.values()),)
 
 

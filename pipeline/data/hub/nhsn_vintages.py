@@ -538,9 +538,10 @@ def skipped_note(vintage: WeeklyVintage) -> tuple[str, ...]:
                                 for loc, d in vintage.missing.items()),)
     if not vintage.skipped:
         return derived
-    return derived + (f"validation gate skipped {len(vintage.skipped)} location(s) of the "
-            f"{vintage.target} vintage of {vintage.as_of.date()}: "
-            + "; ".join(vintage.skipped.values()),)
+    return derived + (f"{len(vintage.skipped)} location(s) left out of the {vintage.target} "
+                      f"vintage of {vintage.as_of.date()} (each with why: the validation gate, "
+                      "a revision held or the location missing): "
+                      + "; ".join(vintage.skipped.values()),)
 
 
 def cached_weekly_vintages(target: str, data_dir: str | os.PathLike[str] | None = None
