@@ -15,9 +15,9 @@ export OMP_WAIT_POLICY := PASSIVE
 
 # The venv is byte-compiled once, by compileall on every core (pip's own compile runs on one):
 # where PYTHONDONTWRITEBYTECODE is set (this VM, CI) an uncompiled venv compiles torch, prefect,
-# pandas, ... again in every process the tests start, about 5 s each (`make test` took 6 min 40 s
-# so, 6 min 07 s with pip's compile). Files that do not compile (Python 2 examples shipped in some
-# packages) are skipped, as pip skips them.
+# pandas, ... again in every process the tests start, about 5 s each (`make test` in a fresh
+# clone: 6 min 40 s uncompiled, 6 min 07 s with pip's compile, 5 min 52 s so). Files that do not
+# compile (Python 2 examples shipped in some packages) are skipped, as pip skips them.
 # --no-build-isolation: the package builds with the venv's own setuptools and wheel (installed
 # beside torch) instead of a throw-away build environment made on every install.
 SITE = $$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
