@@ -206,21 +206,28 @@ class Headline:
             parts.append(f"Nowcast: {week.text()}.")
         return " ".join(parts) + " "
 
-    def sentence(self) -> str:
-        """The lead an epidemiologist can quote (it opens with the nowcast, when there is one)."""
+    def forecast_clause(self, *, place: bool) -> str:
+        """The forecast in words, the lead's and page 1's: the first and last week against the
+        week to the origin, the chance of growth, R_t (``place``: naming where)."""
         first, last = self.horizons[0], self.horizons[-1]
         rt = self.rt.value
-        return self.nowcast_sentence() + (f"About {fmt_count(self.infectious_now_people)} people in {self.place} are "
-                f"infectious ({fmt_share(self.infectious_now)} of the population: the cases "
-                f"reported in the 7 days to {self.last_data_day}). Weekly reported cases are "
-                f"forecast at {fmt_count(first.cases.median)} (90% interval "
-                f"{fmt_range(first.cases.lo90, first.cases.hi90)}) in the week ending "
-                f"{first.target_end} and {fmt_count(last.cases.median)} "
-                f"({fmt_range(last.cases.lo90, last.cases.hi90)}) in the week ending "
+        where = f" in {self.place}" if place else ""
+        return (f"Weekly reported cases{where} are forecast at {fmt_count(first.cases.median)} "
+                f"(90%: {fmt_range(first.cases.lo90, first.cases.hi90)}) in the week ending "
+                f"{first.target_end} and {fmt_count(last.cases.median)} (90%: "
+                f"{fmt_range(last.cases.lo90, last.cases.hi90)}) in the week ending "
                 f"{last.target_end}, against {fmt_count(self.origin_week_cases)} in the week "
                 f"ending {self.origin}. Probability that cases grow next week: "
-                f"{fmt_prob(self.p_growing)}. R_t = {fmt_rt(rt.median)} (90% interval "
+                f"{fmt_prob(self.p_growing)}; R_t {fmt_rt(rt.median)} (90%: "
                 f"{fmt_range(rt.lo90, rt.hi90, fmt_rt)}).")
+
+    def sentence(self) -> str:
+        """The lead an epidemiologist can quote (it opens with the nowcast, when there is one)."""
+        return self.nowcast_sentence() + (
+            f"About {fmt_count(self.infectious_now_people)} people in {self.place} are "
+            f"infectious ({fmt_share(self.infectious_now)} of the population: the cases "
+            f"reported in the 7 days to {self.last_data_day}). "
+            + self.forecast_clause(place=False))
 
     def one_line(self) -> str:
         """For the index of past runs."""

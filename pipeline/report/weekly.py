@@ -40,7 +40,7 @@ from pipeline.report.diagnostics import (DIAGNOSTICS, LEVELS, Q_COLUMNS, Diagnos
                                          diagnostic_sections, figure_item)
 from pipeline.report.headline import (PUBLISHED, daily_history, Headline, Interval,
                                       compute_headline, facts_frame, fmt_count, fmt_prob,
-                                      fmt_range, fmt_rt, fmt_share, forecast_frame,
+                                      fmt_range, fmt_share, forecast_frame,
                                       published_weekly, skill_frame)
 from pipeline.report.page1 import fan_chart_figure
 
@@ -134,15 +134,7 @@ def page_one_table(h: Headline) -> pd.DataFrame:
 def page_one_headline(h: Headline) -> str:
     """Two sentences: the first and last week's forecast against the week to the origin; the
     chance of growth and R_t."""
-    first, last = h.horizons[0], h.horizons[-1]
-    return (f"Weekly reported cases in {h.place} are forecast at "
-            f"{fmt_count(first.cases.median)} (90%: {fmt_range(first.cases.lo90, first.cases.hi90)}"
-            f") in the week ending {first.target_end} and {fmt_count(last.cases.median)} "
-            f"(90%: {fmt_range(last.cases.lo90, last.cases.hi90)}) in the week ending "
-            f"{last.target_end}, against {fmt_count(h.origin_week_cases)} in the week ending "
-            f"{h.origin}. Probability that cases grow next week: {fmt_prob(h.p_growing)}; "
-            f"R_t {fmt_rt(h.rt.value.median)} (90%: "
-            f"{fmt_range(h.rt.value.lo90, h.rt.value.hi90, fmt_rt)}).")
+    return h.forecast_clause(place=True)
 
 
 def weekly_notices(results: ForecastResults, today: dt.date, n_left_out_sections: int
