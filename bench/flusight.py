@@ -209,9 +209,10 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     rule published until 2026-11) and with the hub baseline or growth-qr, and the context flow
     alone, with the seasonal member and with growth-qr; seconds to build the members and to
     forecast."""
+    import dataclasses
+
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
-    from pipeline.combine.combiner import CombineConfig
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.training.model_store import default_store_root
@@ -222,7 +223,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     members = build_hub_members(HubMembersConfig(), default_store_root(), vintages, (),
                                 target=HOSP_FLU, seasonal_own_seasons=True)
     t_members = time.perf_counter() - started
-    reach = CombineConfig(beyond_reach="reachable-members")
+    reach = HubBacktestConfig().combine      # the published rule (the hub's 95 % outer interval)
     pair = ("nf-weekly", "seasonal")        # COVID-19's admissions pair
     variants = (Variant("v-flow-alone", reach, ("nf-weekly",)),
                 Variant("v-nf-weekly+seasonal (published for influenza until 2026-11)", reach,
@@ -233,7 +234,14 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                 # the context flow (issue 38), alone and in the ED share's published pair
                 Variant("v-nf-context alone", reach, ("nf-context",)),
                 Variant("v-nf-context+seasonal", reach, ("nf-context", "seasonal")),
-                Variant("v-nf-context+growth-qr", reach, ("nf-context", "growth-qr")))
+                Variant("v-nf-context+growth-qr", reach, ("nf-context", "growth-qr")),
+                Variant("v-nf-context+nf-weekly+seasonal", reach,
+                        ("nf-context", "nf-weekly", "seasonal")),
+                # the online calibration's one setting, η, a third and twice the published 0.15
+                Variant("v-regime-aci eta=0.05", dataclasses.replace(reach, tracking_rate=0.05)),
+                Variant("v-regime-aci eta=0.3", dataclasses.replace(reach, tracking_rate=0.3)),
+                Variant("v-log-mixture, no online calibration",
+                        dataclasses.replace(reach, calibration="none")))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=seed),
                             references=members.references)

@@ -185,7 +185,8 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     vintages = influenza_vintages(flusight)
     config = HubMembersConfig()
     member = fit_context_member(config.context, config.context_refit, [TrainingPool(
-        vintages, ContextSources((), tuple(vintages), POPULATION))], default_store_root())
+        vintages, ContextSources((), tuple(vintages), POPULATION))], default_store_root(),
+        n_seeds=config.context_seeds)
     rounds = hub_rounds(vintages)
     result = run_hub_rounds(rounds, vintages[-1][1], [member],
                             HubBacktestConfig(seed=args.seed, reconcile=False),
@@ -216,9 +217,11 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
 
 def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
                      other: list[Any], args: argparse.Namespace) -> list[tuple[str, Any]]:
-    """The context flow with each context group left out in turn, with the transformer encoder,
-    without refits (the prior alone) and, for admissions, with influenza windows added:
-    ``(label, member)``, each scored beside the members under its own name."""
+    """The context flow's seeds one by one, and seed 0 with each context group left out in
+    turn, with the transformer encoder, without refits (the prior alone) and, for admissions,
+    with influenza windows added: ``(label, member)``, each scored beside the members under
+    its own name. Every ablation mixes the same seeds as the published member (one seed is
+    too noisy to resolve a channel: the seeds alone differ by 0.06 or more)."""
     import dataclasses
 
     from pipeline.members.nf.context import TrainingPool, fit_context_member
@@ -232,11 +235,18 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
     store = default_store_root()
 
     def fit(name: str, pools: list[Any], channels: Any = ContextChannels(),
-            flow: Any = config.context) -> Any:
-        return fit_context_member(flow, config.context_refit, pools, store, channels=channels,
-                                  name=name, n_samples=500)
+            flow: Any = config.context, refit: Any = config.context_refit,
+            n_seeds: int = config.context_seeds) -> Any:
+        return fit_context_member(flow, refit, pools, store, channels=channels, name=name,
+                                  n_samples=500 - 500 % n_seeds, n_seeds=n_seeds)
 
     out: list[tuple[str, Any]] = []
+    for k in range(config.context_seeds):
+        out.append((f"seed {k} alone", fit(
+            f"nf-context-seed-{k}", [pool],
+            flow=dataclasses.replace(config.context, seed=config.context.seed + k),
+            refit=dataclasses.replace(config.context_refit, seed=config.context_refit.seed + k),
+            n_seeds=1)))
     for group in ("other_signal", "season", "climatology", "scale"):
         channels = ContextChannels(**{group: False})
         out.append((channels.label(), fit(f"nf-context-no-{group}", [pool], channels)))
@@ -265,7 +275,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.backtest import Variant
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
-    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED, CombineConfig
+    from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
@@ -287,7 +297,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")
     names = [m.name for m in members.published]
-    reach = CombineConfig(beyond_reach="reachable-members")
+    reach = HubBacktestConfig().combine      # the published rule (the hub's 95 % outer interval)
     variants = (
         Variant("v-flow-alone", reach, ("nf-weekly",)),
         Variant("v-issue-members (baseline, growth-qr, flows)", reach,
@@ -307,6 +317,9 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                 dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")),
         Variant("v-log-mixture, no online calibration",
                 dataclasses.replace(reach, calibration="none")),
+        # the online calibration's one setting, η, a third and twice the published 0.15
+        Variant("v-regime-aci eta=0.05", dataclasses.replace(reach, tracking_rate=0.05)),
+        Variant("v-regime-aci eta=0.3", dataclasses.replace(reach, tracking_rate=0.3)),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
@@ -328,8 +341,11 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
             continue
         board = leaderboards(ours[ours["model_id"] == name], teams, target, exclusions,
                              first_ed[0])
+        scored_h = result.summary(name, [h for h in result.horizons if h >= 0])
         per_model[name] = relative(board, name) | {
-            "coverage": summary_by_horizon(result, name)}
+            "coverage": summary_by_horizon(result, name),
+            "coverage50_interval": scored_h["coverage50_interval"],
+            "coverage95_interval": scored_h["coverage95_interval"]}
     published = leaderboards(ours[ours["model_id"] == PUBLISHED], teams, target, exclusions,
                              first_ed[0])
     gap = result.gap

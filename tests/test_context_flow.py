@@ -171,6 +171,19 @@ def test_the_tiny_member_forecasts_real_rounds_from_its_refits(vintages, tmp_pat
     # paths: S never rises, counts below the people left
     s = both[..., 0]
     assert (np.diff(s, axis=-1) <= 0).all() and (both[..., 1] > 0).all()
+    # two seeds: seed 0's flows are the one-seed member's (the store's keys are unchanged) and
+    # draw j comes from seed j mod 2, the same noise as the single seed's draw j
+    pools = [TrainingPool(hosp, context_sources(HOSP_COVID, ed))]
+    two = fit_context_member(TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT, pools, tmp_path,
+                             n_samples=200, n_seeds=2)
+    seed1 = fit_context_member(dataclasses.replace(TINY_CONTEXT_FLOW, seed=1),
+                               dataclasses.replace(TINY_CONTEXT_REFIT, seed=1), pools,
+                               tmp_path, n_samples=200)
+    assert two.n_seeds == 2 and set(two.models) == set(member.models)
+    mixed = two.sample_paths(cells)
+    np.testing.assert_allclose(mixed[:, 0::2], both[:, 0::2], rtol=1e-5)
+    np.testing.assert_allclose(mixed[:, 1::2], seed1.sample_paths(cells)[:, 1::2], rtol=1e-5)
+    assert not np.allclose(mixed[:, 1::2], both[:, 1::2], rtol=1e-3)     # another flow
 
 
 def test_each_target_reads_the_other_signal(vintages):
@@ -181,3 +194,22 @@ def test_each_target_reads_the_other_signal(vintages):
     assert context_sources(HOSP_COVID, ed).other == tuple(ed)
     assert context_sources(ED_COVID, ed).other == ()
     assert context_sources(ED_COVID, ed, hosp).other == tuple(hosp)
+
+
+def test_the_flow_reads_the_seasonal_members_climatology(vintages):
+    """COVID-19's admissions: the ED share is both the other signal and the climatology;
+    influenza's (no ED vintage): the admissions' own earlier seasons, as each vintage released
+    them, and no other signal."""
+    from pipeline.members.published import context_pool
+
+    hosp, ed = vintages[HOSP_COVID], vintages[ED_COVID]
+    covid = context_pool(HOSP_COVID, hosp, ed, None, own_seasons=False)
+    assert covid.sources.climatology == tuple(ed) and covid.sources.other == tuple(ed)
+    own = context_pool(HOSP_COVID, hosp, (), None, own_seasons=True)
+    assert own.sources.climatology == tuple(hosp) and own.sources.other == ()
+    # the climatology a cell reads is its own vintage's earlier seasons: admissions (weeks from
+    # 2024-11) have none at 2025-09; the ED share's own (weeks from 2022-10) have three
+    last = hosp[-1][1]
+    assert not np.isfinite(own.sources.climatology_at(last.as_of, [last.last_date], 5)).any()
+    share = context_pool(ED_COVID, ed, (), None, own_seasons=True).sources
+    assert np.isfinite(share.climatology_at(ed[-1][0], [ed[-1][1].last_date], 5)).all()

@@ -211,7 +211,8 @@ def test_each_hub_target_averages_its_own_members():
     from pipeline.members.published import HubMembersConfig, published_names
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
     config = HubMembersConfig()
-    assert published_names(config, HOSP_COVID, refitted=True) == ("nf-weekly", "seasonal")
+    assert published_names(config, HOSP_COVID, refitted=True) == ("nf-context", "nf-weekly",
+                                                                   "seasonal")
     # the share's average takes the context flow (its pre-trained model serves before a refit)
     assert published_names(config, ED_COVID, refitted=True) == ("nf-context", "seasonal")
     assert published_names(config, ED_COVID, refitted=False) == ("nf-context", "seasonal")

@@ -143,6 +143,8 @@ class HubMembersConfig:
     flow: WeeklyFlowConfig = field(default_factory=WeeklyFlowConfig)
     context: ContextFlowConfig = field(default_factory=ContextFlowConfig)
     context_refit: ContextRefitConfig = field(default_factory=ContextRefitConfig)
+    # the context flow's seeds, mixed (pipeline.members.nf.context "Seeds")
+    context_seeds: int = 3
     # lr 1e-3: the lowest mean best validation NLL over the design rounds' 12 refit dates × 3
     # seeds (2.717 against 2.744 at 5e-4 and 2.860 at 2.5e-4; lower in 26 of 36 refits), none
     # diverging with the early stop (bench/results/replay.json "refits")
@@ -150,21 +152,24 @@ class HubMembersConfig:
         revision_days=14, min_windows=200, lr=1e-3))
     seasonal: SeasonalConfig = field(default_factory=SeasonalConfig)
     regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
-    # Admissions keep the weekly flow: nf-context + seasonal scored 0.819 and all three 0.803
-    # against 0.795 over the 44 rounds (better with the ED climatology, worse before it)
-    published: tuple[str, ...] = (NF_WEEKLY, SEASONAL)
+    # Admissions: the context flow (its seeds mixed), the weekly flow and the seasonal member.
+    # Over COVID-19's 44 design rounds the three scored 0.792 against 0.796 for the pair
+    # without the context flow (published until 2026-11), 0.561 against 0.578 on the 15
+    # rounds with the ED climatology (the rounds to come) and 0.881 against 0.879 before it,
+    # with coverage 0.46 / 0.91 against 0.46 / 0.91 (bench/results/nhsn.json).
+    published: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL)
     # A share (the ED visits): the context flow, refitted globally on the share's own windows
-    # since 2022-10 with admissions, the season and the climatology as context, scored 0.622
-    # alone against nf-real's 0.755, and with the seasonal member 0.591 against nf-real +
-    # seasonal's 0.655 (pairwise relative WIS, the 15 ED rounds; bench/results/nhsn.json)
+    # since 2022-10 with admissions, the season and the climatology as context, with the
+    # seasonal member: 0.614 over the 15 ED rounds, against nf-real + seasonal's 0.655 and the
+    # context flow's first seed alone with it 0.591 (its seeds alone: 0.622, 0.697, 0.778)
     published_share: tuple[str, ...] = (NF_CONTEXT, SEASONAL)
-    # Admissions whose seasonal member reads their own earlier seasons (influenza: 0.939 alone,
-    # the weakest member there): the context flow joins the pair. Over FluSight's 59 rounds the
-    # three scored 0.695 against the pair's 0.756, better in both seasons (0.768 / 0.668
-    # against 0.815 / 0.737 in 2023-24 / 2024-25; the context flow alone 0.808 / 0.633;
-    # bench/results/flusight.json). On COVID-19's admissions the three scored 0.803 against
-    # the pair's 0.796: there the seasonal member reads the ED share and stays a pair.
-    published_own_seasons: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL)
+    # Admissions whose seasonal member reads their own earlier seasons (influenza: no ED
+    # vintage): the context flow reads those same seasons as its climatology, and the seasonal
+    # member (0.939 alone) is scored beside the average, not in it. Over FluSight's 59 rounds
+    # the two flows scored 0.654 (2023-24 / 2024-25: 0.789 / 0.595) against 0.690 (0.787 /
+    # 0.650) with the seasonal member; the context flow alone 0.628 (0.813 / 0.544)
+    # (bench/results/flusight.json)
+    published_own_seasons: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY)
     flow_samples: int = 1000
     baseline_samples: int = BASELINE_SAMPLES
 
@@ -202,6 +207,21 @@ def context_sources(target: str, climatology: Sequence[tuple[pd.Timestamp, Panel
     if other_signal is None:
         other_signal = () if is_share(target) else climatology
     return ContextSources(tuple(other_signal), tuple(climatology), POPULATION)
+
+
+def context_pool(target: str, vintages: Sequence[tuple[pd.Timestamp, Panel]],
+                 climatology: Sequence[tuple[pd.Timestamp, Panel]],
+                 other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None,
+                 own_seasons: bool) -> TrainingPool:
+    """The context flow's own pool: the target's vintages, its climatology the seasonal
+    member's — the ED share's, or with ``own_seasons`` the target's own earlier seasons as each
+    vintage released them (influenza: without it the flow's climatology channels were never
+    known; three seeds scored 0.642 with them against 0.693 without over FluSight's 59 rounds,
+    0.834 / 0.555 against 0.758 / 0.669 in 2023-24 / 2024-25: one earlier season misleads,
+    two help)."""
+    if own_seasons:
+        return TrainingPool(vintages, context_sources(target, vintages, other_signal or ()))
+    return TrainingPool(vintages, context_sources(target, climatology, other_signal))
 
 
 def build_hub_members(config: HubMembersConfig, store_root: Path,
@@ -244,8 +264,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     try:
         members.append(fit_context_member(
             config.context, config.context_refit,
-            [TrainingPool(vintages, context_sources(target, climatology, other_signal))],
-            store_root, n_samples=config.flow_samples))
+            [context_pool(target, vintages, climatology, other_signal, seasonal_own_seasons)],
+            store_root, n_samples=config.flow_samples, n_seeds=config.context_seeds))
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as error:  # noqa: BLE001 - isolation: the context flow alone is lost
