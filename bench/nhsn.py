@@ -175,7 +175,7 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
         score_quantile_forecasts
     from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
     from pipeline.members.nf.context import TrainingPool, fit_context_member
-    from pipeline.members.nf.context_features import ContextSources
+    from pipeline.members.nf.context_features import ContextChannels, ContextSources
     from pipeline.members.published import HubMembersConfig
     from pipeline.panels.hub import hub_rounds
     from pipeline.training.model_store import default_store_root
@@ -184,34 +184,50 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     flusight, target = Path(args.flusight), "wk inc flu hosp"
     vintages = influenza_vintages(flusight)
     config = HubMembersConfig()
-    member = fit_context_member(config.context, config.context_refit, [TrainingPool(
-        vintages, ContextSources((), tuple(vintages), POPULATION))], default_store_root(),
-        n_seeds=config.context_seeds)
+    pool = TrainingPool(vintages, ContextSources((), tuple(vintages), POPULATION))
+    member = fit_context_member(config.context, config.context_refit, [pool],
+                                default_store_root(), n_seeds=config.context_seeds)
+    # the season, which COVID-19's two targets score better without (``ablations``)
+    no_season = fit_context_member(config.context, config.context_refit, [pool],
+                                   default_store_root(), channels=ContextChannels(season=False),
+                                   name="nf-context-no-season", n_seeds=config.context_seeds)
     rounds = hub_rounds(vintages)
     result = run_hub_rounds(rounds, vintages[-1][1], [member],
                             HubBacktestConfig(seed=args.seed, reconcile=False),
-                            references=[HubBaseline(HubBaselineConfig(n_samples=10_000))])
-    ours = result.scores([member.name])
+                            references=[HubBaseline(HubBaselineConfig(n_samples=10_000)),
+                                        no_season])
     truth = read_target_data(flusight / "time-series.parquet", target)
     truth = truth[np.isfinite(truth["value"].to_numpy(dtype=np.float64))]   # unreported weeks
     teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
         flusight / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
-    scores = pd.concat([teams, ours], ignore_index=True)
-    scores = scores.assign(season=np.where(scores["reference_date"] < pd.Timestamp("2024-08-01"),
-                                           "2023-24", "2024-25"))
     board = LeaderboardConfig(target=target, baseline="FluSight-baseline")
-    overall = hub_leaderboard(scores, board)
-    by_season = hub_leaderboard(scores, board, by=("season",))
+
+    def boards(name: str) -> tuple[Any, Any]:
+        """(overall, by season) with ``name`` beside every team."""
+        scores = pd.concat([teams, result.scores([name])], ignore_index=True)
+        scores = scores.assign(season=np.where(
+            scores["reference_date"] < pd.Timestamp("2024-08-01"), "2023-24", "2024-25"))
+        return hub_leaderboard(scores, board), hub_leaderboard(scores, board, by=("season",))
+
+    def seasons(table: Any, name: str) -> dict[str, float]:
+        return {str(r["season"]): float(r["relative_wis"])
+                for r in table.to_dict(orient="records") if r["model_id"] == name}
+
+    overall, by_season = boards(member.name)
     mine = overall[overall["model_id"] == member.name].iloc[0]
+    alone, alone_seasons = boards(no_season.name)
     return {"command": "python -m bench.nhsn --influenza", "member": member.name,
             "relative_wis": float(mine["relative_wis"]), "n_rounds": len(rounds),
-            "by_season": {str(r["season"]): float(r["relative_wis"])
-                          for r in by_season.to_dict(orient="records")
-                          if r["model_id"] == member.name},
+            "by_season": seasons(by_season, member.name),
             "teams": {str(r["model_id"]): float(r["relative_wis"])
                       for r in overall.to_dict(orient="records")},
             "teams_by_season": by_season.to_dict(orient="records"),
             "coverage": summary_by_horizon(result, member.name)["h0-3"],
+            "ablations": {"without the season": {
+                "relative_wis": float(alone[alone["model_id"] == no_season.name].iloc[0][
+                    "relative_wis"]),
+                "by_season": seasons(alone_seasons, no_season.name),
+                "coverage": summary_by_horizon(result, no_season.name)["h0-3"]}},
             "refits": len(member.models), "seconds": round(time.perf_counter() - started, 1)}
 
 
