@@ -21,11 +21,13 @@ from pipeline.data.california.chhs import CHHSClientConfig
 from pipeline.data.sf.csv_import import ImportSummary, detect_dataset, import_csv_exports
 from pipeline.data.sf.datasf import ClientConfig
 from pipeline.data.sf.payloads import read_csv_bytes
-from pipeline.data.sf.series import (require_sf_cached, DatasetProvenance, DataVintage, SeriesProvenance, SFDataConfig,
-                                     SFSeries, load_sf_series, trim_trailing_days)
+from pipeline.data.sf.series import (DatasetProvenance, DataVintage, SeriesProvenance,
+                                     SFDataConfig, SFSeries, load_sf_series, require_sf_cached,
+                                     trim_trailing_days)
 from pipeline.data.sf.sir_transform import SIRConversionConfig, SIRSeries, to_sir
-from pipeline.data.california.cdph_source import (require_cdph_cached, CDPHConfig, CDPHProvenance, import_cdph_exports,
-                                                  load_cdph, load_cdph_vintage)
+from pipeline.data.california.cdph_source import (CDPHConfig, CDPHProvenance,
+                                                  import_cdph_exports, load_cdph,
+                                                  load_cdph_vintage, require_cdph_cached)
 from pipeline.panels.history import EpiHistory, history_from_county, history_from_frames
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
 from pipeline.forecast.config import DataSourceConfig, DataSourceKind

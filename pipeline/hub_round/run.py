@@ -106,6 +106,12 @@ class HubRunConfig:
         if self.data_source not in ("live", "cache"):
             raise ConfigError(f"data source {self.data_source!r}: use live or cache")
 
+    @property
+    def seasonal_own_seasons(self) -> bool:
+        """Whether the seasonal member (and the context flow's climatology) reads the
+        admissions' own earlier seasons, not the ED share (:data:`SEASONAL_READS_ED_SHARE`)."""
+        return not SEASONAL_READS_ED_SHARE[self.disease]
+
     def hub_config_dir(self) -> Path | None:
         """The hub's ``hub-config`` folder: the option, ``$FLOWCAST_HUB_CONFIG``, or the
         disease's hub data beside the checkout (:data:`DEFAULT_HUB_CONFIGS`); None when none
@@ -160,9 +166,8 @@ class HubRun:
         if item.what in ("target", "location"):
             return item.what == "target"
         member = item.name.split(" ")[0]       # a refit is named "<member> <date>"
-        return member in published_names(
-            self.config.members, item.target, refitted=True,
-            own_seasons=not SEASONAL_READS_ED_SHARE[self.config.disease])
+        return member in published_names(self.config.members, item.target, refitted=True,
+                                         own_seasons=self.config.seasonal_own_seasons)
 
     @property
     def degraded(self) -> bool:
@@ -233,8 +238,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
                                     climatology, progress, target=target,
-                                    seasonal_own_seasons=not SEASONAL_READS_ED_SHARE[
-                                        config.disease],
+                                    seasonal_own_seasons=config.seasonal_own_seasons,
                                     other_signal=next((v for t, v in vintages.items()
                                                        if t != target and v), None))
         model_key, reused = members.model_key, reused and members.reused

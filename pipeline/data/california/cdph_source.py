@@ -54,7 +54,8 @@ from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S, live_or_cache, n
 from pipeline.data.core.vintages import Committed, VintageArchive
 from pipeline.data.california.county_revisions import (DEFAULT_POLICY, check_cdph_successor,
                                                      with_county_holds)
-from pipeline.data.hub.held_locations import Hold, Holds, read_holds, write_holds
+from pipeline.data.hub.held_locations import (Hold, Holds, read_holds, record_release,
+                                               write_holds)
 from pipeline.errors import ConfigError, DataSourceError, OfflineError, ValidationError
 
 log = logging.getLogger(__name__)
@@ -192,11 +193,8 @@ def commit_vintage(cache: DatasetCache, vintage: CDPHVintage, payload: bytes, *,
         data_as_of=None, final_cumulative=None, final_url=final_url,
         lock_timeout_s=lock_timeout_s)
     if committed.action == "live":
-        as_of = str(vintage.as_of.date())
-        after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accept_revisions else
-                 holds.opened(found, since=as_of, reference=reference[0] if reference else as_of))
-        if after != holds:
-            write_holds(folder, after)
+        record_release(folder, holds, as_of=str(vintage.as_of.date()), accepted=accept_revisions,
+                       found=found, reference=reference[0] if reference else None)
     return committed
 
 

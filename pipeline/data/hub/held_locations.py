@@ -133,3 +133,16 @@ def read_holds(directory: Path) -> Holds:
 def write_holds(directory: Path, holds: Holds) -> None:
     atomic_write_text(directory / HOLDS_FILE,
                       json.dumps({"holds": [asdict(h) for h in holds.entries]}, indent=1) + "\n")
+
+
+def record_release(directory: Path, holds: Holds, *, as_of: str, accepted: bool,
+                   found: Mapping[str, str], missing: Mapping[str, str] | None = None,
+                   reference: str | None = None) -> None:
+    """The holds after a release of ``as_of`` went live, written when they change: with
+    ``accepted`` (the operator took the whole release) every waiting hold ends; otherwise the
+    places ``found`` revised and those ``missing`` are held against ``reference`` (the live
+    vintage the release was judged against) and the others' holds end (:meth:`Holds.opened`)."""
+    after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accepted else
+             holds.opened(found, since=as_of, reference=reference or as_of, missing=missing))
+    if after != holds:
+        write_holds(directory, after)

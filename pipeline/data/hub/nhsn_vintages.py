@@ -37,7 +37,7 @@ from pipeline.data.core.decoding import decode_csv_frame, decode_json_records
 from pipeline.data.core.fallback import DEFAULT_LOCK_TIMEOUT_S
 from pipeline.data.core.gate import GateRules, Places, ShareBound, admissions_bound, gate
 from pipeline.data.hub.held_locations import (MAX_HELD_SHARE, Hold, Holds, read_holds,
-                                                write_holds)
+                                                record_release, write_holds)
 from pipeline.data.hub.locations import (JURISDICTION_LOCATION, NAME_LOCATION,
                                          NOT_HUB_JURISDICTIONS, POPULATION, US, hub_location)
 from pipeline.data.hub.release import refuse_future, refuse_implausible
@@ -477,13 +477,10 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
         last_date=str(vintage.last_week.date()), data_as_of=str(vintage.as_of.date()),
         final_cumulative=None, final_url=final_url, lock_timeout_s=lock_timeout_s)
     if committed.action == "live":
-        as_of = str(vintage.as_of.date())
         judged = found[0] if found else Successor()
-        after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accept_revisions else
-                 holds.opened(judged.revised, since=as_of, missing=judged.missing,
-                              reference=reference[0] if reference else as_of))
-        if after != holds:
-            write_holds(folder, after)
+        record_release(folder, holds, as_of=str(vintage.as_of.date()), accepted=accept_revisions,
+                       found=judged.revised, missing=judged.missing,
+                       reference=reference[0] if reference else None)
     return committed
 
 
