@@ -176,7 +176,7 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
     from pipeline.members.nf.context import TrainingPool, fit_context_member
     from pipeline.members.nf.context_features import ContextChannels, ContextSources
-    from pipeline.members.published import HubMembersConfig
+    from pipeline.members.published import HubMembersConfig, context_channels
     from pipeline.panels.hub import hub_rounds
     from pipeline.training.model_store import default_store_root
 
@@ -186,7 +186,9 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     config = HubMembersConfig()
     pool = TrainingPool(vintages, ContextSources((), tuple(vintages), POPULATION))
     member = fit_context_member(config.context, config.context_refit, [pool],
-                                default_store_root(), n_seeds=config.context_seeds)
+                                default_store_root(),
+                                channels=context_channels(config, own_seasons=True),
+                                n_seeds=config.context_seeds)
     # the season, which COVID-19's two targets score better without (``ablations``)
     no_season = fit_context_member(config.context, config.context_refit, [pool],
                                    default_store_root(), channels=ContextChannels(season=False),
@@ -233,8 +235,9 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
 
 def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
                      other: list[Any], args: argparse.Namespace) -> list[tuple[str, Any]]:
-    """The context flow's seeds one by one, and seed 0 with each context group left out in
-    turn, with the transformer encoder, without refits (the prior alone) and, for admissions,
+    """The context flow's seeds one by one, and the flow with each context group it reads left
+    out in turn and each it leaves out added (the season, for COVID-19), with the transformer
+    encoder, without refits (the prior alone) and, for admissions,
     with influenza windows added: ``(label, member)``, each scored beside the members under
     its own name. Every ablation mixes the same seeds as the published member (one seed is
     too noisy to resolve a channel: the seeds alone differ by 0.06 or more)."""
@@ -242,15 +245,16 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
 
     from pipeline.members.nf.context import TrainingPool, fit_context_member
     from pipeline.members.nf.context_features import ContextChannels
-    from pipeline.members.published import HubMembersConfig, context_sources
+    from pipeline.members.published import HubMembersConfig, context_channels, context_sources
     from pipeline.panels.hub import is_share
     from pipeline.training.model_store import default_store_root
 
     config = HubMembersConfig()
     pool = TrainingPool(vintages, context_sources(target, climatology, other))
     store = default_store_root()
+    published = context_channels(config, own_seasons=False)
 
-    def fit(name: str, pools: list[Any], channels: Any = ContextChannels(),
+    def fit(name: str, pools: list[Any], channels: Any = published,
             flow: Any = config.context, refit: Any = config.context_refit,
             n_seeds: int = config.context_seeds) -> Any:
         return fit_context_member(flow, refit, pools, store, channels=channels, name=name,
@@ -264,8 +268,15 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
             refit=dataclasses.replace(config.context_refit, seed=config.context_refit.seed + k),
             n_seeds=1)))
     for group in ("other_signal", "season", "climatology", "scale"):
-        channels = ContextChannels(**{group: False})
-        out.append((channels.label(), fit(f"nf-context-no-{group}", [pool], channels)))
+        # each group the published flow reads left out in turn; one it leaves out, added
+        if getattr(published, group):
+            channels = dataclasses.replace(published, **{group: False})
+            out.append((f"without {group.replace('_', ' ')}",
+                        fit(f"nf-context-no-{group}", [pool], channels)))
+        else:
+            out.append((f"with {group.replace('_', ' ')}", fit(
+                f"nf-context-with-{group}", [pool],
+                dataclasses.replace(published, **{group: True}))))
     if not args.no_transformer:
         out.append(("transformer encoder", fit(
             "nf-context-transformer", [pool],

@@ -21,7 +21,7 @@ from pipeline.members.nf.context_training import refit_windows, synthetic_datase
 from pipeline.members.nf.context_features import (ContextChannels, ContextSources,
                                                   WindowInputs, context_windows,
                                                   fixed_channels, vintage_windows)
-from pipeline.members.published import HubMembersConfig, context_sources
+from pipeline.members.published import HubMembersConfig, context_channels, context_sources
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.hub import ED_COVID, HOSP_COVID, hub_rounds, panel_of
 from pipeline.panels.panel import Cells
@@ -194,6 +194,22 @@ def test_each_target_reads_the_other_signal(vintages):
     assert context_sources(HOSP_COVID, ed).other == tuple(ed)
     assert context_sources(ED_COVID, ed).other == ()
     assert context_sources(ED_COVID, ed, hosp).other == tuple(hosp)
+
+
+def test_the_season_is_read_for_influenza_and_not_for_covid():
+    """COVID-19's flow leaves the calendar out (its waves do not keep to it: the three-seed
+    ablations), influenza's reads it: the season's channels 6-8 are 0 for the one and the ISO
+    week's sine, cosine and 1 for the other; every other channel is the same."""
+    config = HubMembersConfig()
+    inputs = _inputs([10, 20, 40], [100, np.nan, 50])
+    covid = context_windows(inputs, context_channels(config, own_seasons=False))[0][0]
+    influenza = context_windows(inputs, context_channels(config, own_seasons=True))[0][0]
+    np.testing.assert_array_equal(covid[:, 6:9], 0)
+    angle = 2 * np.pi * np.array([51, 52, 1]) / 52
+    np.testing.assert_allclose(influenza[:, 6:9], np.c_[np.sin(angle), np.cos(angle),
+                                                        np.ones(3)], atol=1e-6)
+    rest = [0, 1, 2, 3, 4, 5, *range(9, covid.shape[1])]
+    np.testing.assert_array_equal(covid[:, rest], influenza[:, rest])
 
 
 def test_the_flow_reads_the_seasonal_members_climatology(vintages):

@@ -34,7 +34,7 @@ from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMe
 from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
 from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextRefitConfig,
                                          TrainingPool, fit_context_member)
-from pipeline.members.nf.context_features import ContextSources
+from pipeline.members.nf.context_features import ContextChannels, ContextSources
 from pipeline.data.hub.locations import POPULATION
 from pipeline.members.growth_regression import GrowthRegressionConfig, PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
@@ -145,6 +145,16 @@ class HubMembersConfig:
     context_refit: ContextRefitConfig = field(default_factory=ContextRefitConfig)
     # the context flow's seeds, mixed (pipeline.members.nf.context "Seeds")
     context_seeds: int = 3
+    # What the context flow reads, per disease, from the three-seed ablations: COVID-19's waves
+    # do not keep to the calendar, and its flow without the season scored better at every
+    # horizon and in both periods on both targets (admissions 0.783 against 0.811, 0.528
+    # against 0.591 with the ED climatology, 0.887 against 0.898 before it; the ED share 0.635
+    # against 0.677); influenza's do, and its flow scored 0.642 with the season against 0.689
+    # without it (2023-24 0.834 / 0.901, 2024-25 0.555 / 0.590) (bench/results/nhsn.json
+    # "ablations", "influenza"). ``context_channels_own_seasons``: admissions whose climatology
+    # is their own earlier seasons (influenza).
+    context_channels: ContextChannels = ContextChannels(season=False)
+    context_channels_own_seasons: ContextChannels = ContextChannels()
     # lr 1e-3: the lowest mean best validation NLL over the design rounds' 12 refit dates × 3
     # seeds (2.717 against 2.744 at 5e-4 and 2.860 at 2.5e-4; lower in 26 of 36 refits), none
     # diverging with the early stop (bench/results/replay.json "refits")
@@ -153,15 +163,15 @@ class HubMembersConfig:
     seasonal: SeasonalConfig = field(default_factory=SeasonalConfig)
     regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
     # Admissions: the context flow (its seeds mixed), the weekly flow and the seasonal member.
-    # Over COVID-19's 44 design rounds the three scored 0.792 against 0.796 for the pair
-    # without the context flow (published until 2026-11), 0.561 against 0.578 on the 15
-    # rounds with the ED climatology (the rounds to come) and 0.881 against 0.879 before it,
-    # with coverage 0.46 / 0.91 against 0.46 / 0.91 (bench/results/nhsn.json).
+    # Over COVID-19's 44 design rounds the three scored 0.783 against 0.795 for the pair
+    # without the context flow (published until 2026-11), 0.540 against 0.576 on the 15
+    # rounds with the ED climatology (the rounds to come) and 0.879 against 0.878 before it,
+    # with coverage 0.47 / 0.91 against 0.46 / 0.90 (bench/results/nhsn.json).
     published: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL)
     # A share (the ED visits): the context flow, refitted globally on the share's own windows
-    # since 2022-10 with admissions, the season and the climatology as context, with the
-    # seasonal member: 0.612 over the 15 ED rounds, against nf-real + seasonal's 0.646 and the
-    # context flow's first seed alone with it 0.591 (its seeds alone: 0.627, 0.705, 0.785)
+    # since 2022-10 with admissions and the climatology as context, with the seasonal member:
+    # 0.617 over the 15 ED rounds, against nf-real + seasonal's 0.646 (0.612 while the flow
+    # read the season, whose flow alone scored 0.677 against 0.635 now)
     published_share: tuple[str, ...] = (NF_CONTEXT, SEASONAL)
     # Admissions whose seasonal member reads their own earlier seasons (influenza: no ED
     # vintage): the context flow reads those same seasons as its climatology, and the seasonal
@@ -185,6 +195,12 @@ def published_names(config: HubMembersConfig, target: str, *, refitted: bool,
     if refitted or NF_REAL not in published:
         return published
     return tuple(dict.fromkeys(NF_WEEKLY if n == NF_REAL else n for n in published))
+
+
+def context_channels(config: HubMembersConfig, own_seasons: bool) -> ContextChannels:
+    """What the context flow reads: ``context_channels``, or ``context_channels_own_seasons``
+    where its climatology is the target's own earlier seasons (influenza)."""
+    return config.context_channels_own_seasons if own_seasons else config.context_channels
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,7 +281,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         members.append(fit_context_member(
             config.context, config.context_refit,
             [context_pool(target, vintages, climatology, other_signal, seasonal_own_seasons)],
-            store_root, n_samples=config.flow_samples, n_seeds=config.context_seeds))
+            store_root, channels=context_channels(config, seasonal_own_seasons),
+            n_samples=config.flow_samples, n_seeds=config.context_seeds))
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as error:  # noqa: BLE001 - isolation: the context flow alone is lost
