@@ -51,15 +51,14 @@ def design_variants() -> tuple[Any, ...]:
     """The published forecast's design choices against their alternatives, scored on the same
     origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
     weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.backtest import Variant, tracking_rate_variants
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
     members = ("hub-baseline", "growth-qr", "nf-growth", "nf-real")
     return (
         Variant("log average (published until 2026-11)", LOG_AVERAGE),
         Variant("log-mixture, no recalibration", CombineConfig(calibration="none")),
-        Variant("regime-aci eta=0.05", CombineConfig(tracking_rate=0.05)),
-        Variant("regime-aci eta=0.3", CombineConfig(tracking_rate=0.3)),
+        *tracking_rate_variants(CombineConfig(), prefix=""),
         Variant("linear average", CombineConfig(scale="linear", calibration="none")),
         Variant("skill weights (inverse WIS, last 12 origins)",
                 CombineConfig(scale="log", calibration="none", weights="inverse-wis")),

@@ -45,7 +45,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.backtest import Variant, tracking_rate_variants
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
     long = 1_000                       # every past scored origin
@@ -56,9 +56,7 @@ def design_variants() -> tuple[Any, ...]:
         Variant("v-mixture (linear pool), no recalibration", CombineConfig(
             scale="mixture", calibration="none")),
         Variant("v-log-average + regime-aci", CombineConfig(scale="log")),
-        # the online calibration's one setting, η, a third and twice the published 0.15
-        Variant("v-regime-aci eta=0.05", CombineConfig(tracking_rate=0.05)),
-        Variant("v-regime-aci eta=0.3", CombineConfig(tracking_rate=0.3)),
+        *tracking_rate_variants(CombineConfig()),
         # each phase its own adaptive conformal step (a rare phase moves as fast as a common one)
         Variant("v-regime-aci per-regime step", CombineConfig(tracking_step="per-regime")),
         Variant("v-linear-average", CombineConfig(scale="linear", calibration="none")),

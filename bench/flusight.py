@@ -211,7 +211,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     forecast."""
     import dataclasses
 
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.backtest import Variant, tracking_rate_variants
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
     from pipeline.members.published import HubMembersConfig, build_hub_members
@@ -237,9 +237,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                 Variant("v-nf-context+growth-qr", reach, ("nf-context", "growth-qr")),
                 Variant("v-nf-context+nf-weekly+seasonal", reach,
                         ("nf-context", "nf-weekly", "seasonal")),
-                # the online calibration's one setting, η, a third and twice the published 0.15
-                Variant("v-regime-aci eta=0.05", dataclasses.replace(reach, tracking_rate=0.05)),
-                Variant("v-regime-aci eta=0.3", dataclasses.replace(reach, tracking_rate=0.3)),
+                *tracking_rate_variants(reach),
                 Variant("v-log-mixture, no online calibration",
                         dataclasses.replace(reach, calibration="none")))
     result = run_hub_rounds(rounds, latest, members.published,

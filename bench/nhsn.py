@@ -299,7 +299,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     import numpy as np
     import pandas as pd
 
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.backtest import Variant, tracking_rate_variants
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
@@ -344,9 +344,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                 dataclasses.replace(LOG_AVERAGE, beyond_reach="reachable-members")),
         Variant("v-log-mixture, no online calibration",
                 dataclasses.replace(reach, calibration="none")),
-        # the online calibration's one setting, η, a third and twice the published 0.15
-        Variant("v-regime-aci eta=0.05", dataclasses.replace(reach, tracking_rate=0.05)),
-        Variant("v-regime-aci eta=0.3", dataclasses.replace(reach, tracking_rate=0.3)),
+        *tracking_rate_variants(reach),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),

@@ -160,3 +160,20 @@ def test_backtest_cli_on_the_real_data_writes_hub_forecasts_scores_and_summary(
     rel = summary["by_target"]["I"]["autoets"]["relative_wis_vs_baseline"]
     assert set(rel) == {"h1", "h2", "h3", "h4", "all"}
     assert summary["by_target"]["cases"]["hub-baseline"]["relative_wis_vs_baseline"]["all"] == 1.0
+
+
+def test_the_tracking_rate_variants_change_eta_alone():
+    """η at a third and twice the published 0.15, named as every backtest's results name them,
+    every other setting the published combiner's."""
+    import dataclasses
+
+    from pipeline.backtest.backtest import tracking_rate_variants
+    from pipeline.combine.combiner import CombineConfig
+
+    hub = CombineConfig(beyond_reach="reachable-members", outer_interval=0.95)
+    variants = tracking_rate_variants(hub)
+    assert [v.name for v in variants] == ["v-regime-aci eta=0.05", "v-regime-aci eta=0.3"]
+    assert [v.combine.tracking_rate for v in variants] == [0.05, 0.3]
+    assert all(dataclasses.replace(v.combine, tracking_rate=hub.tracking_rate) == hub
+               and v.members is None for v in variants)
+    assert tracking_rate_variants(hub, prefix="")[0].name == "regime-aci eta=0.05"

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -47,6 +48,18 @@ class Variant:
     name: str
     combine: CombineConfig = field(default_factory=CombineConfig)
     members: tuple[str, ...] | None = None
+
+
+# the online calibration's one setting, η, a third and twice the published 0.15
+TRACKING_RATE_VARIANTS = (0.05, 0.3)
+
+
+def tracking_rate_variants(published: CombineConfig, prefix: str = "v-") -> tuple[Variant, ...]:
+    """The published combiner with each η of :data:`TRACKING_RATE_VARIANTS`, named
+    ``<prefix>regime-aci eta=<η>`` (every panel's backtest scores them beside it)."""
+    return tuple(Variant(f"{prefix}regime-aci eta={rate}",
+                         dataclasses.replace(published, tracking_rate=rate))
+                 for rate in TRACKING_RATE_VARIANTS)
 
 
 @dataclass(frozen=True)

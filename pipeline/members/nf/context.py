@@ -20,8 +20,8 @@ Validation: a seeded share of the places. A cell at origin o uses the latest ref
 **Seeds.** The member is ``n_seeds`` such flows, each pre-trained and refitted from its own seed
 (initialisation, synthetic windows, validation places), and a cell's paths are drawn from
 them in equal shares (a mixture of the seeds' densities). One seed is a noisy estimate: on the
-design rounds of COVID-19 admissions three seeds scored 0.833, 0.864 and 0.805 alone, their
-mixture 0.811 (``bench/results/nhsn.json``, ``ablations``).
+design rounds of COVID-19 admissions three seeds scored 0.816, 0.795 and 0.835 alone, their
+mixture 0.783 (``bench/results/nhsn.json``, ``ablations``).
 
 Targets and decoding are the weekly flow's: z_h = logit f_h − logit f_0 (valid paths by
 construction), so the member emits joint weekly sample paths (the hub's samples follow their

@@ -62,7 +62,8 @@ def n_channels(horizon_weeks: int) -> int:
 
 @dataclass(frozen=True)
 class ContextChannels:
-    """Which groups of channels the flow reads (module docstring); an ablation leaves one out."""
+    """Which groups of channels the flow reads (module docstring): COVID-19's flow leaves the
+    season out (``HubMembersConfig.context_channels``), an ablation one more group."""
 
     other_signal: bool = True
     season: bool = True
@@ -73,11 +74,6 @@ class ContextChannels:
         """The groups both read."""
         return ContextChannels(*(a and b for a, b in zip(dataclasses.astuple(self),
                                                          dataclasses.astuple(other))))
-
-    def label(self) -> str:
-        off = [n for n, on in (("other signal", self.other_signal), ("season", self.season),
-                               ("climatology", self.climatology), ("scale", self.scale)) if not on]
-        return "all channels" if not off else "without " + ", ".join(off)
 
 
 def _group_slices(horizon_weeks: int) -> dict[str, slice]:
