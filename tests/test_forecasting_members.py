@@ -72,6 +72,24 @@ def test_hub_baseline_h2_matches_exact_enumeration_on_a_tiny_difference_set():
     assert np.array_equal(q, again) and not np.array_equal(q, other)
 
 
+def test_hub_baseline_rows_are_drawn_in_chunks_that_change_nothing(monkeypatch):
+    """A batch drawn 3 rows at a time (memory) equals the batch drawn at once, bit for bit:
+    each row has its own seed and data; row 4 alone equals its row in the batch."""
+    import pipeline.members.hub_baseline as hb
+
+    rng = np.random.default_rng(5)
+    diffs = [rng.normal(0, 10, size=n) for n in (3, 9, 5, 12, 7, 4, 8)]
+    last, seeds = rng.uniform(50, 500, size=7), list(range(100, 107))
+    config = HubBaselineConfig(n_samples=2000)
+    once = hb.baseline_quantiles_batch(last, diffs, (1, 2, 4), LEVELS, seeds, config)
+    monkeypatch.setattr(hb, "CHUNK_ROWS", 3)
+    chunked = hb.baseline_quantiles_batch(last, diffs, (1, 2, 4), LEVELS, seeds, config)
+    assert once.shape == (7, 3, len(LEVELS))
+    np.testing.assert_array_equal(chunked, once)
+    np.testing.assert_array_equal(baseline_quantiles(last[4], diffs[4], (1, 2, 4), LEVELS,
+                                                     seeds[4], config), once[4])
+
+
 def test_hub_baseline_refuses_a_one_week_history():
     with pytest.raises(TargetError, match="needs two reported weeks"):
         forecast_one(HubBaseline(), history_from_cases(np.ones(7, dtype=np.int64)), (1,))

@@ -221,3 +221,70 @@ def test_each_hub_target_averages_its_own_members():
     assert published_names(real, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
     both = HubMembersConfig(published_share=("nf-real", "nf-weekly", "seasonal"))
     assert published_names(both, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
+
+
+@dataclasses.dataclass
+class _Recorder:
+    """The hub baseline, recording the origins and vintages of the cells it forecasts."""
+
+    member: HubBaseline
+    seen: list = dataclasses.field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    def forecast(self, cells: Cells, horizons, levels):
+        self.seen += [(o, p.as_of, p.last_date) for o, p in zip(cells.origins, cells.panels)]
+        return self.member.forecast(cells, horizons, levels)
+
+
+@pytest.fixture(scope="module")
+def ed_vintages(tmp_path_factory) -> list:
+    from pipeline.panels.hub import ED_COVID
+
+    root = tmp_path_factory.mktemp("nhsn-ed")
+    import_hub_time_series(NHSN, root)
+    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(ED_COVID, root)]
+
+
+def test_the_burn_in_teaches_the_calibration_from_the_first_vintage_alone(real_vintages,
+                                                                          ed_vintages):
+    """Eight weeks before the first round are forecast from the first round's vintage cut at
+    each (nothing later), not reported, and their outcomes move the online calibration: the
+    first rounds' average is the same, their published intervals are not. Admissions' first
+    release holds two weeks (from 2024-11-09): no burn-in there; the ED share's, since
+    2022-10."""
+    from pipeline.backtest.hub_rounds import burn_in_origins
+    from pipeline.combine.combiner import UNCALIBRATED
+
+    assert burn_in_origins(hub_rounds(real_vintages[:1])[0].panel, 52) == []
+    rounds = hub_rounds(ed_vintages[:3])
+    first = rounds[0].panel
+    assert first.first_date == pd.Timestamp("2022-10-01")
+    assert len(burn_in_origins(first, 52)) == 52
+    origins = burn_in_origins(first, 8)
+    assert origins == [first.last_date - pd.Timedelta(weeks=k) for k in range(8, 0, -1)]
+    # a place with 9 weeks of data before the first origin allows one burn-in week
+    late = Panel({"01": _weekly(np.arange(10.0) + 5, start=str(
+        (first.last_date - pd.Timedelta(weeks=9)).date()))}, as_of=first.as_of)
+    assert burn_in_origins(late, 8) == [first.last_date - pd.Timedelta(weeks=1)]
+    latest = ed_vintages[-1][1]
+    results = {}
+    for weeks in (0, 8):
+        recorder = _Recorder(HubBaseline(HubBaselineConfig(n_samples=2000)))
+        results[weeks] = run_hub_rounds(rounds, latest, [recorder],
+                                        HubBacktestConfig(burn_in_weeks=weeks))
+        burn = [s for s in recorder.seen if s[0] < rounds[0].origin]
+        assert sorted({s[0] for s in burn}) == (origins if weeks else [])
+        # each burn-in cell sees the first round's vintage, cut at its own origin
+        assert all(as_of == rounds[0].as_of and last <= o for o, as_of, last in burn)
+    without, with_burn_in = results[0], results[8]
+    assert with_burn_in.references == without.references
+    np.testing.assert_array_equal(with_burn_in.forecasts[UNCALIBRATED],
+                                  without.forecasts[UNCALIBRATED])
+    assert not np.array_equal(with_burn_in.forecasts[PUBLISHED][:, 0, 1:],
+                              without.forecasts[PUBLISHED][:, 0, 1:])
+    # the median is never moved by the calibration
+    np.testing.assert_allclose(with_burn_in.forecasts[PUBLISHED][..., 11],
+                               without.forecasts[PUBLISHED][..., 11], rtol=1e-9)
