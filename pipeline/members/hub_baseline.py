@@ -63,8 +63,9 @@ def row_quantiles(sorted_rows: NDArray[np.float64], counts: NDArray[np.intp],
     return below + frac * (above - below)
 
 
-# Rows drawn at once: each holds a few arrays of n_samples draws (a FluSight backtest's 5,900
-# cells at 10,000 draws took 21 GB in one batch); rows are independent, so chunks change nothing.
+# Rows drawn at once: each holds a few arrays of n_samples draws (3,551 cells of FluSight's
+# backtest at 10,000 draws took 21 GB in one batch); rows are independent, so chunks change
+# nothing.
 CHUNK_ROWS = 256
 
 
