@@ -269,6 +269,14 @@ def test_the_burn_in_teaches_the_calibration_from_the_first_vintage_alone(real_v
     late = Panel({"01": _weekly(np.arange(10.0) + 5, start=str(
         (first.last_date - pd.Timedelta(weeks=9)).date()))}, as_of=first.as_of)
     assert burn_in_origins(late, 8) == [first.last_date - pd.Timedelta(weeks=1)]
+    # a week one place did not report is no burn-in origin (the flows need the origin's week)
+    gap = np.arange(20.0) + 5
+    gap[-4] = np.nan
+    holed = Panel({"01": _weekly(np.arange(20.0) + 5, start=str(
+        (first.last_date - pd.Timedelta(weeks=19)).date())), "02": _weekly(gap, start=str(
+            (first.last_date - pd.Timedelta(weeks=19)).date()))}, as_of=first.as_of)
+    assert burn_in_origins(holed, 8) == [first.last_date - pd.Timedelta(weeks=k)
+                                         for k in (8, 7, 6, 5, 4, 2, 1)]
     latest = ed_vintages[-1][1]
     results = {}
     for weeks in (0, 8):

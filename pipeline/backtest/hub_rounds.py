@@ -248,12 +248,16 @@ def burn_in_origins(first: Panel, weeks: int,
     tracker as their weeks end; they are not reported. A year, so that every phase of a season
     is seen. Everything they use is in the first round's vintage: no round sees anything it
     did not know. A place with no such history (COVID-19 admissions' first release holds two
-    weeks) has no burn-in. FluSight's 59 rounds: 43.4 % / 92.6 % and 53.1 % / 94.4 %, relative
-    WIS 0.772 / 0.593 against 0.789 / 0.596 (``bench/results/flusight.json``)."""
-    earliest = max(h.dates[0] for h in first.histories.values()) + pd.Timedelta(
-        weeks=min_history_weeks)
+    weeks) has no burn-in. An origin whose week some place did not report is skipped: the
+    members forecast from a reported week (a round's newest weeks are nowcast; these are not),
+    and one such week in FluSight's release of 2025-01 had the flows left out of every round.
+    FluSight's 59 rounds: 43.4 % / 92.6 % and 53.1 % / 94.4 %, relative WIS 0.772 / 0.593
+    against 0.789 / 0.596 (``bench/results/flusight.json``)."""
+    histories = list(first.histories.values())
+    earliest = max(h.dates[0] for h in histories) + pd.Timedelta(weeks=min_history_weeks)
     candidates = (first.last_date - pd.Timedelta(weeks=k) for k in range(weeks, 0, -1))
-    return [o for o in candidates if o >= earliest]
+    return [o for o in candidates if o >= earliest
+            and all(np.isfinite(weeks_ending(h, o, 1)[0]) for h in histories)]
 
 
 def _aligned(latest: Panel, places: Sequence[str], known: Sequence[Panel]) -> Panel:
