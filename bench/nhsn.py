@@ -169,10 +169,10 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds, \
         summary_by_horizon
     from pipeline.data.hub.locations import POPULATION
+    from bench.flusight import boards
     from pipeline.data.hub.team_forecasts import quantile_table, read_hub_forecasts, \
         read_target_data
-    from pipeline.evaluation.hub_leaderboard import LeaderboardConfig, hub_leaderboard, \
-        score_quantile_forecasts
+    from pipeline.evaluation.hub_leaderboard import score_quantile_forecasts
     from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
     from pipeline.members.nf.context import TrainingPool, fit_context_member
     from pipeline.members.nf.context_features import ContextChannels, ContextSources
@@ -202,33 +202,26 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     truth = truth[np.isfinite(truth["value"].to_numpy(dtype=np.float64))]   # unreported weeks
     teams = score_quantile_forecasts(quantile_table(read_hub_forecasts(
         flusight / "hub-forecasts.parquet", targets=[target])), truth.assign(target=target))
-    board = LeaderboardConfig(target=target, baseline="FluSight-baseline")
+    # FluSight's own leaderboards (bench.flusight), with one of ours beside every team
+    mine, alone = (boards(pd.concat([teams, result.scores([m.name])], ignore_index=True), target)
+                   for m in (member, no_season))
 
-    def boards(name: str) -> tuple[Any, Any]:
-        """(overall, by season) with ``name`` beside every team."""
-        scores = pd.concat([teams, result.scores([name])], ignore_index=True)
-        scores = scores.assign(season=np.where(
-            scores["reference_date"] < pd.Timestamp("2024-08-01"), "2023-24", "2024-25"))
-        return hub_leaderboard(scores, board), hub_leaderboard(scores, board, by=("season",))
+    def relative(board: dict[str, Any], name: str) -> float:
+        return next(float(r["relative_wis"]) for r in board["all"] if r["model_id"] == name)
 
-    def seasons(table: Any, name: str) -> dict[str, float]:
+    def seasons(board: dict[str, Any], name: str) -> dict[str, float]:
         return {str(r["season"]): float(r["relative_wis"])
-                for r in table.to_dict(orient="records") if r["model_id"] == name}
+                for r in board["by_season"] if r["model_id"] == name}
 
-    overall, by_season = boards(member.name)
-    mine = overall[overall["model_id"] == member.name].iloc[0]
-    alone, alone_seasons = boards(no_season.name)
     return {"command": "python -m bench.nhsn --influenza", "member": member.name,
-            "relative_wis": float(mine["relative_wis"]), "n_rounds": len(rounds),
-            "by_season": seasons(by_season, member.name),
-            "teams": {str(r["model_id"]): float(r["relative_wis"])
-                      for r in overall.to_dict(orient="records")},
-            "teams_by_season": by_season.to_dict(orient="records"),
+            "relative_wis": relative(mine, member.name), "n_rounds": len(rounds),
+            "by_season": seasons(mine, member.name),
+            "teams": {str(r["model_id"]): float(r["relative_wis"]) for r in mine["all"]},
+            "teams_by_season": mine["by_season"],
             "coverage": summary_by_horizon(result, member.name)["h0-3"],
             "ablations": {"without the season": {
-                "relative_wis": float(alone[alone["model_id"] == no_season.name].iloc[0][
-                    "relative_wis"]),
-                "by_season": seasons(alone_seasons, no_season.name),
+                "relative_wis": relative(alone, no_season.name),
+                "by_season": seasons(alone, no_season.name),
                 "coverage": summary_by_horizon(result, no_season.name)["h0-3"]}},
             "refits": len(member.models), "seconds": round(time.perf_counter() - started, 1)}
 
