@@ -55,10 +55,10 @@ def design_variants() -> tuple[Any, ...]:
         Variant("v-log-mixture, no recalibration", uncalibrated),
         Variant("v-mixture (linear pool), no recalibration", CombineConfig(
             scale="mixture", calibration="none")),
-        Variant("v-log-average + regime-aci", CombineConfig(scale="log")),
+        Variant("v-log-average + the online calibration", CombineConfig(scale="log")),
         *tracking_rate_variants(CombineConfig()),
         # each phase its own adaptive conformal step (a rare phase moves as fast as a common one)
-        Variant("v-regime-aci per-regime step", CombineConfig(tracking_step="per-regime")),
+        Variant("v-online calibration, per-regime step", CombineConfig(tracking_step="per-regime")),
         Variant("v-linear-average", CombineConfig(scale="linear", calibration="none")),
         Variant("v-stacking-12-origins", CombineConfig(scale="log", calibration="none",
                                                        weights="stacking", stacking_step=0.1)),

@@ -163,8 +163,9 @@ def test_backtest_cli_on_the_real_data_writes_hub_forecasts_scores_and_summary(
 
 
 def test_the_tracking_rate_variants_change_eta_alone():
-    """η at a third and twice the published 0.15, named as every backtest's results name them,
-    every other setting the published combiner's."""
+    """One tracker at η = 0.15 (published until 2026-11-29), a third and twice it, in place of
+    the aggregate, named as every backtest's results name them, every other setting the
+    published combiner's."""
     import dataclasses
 
     from pipeline.backtest.backtest import tracking_rate_variants
@@ -172,8 +173,13 @@ def test_the_tracking_rate_variants_change_eta_alone():
 
     hub = CombineConfig(beyond_reach="reachable-members", outer_interval=0.95)
     variants = tracking_rate_variants(hub)
-    assert [v.name for v in variants] == ["v-regime-aci eta=0.05", "v-regime-aci eta=0.3"]
-    assert [v.combine.tracking_rate for v in variants] == [0.05, 0.3]
-    assert all(dataclasses.replace(v.combine, tracking_rate=hub.tracking_rate) == hub
+    assert [v.name for v in variants] == ["v-regime-aci eta=0.05", "v-regime-aci eta=0.15",
+                                          "v-regime-aci eta=0.3"]
+    assert [v.combine.tracking_rate for v in variants] == [0.05, 0.15, 0.3]
+    assert hub.calibration == "aggregated-aci" and hub.tracking_standardized
+    assert all(v.combine.calibration == "regime-aci" and not v.combine.tracking_standardized
+               and dataclasses.replace(v.combine, tracking_rate=hub.tracking_rate,
+                                       calibration=hub.calibration,
+                                       tracking_standardized=True) == hub
                and v.members is None for v in variants)
     assert tracking_rate_variants(hub, prefix="")[0].name == "regime-aci eta=0.05"

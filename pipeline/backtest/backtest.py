@@ -50,15 +50,16 @@ class Variant:
     members: tuple[str, ...] | None = None
 
 
-# the online calibration's one setting, η, a third and twice the published 0.15
-TRACKING_RATE_VARIANTS = (0.05, 0.3)
+# the single online calibrations: η = 0.15 (published until 2026-11-29), a third and twice it
+TRACKING_RATE_VARIANTS = (0.05, 0.15, 0.3)
 
 
 def tracking_rate_variants(published: CombineConfig, prefix: str = "v-") -> tuple[Variant, ...]:
-    """The published combiner with each η of :data:`TRACKING_RATE_VARIANTS`, named
-    ``<prefix>regime-aci eta=<η>`` (every panel's backtest scores them beside it)."""
-    return tuple(Variant(f"{prefix}regime-aci eta={rate}",
-                         dataclasses.replace(published, tracking_rate=rate))
+    """The published combiner with one adaptive conformal tracker (``"regime-aci"``, its misses
+    not standardized) at each η of :data:`TRACKING_RATE_VARIANTS` in place of the aggregate,
+    named ``<prefix>regime-aci eta=<η>`` (every panel's backtest scores them beside it)."""
+    return tuple(Variant(f"{prefix}regime-aci eta={rate}", dataclasses.replace(
+        published, calibration="regime-aci", tracking_rate=rate, tracking_standardized=False))
                  for rate in TRACKING_RATE_VARIANTS)
 
 

@@ -9,12 +9,17 @@ learnt from those, nothing later. A single series is a panel of one place.
 **Published** (``CombineConfig()``): equal weights; the level-wise log-scale midpoint of the
 members' quantile average (the geometric mean of their quantiles) and their linear pool (the
 average of their CDFs: wider where the members disagree, at the turns); then the online
-calibration of the intervals' widths per phase of the epidemic (``"regime-aci"``,
-:class:`~pipeline.combine.recalibration.IntervalTracker`), which leaves the median alone.
-Designed on California's counties and checked on San Francisco and the hub's rounds
-(``bench/results/calibration.json``): the average alone (log scale, no recalibration: the
-published rule until 2026-11) held its intervals on average but not at the turns; every weight
-learnt from recent scores and every recalibration from a window of past PITs made it worse.
+calibration of the intervals' widths per phase of the epidemic, which leaves the median alone:
+adaptive conformal trackers at η = 0, 0.05, 0.15 and 0.3, each interval's misses in units of
+their own standard deviation, aggregated by their skill among those whose intervals cover
+(``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`). One tracker
+at η = 0.15 (``"regime-aci"``) was published until 2026-11-29: it cost up to 1.3 % of WIS where
+the average already covered (the counties) and its 95 % interval moved too slowly where it did
+not (hub admissions). Designed on California's counties and checked on San Francisco and the
+hub's rounds (``bench/results/calibration.json``): the average alone (log scale, no
+recalibration: the published rule until 2026-11) held its intervals on average but not at the
+turns; every weight learnt from recent scores and every recalibration from a window of past
+PITs made it worse.
 They are kept as the variants every backtest reports beside it: weights
 (:mod:`pipeline.combine.average`: ``inverse-wis``, ``stacking``), the log and linear averages,
 the mixture, and the window recalibrations (:mod:`pipeline.combine.recalibration`). The I of a
@@ -33,10 +38,10 @@ from numpy.typing import NDArray
 from pipeline.combine.average import (AverageScale, EnsembleError, WeightMethod, fit_weights,
                                       scored_wis, vincentize)
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
-from pipeline.combine.recalibration import (RECALIBRATION_METHODS, TRACKING_STEPS,
-                                            IntervalTracker, RecalibrationMethod, TrackingStep,
-                                            calibrated_levels,
-                                            fit_recalibration)
+from pipeline.combine.recalibration import (ONLINE_METHODS, RECALIBRATION_METHODS,
+                                            TRACKING_STEPS, AggregatedTracker, IntervalTracker,
+                                            RecalibrationMethod, TrackingStep,
+                                            calibrated_levels, fit_recalibration)
 from pipeline.evaluation.regimes import N_REGIMES
 from pipeline.members.base import Member, MemberForecast, forecast_within_reach
 from pipeline.panels.panel import Cells
@@ -57,12 +62,16 @@ class CombineConfig:
     window_origins: int = 12
     stacking_step: float = 0.05
     shrinkage_origins: float = 2.0
-    calibration: RecalibrationMethod = "regime-aci"
+    calibration: RecalibrationMethod = "aggregated-aci"
     calibration_window_origins: int = 8
     shrinkage_pits: float = 50.0
     min_level: float = 1e-4
-    tracking_rate: float = 0.15         # η of the online calibration ("regime-aci")
+    tracking_rate: float = 0.15         # η of the single online calibration ("regime-aci")
     tracking_step: TrackingStep = "pooled"
+    tracking_standardized: bool = True    # each interval's misses in their own units
+    # the experts' η of "aggregated-aci" (0: the average uncalibrated) and their temperature
+    tracking_rates: tuple[float, ...] = (0.0, 0.05, 0.15, 0.3)
+    aggregation_temperature: float = 0.01
     outer_interval: float = 0.9         # the outer interval it holds (the hub's: 0.95)
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
@@ -86,7 +95,9 @@ class CombineConfig:
                                 f"{RECALIBRATION_METHODS}")
         if (self.window_origins < 1 or self.calibration_window_origins < 1
                 or not 0 < self.stacking_step <= 0.5 or self.shrinkage_origins < 0
-                or self.shrinkage_pits < 0 or self.tracking_rate < 0):
+                or self.shrinkage_pits < 0 or self.tracking_rate < 0
+                or not self.tracking_rates or min(self.tracking_rates) < 0
+                or self.aggregation_temperature <= 0):
             raise EnsembleError(f"invalid CombineConfig {self}")
 
 
@@ -143,9 +154,8 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
         raise EnsembleError(f"member quantiles {values.shape[1:]}, baseline {baseline.shape}, "
                             f"{len(origins)} origins and {len(horizons)} horizons do not match")
     known = scored_before(origins, horizons)                               # (O, O, H)
-    tracker = (IntervalTracker(levels, config.tracking_rate, config.outer_interval,
-                               step=config.tracking_step)
-               if config.calibration == "regime-aci" else None)
+    tracker = _online_tracker(config, levels)
+    experts = np.empty((len(tracker.experts) if tracker else 0, *values.shape[1:]))
     counted = np.zeros((n_o, n_h), dtype=bool)
     uncal = np.empty(values.shape[1:])
     published = np.empty(values.shape[1:])
@@ -161,8 +171,10 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
             new = known[j] & ~counted
             counted |= new
             i, k = np.nonzero(new)
-            tracker.update(published[:, i, k].reshape(-1, len(levels)),
-                           wis_truth[:, i, k].reshape(-1), regimes[:, i].reshape(-1))
+            scored = experts[:, :, i, k].reshape(len(experts), -1, len(levels))
+            y = wis_truth[:, i, k].reshape(-1)
+            tracker.update(scored, y, regimes[:, i].reshape(-1),
+                           scored_wis(levels, scored, np.broadcast_to(y, scored.shape[:2])))
         for k in range(n_h):
             past = np.flatnonzero(known[j, :, k])
             fit = past[-config.window_origins:]
@@ -176,7 +188,8 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
                                       baseline[:, j, k])
             if tracker is not None:
                 calibration[j, k] = np.nan
-                published[:, j, k] = tracker.apply(uncal[:, j, k], regimes[:, j])
+                experts[:, :, j, k] = tracker.expert_quantiles(uncal[:, j, k], regimes[:, j])
+                published[:, j, k] = tracker.combine(experts[:, :, j, k])
                 continue
             recent = past[-config.calibration_window_origins:]
             pits = (_pits(levels, uncal[:, recent, k], wis_truth[:, recent, k])
@@ -190,6 +203,20 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
             published[:, j, k] = np.maximum.accumulate(cal, axis=-1)
     return CombinedForecast(np.where(np.isfinite(uncal), published, np.nan), uncal, weights,
                             calibration)
+
+
+def _online_tracker(config: CombineConfig, levels: NDArray[np.float64]
+                    ) -> AggregatedTracker | None:
+    """The online calibration of ``config`` (None: a window recalibration or none): one
+    tracker at η (``"regime-aci"``), or experts at each of ``tracking_rates``."""
+    if config.calibration not in ONLINE_METHODS:
+        return None
+    rates = (config.tracking_rates if config.calibration == "aggregated-aci"
+             else (config.tracking_rate,))
+    return AggregatedTracker(tuple(
+        IntervalTracker(levels, rate, config.outer_interval, step=config.tracking_step,
+                        standardized=config.tracking_standardized) for rate in rates),
+        config.aggregation_temperature)
 
 
 def _pits(levels: NDArray[np.float64], quantiles: NDArray[np.float64],
