@@ -266,6 +266,21 @@ def test_aggregated_tracker_weighs_by_relative_wis_among_the_experts_that_cover(
                                quantiles[1, :1])
 
 
+def test_while_no_expert_covers_the_nearest_to_covering_are_published() -> None:
+    """Every outcome far outside every interval: no expert is within the tolerance, and the
+    published forecast is the one whose intervals missed least (in units of the tolerance: the
+    wide one misses the 50 % interval always and the 90 % never), not the one with the best WIS."""
+    levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
+    agg = AggregatedTracker(tuple(IntervalTracker(levels, rate=r, outer=0.9) for r in (0.0, 0.1)))
+    truth = np.full(4, 20.0)
+    quantiles = np.stack([np.tile([1.0, 2.0, 3.0, 4.0, 5.0], (4, 1)),
+                          np.tile([1.0, 2.0, 3.0, 4.0, 25.0], (4, 1))])
+    agg.update(quantiles, truth, np.zeros(4, dtype=np.intp), np.array([[1.0] * 4, [2.0] * 4]))
+    # misses: narrow 100 % / 100 % (off 0.5 / 0.05 and 0.9 / 0.025), wide 100 % / 0 %
+    assert agg.admissible.tolist() == [False, True]
+    np.testing.assert_allclose(agg.weights, [0.0, 1.0])
+
+
 @pytest.mark.parametrize("claimed", [0.4, 0.2])
 def test_aggregated_calibration_keeps_a_calibrated_average_and_widens_an_overconfident_one(
         claimed: float) -> None:

@@ -175,8 +175,9 @@ class AggregatedTracker:
     constraint (``"aggregated-aci"``; after AgACI, Zaffran et al. 2022). Each expert is an
     :class:`IntervalTracker` that learns from its own forecasts; an expert at η = 0 is the
     average uncalibrated. The published quantiles are the experts' level-wise average over the
-    **admissible** ones (every expert while none is): those whose intervals have so far covered
-    within ``tolerance`` of their levels (5 points of the 50 % interval, 2.5 of the outer one).
+    **admissible** ones: those whose intervals have so far covered within ``tolerance`` of their
+    levels (5 points of the 50 % interval, 2.5 of the outer one), or while none has, those nearer
+    to it than the slowest expert (in units of the tolerance, the worse of the two intervals).
     They are weighted by exp(−(L_e / min L − 1) / ``temperature``), L_e the expert's WIS summed
     over every outcome known so far, each outcome's WIS over the experts' mean WIS of it, so that
     every place and week counts alike whatever its size. A temperature of 0.01: an expert 1 %
@@ -193,12 +194,17 @@ class AggregatedTracker:
 
     @property
     def admissible(self) -> NDArray[np.bool_]:
+        """The experts whose coverage so far is within the tolerance; while none is, those
+        nearer to it than the slowest expert (η = 0: the average uncalibrated), so that the
+        calibration never publishes coverage farther off than no calibration."""
         if self.scored == 0:
             return np.ones(len(self.experts), dtype=bool)
         alpha = np.stack([e.alpha for e in self.experts])                     # (E, 2)
-        off = np.abs(self.missed / self.scored - alpha)
-        ok = (off <= np.asarray(self.tolerance)).all(axis=1)
-        return ok if ok.any() else np.ones(len(self.experts), dtype=bool)
+        off = (np.abs(self.missed / self.scored - alpha) / np.asarray(self.tolerance)).max(axis=1)
+        if (off <= 1.0).any():
+            return off <= 1.0
+        nearer = off < off[int(np.argmin([e.rate for e in self.experts]))]
+        return nearer if nearer.any() else off <= off.min()
 
     @property
     def weights(self) -> NDArray[np.float64]:
