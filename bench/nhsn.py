@@ -166,10 +166,10 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
     import pandas as pd
 
+    from bench.flusight import boards
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds, \
         summary_by_horizon
     from pipeline.data.hub.locations import POPULATION
-    from bench.flusight import boards
     from pipeline.data.hub.team_forecasts import quantile_table, read_hub_forecasts, \
         read_target_data
     from pipeline.evaluation.hub_leaderboard import score_quantile_forecasts

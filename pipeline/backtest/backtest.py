@@ -15,9 +15,9 @@ are all this function on different panels.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol
 

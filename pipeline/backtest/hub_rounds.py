@@ -239,9 +239,9 @@ def burn_in_origins(first: Panel, weeks: int,
     """The burn-in's origins, oldest first: the ``weeks`` weeks before the first round's
     origin at which every place of its vintage has ``min_history_weeks`` weeks of data.
 
-    The online calibration (:class:`~pipeline.combine.recalibration.IntervalTracker`) starts
-    at the average's own intervals and needs most of a season of outcomes to reach the
-    stretch the members need: without a burn-in FluSight's first season was covered 38.7 % /
+    The online calibration (:mod:`pipeline.combine.recalibration`) starts at the average's own
+    intervals and needs most of a season of outcomes to reach the stretch the members need:
+    with one tracker at η = 0.15 and no burn-in, FluSight's first season was covered 38.7 % /
     87.5 %, the next 50.0 % / 92.4 %. So before the first round its vintage is cut at each of
     these origins and forecast by the same members (a flow not yet refitted is its pre-trained
     prior; a member whose data were not released yet is left out), and the outcomes teach the
@@ -251,8 +251,8 @@ def burn_in_origins(first: Panel, weeks: int,
     weeks) has no burn-in. An origin whose week some place did not report is skipped: the
     members forecast from a reported week (a round's newest weeks are nowcast; these are not),
     and one such week in FluSight's release of 2025-01 had the flows left out of every round.
-    FluSight's 59 rounds: 43.4 % / 92.6 % and 53.1 % / 94.4 %, relative WIS 0.772 / 0.593
-    against 0.789 / 0.596 (``bench/results/flusight.json``)."""
+    With the burn-in that tracker covered 43.4 % / 92.6 % and 53.1 % / 94.4 %, relative WIS
+    0.772 / 0.593 against 0.789 / 0.596 (FluSight's 59 rounds; ``docs/forecasting.md``)."""
     histories = list(first.histories.values())
     earliest = max(h.dates[0] for h in histories) + pd.Timedelta(weeks=min_history_weeks)
     candidates = (first.last_date - pd.Timedelta(weeks=k) for k in range(weeks, 0, -1))

@@ -222,10 +222,7 @@ class AggregatedTracker:
 
     def combine(self, experts: NDArray[np.float64]) -> NDArray[np.float64]:
         """The published quantiles ``(..., Q)`` of the experts' ``(E, ..., Q)``."""
-        w = self.weights
-        if len(w) == 1:
-            return experts[0]
-        return np.tensordot(w, experts, axes=1)
+        return np.tensordot(self.weights, experts, axes=1)
 
     def update(self, experts: NDArray[np.float64], truth: NDArray[np.float64],
                regimes: NDArray[np.intp], wis: NDArray[np.float64]) -> None:
