@@ -23,6 +23,7 @@ from typing import Literal
 
 import datetime as dt
 import time
+from zoneinfo import ZoneInfo
 
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
@@ -38,6 +39,7 @@ from pipeline.progress import LogProgress
 
 FLOW_NAME = "hub_forecast"
 DEGRADED_STATE_NAME = "Completed (degraded)"
+HUB_TIMEZONE = "America/New_York"     # the hubs' deadlines are 23:59 US Eastern
 
 
 @flow(name=FLOW_NAME, log_prints=True)
@@ -45,7 +47,8 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                  data_source: Literal["live", "cache"] = "live",
                  output_dir: str = "reports", hub_config: str | None = None,
                  seed: int = 0, preset: Literal["default", "tiny"] = "default",
-                 due: dt.date | None = None) -> dict[str, object] | State:
+                 due: dt.date | None = None, deadline_only: bool = False
+                 ) -> dict[str, object] | State:
     """This week's round of the hub for ``disease`` (module docstring) into
     ``<output_dir>/hub-<disease>/<reference date>/``.
 
@@ -64,13 +67,24 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
         due: The Wednesday the round is due (a replay's week,
             :mod:`pipeline.hub_round.replay`); a target without a release for its round is
             left out. Empty: the newest round the data serve.
+        deadline_only: Make a round only on the day one is due by the hub's calendar (its
+            tasks.json, deadlines moved for holidays included): the deployments run on every
+            day a deadline can fall on (Monday to Thursday) and all but that one end at once
+            with "no round due today".
     """
     logger = get_run_logger()
     config = HubRunConfig(disease=disease, data_source=data_source, output_dir=output_dir,
                           hub_config=hub_config, seed=seed,
                           members=hub_members_preset(preset), due=due)
     config = dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
-    require_hub_config(config)        # no hub config (RSV): refused by name before any work
+    require_hub_config(config)        # no hub config: refused by name before any work
+    try:                              # off season, or not the deadline: known before any work
+        if deadline_only:
+            config = dataclasses.replace(config, due=due_today(config))
+        config.due_round(config.calendar())
+    except NoHubRoundError as error:
+        logger.info("%s", error)
+        return no_round_outcome(str(error), config)
     run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False)(
         run_hub_round)(config, LogProgress(logger, "rounds", 2000))
     try:
@@ -78,15 +92,16 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
             publish_hub_round)(run)
     except NoHubRoundError as error:           # FluSight off season: no round, not a failure
         logger.info("%s", error)
-        return {"reference_date": str(run.reference_date), "no_round": str(error),
-                "output_dir": None, "model_output": None, "files": [],
-                "data_stale": run.stale, "seconds": run.seconds, "published_targets": [],
-                "degraded": False, "dropped": []}
+        return {**no_round_outcome(str(error), config),
+                "reference_date": str(run.reference_date), "data_stale": run.stale,
+                "seconds": run.seconds}
     stale = "; ".join(f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes)
     create_markdown_artifact(
         f"Hub round {published.reference_date} ({disease}): `{published.model_output}`"
         + (f"\n\nMade from cached data: {stale}" if run.stale else "")
-        + (f"\n\n**Degraded**: {run.degraded_message()}" if run.degraded else ""),
+        + (f"\n\n**Degraded**: {run.degraded_message()}" if run.degraded else "")
+        + "".join(f"\n\n**Held** ({target}): {location}: {why}"
+                  for target, held in run.held().items() for location, why in held.items()),
         key=f"hub-round-{disease}", description="the round's model-output file")
     logger.info("hub round %s → %s", published.reference_date, published.folder)
     outcome = round_outcome(run, published)
@@ -99,12 +114,34 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                              f"{run.degraded_message()}")
 
 
+def due_today(config: HubRunConfig) -> dt.date:
+    """Today in the hub's timezone (US Eastern), when a round is due only on its deadline: a
+    day the calendar has no deadline on is :class:`NoHubRoundError` ("no round due today")."""
+    today = dt.datetime.now(ZoneInfo(HUB_TIMEZONE)).date()
+    calendar = config.calendar()
+    if calendar is None or calendar.due_on(today) is None:
+        upcoming = calendar.round_for(today) if calendar is not None else None
+        raise NoHubRoundError(
+            f"no {config.disease} hub round is due today ({today})"
+            + (f"; the round of {upcoming} is due {calendar.deadline(upcoming)}"
+               if calendar is not None and upcoming is not None else ""))
+    return today
+
+
+def no_round_outcome(why: str, config: HubRunConfig) -> dict[str, object]:
+    """The flow's outcome when there is no round to make: rc 0, nothing written."""
+    return {"reference_date": None, "no_round": why, "output_dir": None, "model_output": None,
+            "files": [], "data_stale": False, "seconds": {}, "published_targets": [],
+            "degraded": False, "dropped": [], "due": str(config.due) if config.due else None}
+
+
 def round_outcome(run: HubRun, published: PublishedRound) -> dict[str, object]:
     """What the flow returns: where the round went, and what it left out."""
     return {"reference_date": published.reference_date, "output_dir": str(published.folder),
             "model_output": str(published.model_output), "files": list(published.files),
             "data_stale": run.stale, "seconds": run.seconds,
             "published_targets": list(run.published_targets), "degraded": run.degraded,
+            "held": run.held(),
             "dropped": [dataclasses.asdict(d) for d in run.dropped]}
 
 
@@ -127,6 +164,9 @@ def flow_step(preset: Literal["default", "tiny"]) -> RoundStep:
             return RoundOutcome(due, "Failed", why, seconds=time.perf_counter() - started)
         outcome = state.result()
         assert isinstance(outcome, dict)
+        if outcome.get("no_round"):
+            return RoundOutcome(due, "No round", str(outcome["no_round"]),
+                                seconds=time.perf_counter() - started)
         degraded, targets, dropped = (outcome["degraded"], outcome["published_targets"],
                                       outcome["dropped"])
         assert isinstance(targets, list) and isinstance(dropped, list)

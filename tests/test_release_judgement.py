@@ -160,32 +160,95 @@ def test_a_settled_revision_holds_that_location_alone_until_accepted(tmp_path):
     assert done.action == "live" and "held for review, their cached series kept: 06" in done.note
     assert list(revisions_waiting(HOSP_COVID, data)) == ["06"]
     newest = cached_weekly_vintages(HOSP_COVID, data)[-1]
-    assert "06" not in newest.locations and len(newest.locations) == 52
-    assert newest.skipped["06"].startswith("06: revision held for review since the release of "
-                                           "2025-09-24 (its series of 2025-09-17 kept)")
+    # held, California is forecast from its accepted series: in the vintage, its revised week
+    # back at the accepted value, every other week the release's own
+    assert "06" in newest.locations and len(newest.locations) == 53 and "06" not in newest.skipped
+    assert newest.held["06"].startswith("06: revision held for review since the release of "
+                                        "2025-09-24 (its series of 2025-09-17 kept)")
+    ca_rows = newest.frame[newest.frame["location"] == "06"].set_index("target_end_date")["value"]
+    accepted = release("2025-09-17")
+    accepted = accepted[accepted["location"] == "06"].set_index(
+        pd.to_datetime(accepted[accepted["location"] == "06"]["target_end_date"]))["value"]
+    this = release("2025-09-24")
+    this = this[this["location"] == "06"].set_index(
+        pd.to_datetime(this[this["location"] == "06"]["target_end_date"]))["value"]
+    week = pd.Timestamp("2025-06-07")
+    assert ca_rows[week] == accepted[week] != this[week]      # 593, where this release had 594
+    assert revised.loc[ca, "value"].iloc[0] == this[week] * 10
+    assert ca_rows.drop(week).equals(this.drop(week).astype(float))
     accept_location_revisions(HOSP_COVID, ["CA"], data)
     assert revisions_waiting(HOSP_COVID, data) == {}
     assert "06" in cached_weekly_vintages(HOSP_COVID, data)[-1].locations
     assert (data / "nhsn" / "wk-inc-covid-hosp" / HOLDS_FILE).is_file()
 
 
+@pytest.mark.parametrize("next_release", ["repeats", "takes back"])
+def test_a_held_revision_the_next_release_repeats_is_accepted_and_one_taken_back_ends(
+        tmp_path, next_release):
+    """California's week of 2025-06-07 revised tenfold on 2025-09-24: held one release. The
+    next release (a copy of 2025-09-24's data dated 2025-10-01) either repeats the revision
+    (the source stands by it: accepted by itself, recorded, California reads the revised
+    series) or takes it back (the hold ends, the accepted value stands)."""
+    from pipeline.data.hub.held_locations import read_holds
+
+    data = tmp_path / "data"
+    import_target_csv(write(release("2025-09-17"), tmp_path, "a"), target=HOSP_COVID,
+                      as_of="2025-09-17", data_dir=data)
+    revised = release("2025-09-24")
+    ca = (revised["location"] == "06") & (revised["target_end_date"].astype(str) == "2025-06-07")
+    original = float(revised.loc[ca, "value"].iloc[0])
+    revised.loc[ca, "value"] *= 10
+    import_target_csv(write(revised, tmp_path, "b"), target=HOSP_COVID, as_of="2025-09-24",
+                      data_dir=data)
+    later = revised if next_release == "repeats" else release("2025-09-24")
+    done = import_target_csv(write(later, tmp_path, "c"), target=HOSP_COVID, as_of="2025-10-01",
+                             data_dir=data).vintages[0]
+    assert done.action == "live"
+    assert revisions_waiting(HOSP_COVID, data) == {}
+    [hold] = read_holds(data / "nhsn" / "wk-inc-covid-hosp").entries
+    assert (hold.location, hold.since, hold.until) == ("06", "2025-09-24", "2025-10-01")
+    newest = cached_weekly_vintages(HOSP_COVID, data)[-1]
+    assert newest.held == {} and "06" in newest.locations
+    value = newest.frame[(newest.frame["location"] == "06") & (
+        newest.frame["target_end_date"] == pd.Timestamp("2025-06-07"))]["value"].item()
+    if next_release == "repeats":
+        assert hold.settled == ("accepted on 2025-10-01: the release of 2025-10-01 repeats the "
+                                "revision (the source stands by it)")
+        assert value == original * 10
+    else:
+        assert hold.settled == ("ended on 2025-10-01: the release of 2025-10-01 takes the "
+                                "revision back")
+        assert value == original
+
+
 def test_flusight_holds_the_revised_locations_alone_and_keeps_its_na_states(tmp_path):
     """The real FluSight releases: all 59 go live (27 used to be held for one Louisiana
     revision); Louisiana and Ohio are held from 2024-11-20, Arizona from 2025-02-05, Puerto
-    Rico from 2025-03-19; Massachusetts, Minnesota and West Virginia (NA weeks in the 2024
-    off-season) are in every release."""
+    Rico from 2025-03-19, each for one release: the next release repeats each revision, which
+    is then accepted (they used to stay out of every later round). While held, each is forecast
+    from its accepted series, never left out. Massachusetts, Minnesota and West Virginia (NA
+    weeks in the 2024 off-season) are in every release."""
+    from pipeline.data.hub.held_locations import read_holds
+
     data = tmp_path / "data"
     summary = import_hub_time_series(FLUSIGHT, data)
     assert [v.action for v in summary.vintages] == ["live"] * 59
-    waiting = revisions_waiting("wk inc flu hosp", data)
-    assert {loc: h.since for loc, h in waiting.items()} == {
-        "22": "2024-11-20", "39": "2024-11-20", "04": "2025-02-05", "72": "2025-03-19"}
-    assert "22 week ending 2022-02-19 39 -> 170" in waiting["22"].reason
+    assert revisions_waiting("wk inc flu hosp", data) == {}
+    holds = read_holds(data / "nhsn" / "wk-inc-flu-hosp").entries
+    assert {h.location: (h.since, h.until) for h in holds} == {
+        "22": ("2024-11-20", "2024-12-04"), "39": ("2024-11-20", "2024-12-04"),
+        "04": ("2025-02-05", "2025-02-12"), "72": ("2025-03-19", "2025-03-26")}
+    assert all(h.settled is not None and "repeats the revision" in h.settled for h in holds)
+    assert "22 week ending 2022-02-19 39 -> 170" in holds[0].reason
     vintages = cached_weekly_vintages("wk inc flu hosp", data)
     by_date = {str(v.as_of.date()): v for v in vintages}
-    assert "22" in by_date["2024-05-01"].locations and "22" not in by_date["2024-11-20"].locations
+    assert "22" in by_date["2024-05-01"].locations and "22" in by_date["2024-11-20"].locations
+    assert set(by_date["2024-11-20"].held) == {"22", "39"} and by_date["2024-12-04"].held == {}
+    louisiana = by_date["2024-11-20"].frame
+    assert louisiana[(louisiana["location"] == "22") & (louisiana["target_end_date"] == pd.Timestamp(
+        "2022-02-19"))]["value"].item() == 39          # the accepted value, not 170
     assert all({"25", "27", "54"} <= set(v.locations) for v in vintages)
-    assert [len(v.locations) for v in vintages[-1:]] == [49]
+    assert [len(v.locations) for v in vintages[-1:]] == [53]
 
 
 def test_a_release_without_a_national_row_takes_the_states_sum(tmp_path):
@@ -258,6 +321,7 @@ def test_holds_open_end_and_are_accepted_one_location_at_a_time():
     assert {h.location: (h.since, h.reference, h.reason) for h in holds.entries} == {
         "22": ("2024-11-20", "2024-05-01", "r22"), "39": ("2024-11-20", "2024-05-01", "r39")}
     holds = holds.accepted(("22",), live="2024-12-04")
+    assert holds.entries[0].settled == "accepted by the operator from the release of 2024-12-04"
     holds = holds.opened({}, since="2024-12-11", reference="2024-12-04")   # 39 taken back
     assert holds.waiting() == {}
     assert [(h.location, h.until) for h in holds.entries] == [("22", "2024-12-04"),

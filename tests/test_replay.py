@@ -166,7 +166,8 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
         prefect_harness, tmp_path, releases):
     """2025-09-17's round, then a rerun to 2025-09-24 whose admissions release revises
     California's settled weeks tenfold: the rerun replays only the new Wednesday, and that
-    round holds California alone (named, and said on page 1) while the rest go live."""
+    round holds California alone while the rest go live: California is still forecast, from
+    its accepted series (named as held on page 1 and in summary.json, not left out)."""
     revised = _revised(releases, DUE)
     out, first = _replay(tmp_path, revised, start="2025-09-17", end="2025-09-17")
     assert [r["reference_date"] for r in first["rounds"]] == ["2025-09-20"]
@@ -181,7 +182,15 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
     last = _last(again)
     assert last["state"] != "Failed" and HOSP in last["published_targets"]
     assert set(_checked(out)["target"]) == {HOSP, ED}
-    assert (HOSP, "06") in _dropped(again, "location")
+    assert (HOSP, "06") not in _dropped(again, "location")
+    rows = _checked(out)
+    september = rows[(rows["reference_date"].astype(str) == "2025-09-27")
+                     & (rows["target"] == HOSP)]
+    assert "06" in set(september["location"])
+    folder = Path(last["model_output"]).parents[2]
+    summary = json.loads((folder / "summary.json").read_text())
+    assert "06" in summary["held"][HOSP]
+    assert "forecast from its accepted series" in summary["held"][HOSP]["06"]
     # page 1 says the revision waits for review (the operator's `data accept-revisions`)
-    report = (Path(last["model_output"]).parents[2] / "report.html").read_text()
-    assert f"{HOSP}: revision of 06 waiting for review" in report
+    report = (folder / "report.html").read_text()
+    assert f"{HOSP}: 06 held: a revision waiting for review" in report

@@ -75,15 +75,16 @@ def round_frame(run: HubRun, tasks: Mapping[str, Any] | None = None) -> pd.DataF
 def dropped_and_held_notices(run: HubRun) -> tuple[Notice, ...]:
     """Page 1's notices beyond the locations left out: what the round dropped from its
     submission (a target, a published member) or replaced (a published member's refit), and
-    the locations whose revised history waits for review (left out of the round until the
-    operator accepts the revision or the source takes it back; their accepted series is kept
-    in the archive)."""
+    the locations whose revised history waits for review (forecast from their accepted
+    series, or left out when the release has no row of them, until the next release repeats
+    the revision, the source takes it back or the operator accepts it)."""
     kinds = {"target": NoticeKind.LEFT_OUT, "member": NoticeKind.LEFT_OUT,
              "refit": NoticeKind.NOTE}
     dropped = [Notice(kinds[d.what], f"Not in this submission as planned: {d.line()}")
                for d in run.dropped if d.what in kinds and run.in_submission(d)]
-    held = [Notice(NoticeKind.HELD, f"{p.target}: revision of {location} waiting for review "
-                                    f"({why}); left out until reviewed")
+    held = [Notice(NoticeKind.HELD, f"{p.target}: {location} held: a revision waiting for "
+                                    f"review ({why}); accepted when the next release repeats "
+                                    "it, ended when one takes it back")
             for p in run.provenance.values() for location, why in p.held.items()]
     return tuple(dropped + held)
 
@@ -113,13 +114,12 @@ def derived_frame(result: HubRoundsResult, tasks: Mapping[str, Any]) -> pd.DataF
 
 def require_hub_config(config: HubRunConfig) -> Path:
     """The hub's config folder, or a :class:`ConfigError` naming what is missing: a round is
-    never written unvalidated (RSV: no hub config is in the project's reach)."""
+    never written unvalidated."""
     hub_config = config.hub_config_dir()
     if hub_config is None:
         where = {"covid": "the CDC hub's, github.com/CDCgov/covid19-forecast-hub",
                  "flu": "FluSight's, github.com/cdcepi/FluSight-forecast-hub",
-                 "rsv": "the RSV hub's: none is in the project's reach (../shared holds the "
-                        "COVID-19 and FluSight hubs only), so no RSV round is written"}
+                 "rsv": "the RSV hub's, github.com/CDCgov/rsv-forecast-hub"}
         raise ConfigError(f"the {config.disease} hub's tasks.json is needed to validate the "
                           "round file: pass --hub-config DIR or set FLOWCAST_HUB_CONFIG to the "
                           f"hub's hub-config folder ({where[config.disease]})")
@@ -131,7 +131,7 @@ def summary(run: HubRun) -> dict[str, Any]:
     out: dict[str, Any] = {"reference_date": str(run.reference_date),
                            "model_id": run.config.model_id, "model_key": run.model_key,
                            "model_reused": run.model_reused, "stale": run.stale,
-                           "skipped": run.skipped(),
+                           "skipped": run.skipped(), "held": run.held(),
                            "degraded": run.degraded,
                            "dropped": [dataclasses.asdict(d) for d in run.dropped],
                            "seconds": {k: round(v, 1) for k, v in run.seconds.items()}}

@@ -44,11 +44,13 @@ from pipeline.errors import ConfigError, FlowcastError
 from pipeline.hub_round.publish import publish_hub_round
 from pipeline.hub_round.run import Disease, HubRunConfig, run_hub_round
 from pipeline.io import atomic_write_bytes, atomic_write_json
+from pipeline.outputs.hub_calendar import HubCalendar
+from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
 
 log = logging.getLogger(__name__)
 SUMMARY_NAME = "replay.json"
-RoundState = Literal["Completed", "Completed (degraded)", "Failed"]
+RoundState = Literal["Completed", "Completed (degraded)", "Failed", "No round"]
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,9 @@ class RoundOutcome:
     dropped: tuple[dict[str, str], ...] = ()
     seconds: float = 0.0
     imported: tuple[str, ...] = ()
+    # the Wednesday whose file of the same round this one replaces (a second release in the
+    # round's window), said in the log and the summary
+    replaces: str | None = None
 
 
 RoundStep = Callable[[HubRunConfig], RoundOutcome]
@@ -163,7 +168,10 @@ def _release_file(out: Path, release: Release) -> Path:
 def library_step(config: HubRunConfig) -> RoundOutcome:
     """One Wednesday through the library calls the deployment's tasks make (run, publish)."""
     assert config.due is not None
-    run = run_hub_round(config)
+    try:
+        run = run_hub_round(config)
+    except NoHubRoundError as error:      # off season: the hub takes no round that day
+        return RoundOutcome(str(config.due), "No round", str(error))
     published = publish_hub_round(run)
     return RoundOutcome(
         str(config.due), "Completed (degraded)" if run.degraded else "Completed",
@@ -207,7 +215,8 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
             copied = model_dir / Path(outcome.model_output).name
             atomic_write_bytes(copied, Path(outcome.model_output).read_bytes())
         outcome = dataclasses.replace(
-            outcome, seconds=round(time.perf_counter() - started, 1),
+            outcome, replaces=_replaced(rounds, outcome),
+            seconds=round(time.perf_counter() - started, 1),
             imported=tuple(f"{v.target} {v.as_of}: {v.action}" + (f" ({v.note})" if v.note
                                                                    else "")
                            for v in imported))
@@ -222,6 +231,45 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
     return summary
 
 
+def _replaced(rounds: Sequence[dict[str, object]], outcome: RoundOutcome) -> str | None:
+    """The earlier Wednesday whose file of the same round ``outcome`` replaces, if any."""
+    if outcome.model_output is None:
+        return None
+    earlier = [r["due"] for r in rounds if r["reference_date"] == outcome.reference_date
+               and r["model_output"] is not None]
+    if earlier:
+        log.warning("the round of %s made on %s replaces the file made on %s (a second release "
+                    "in its window)", outcome.reference_date, outcome.due, earlier[-1])
+    return str(earlier[-1]) if earlier else None
+
+
+def calendar_check(rounds: Sequence[dict[str, object]], calendar: HubCalendar
+                   ) -> dict[str, object]:
+    """The hub's rounds over the replayed span (their deadlines from the first replayed day to
+    the last) against the files made: ``rounds_missed`` (a release came in the round's window,
+    and no file was made of it), ``rounds_duplicated`` (one round made from releases of more
+    than one window: the wrong round published), and the rounds with no release in their
+    window at all (no file can be made of them; the data's gaps, not the calendar's)."""
+    days = sorted(dt.date.fromisoformat(str(r["due"])) for r in rounds)
+    if not days:
+        return {"hub_rounds": 0, "rounds_missed": [], "rounds_duplicated": [],
+                "rounds_without_release": []}
+    made: dict[str, list[str]] = {}
+    for r in rounds:
+        if r["model_output"] is not None:
+            made.setdefault(str(r["reference_date"]), []).append(str(r["due"]))
+    served = {d: calendar.round_for(d) for d in days}
+    hub = calendar.rounds_between(days[0], days[-1])
+    with_release = [ref for ref in hub if ref in served.values()]
+    wrong_window = {ref: dues for ref, dues in made.items()
+                    if any(served.get(dt.date.fromisoformat(d)) != dt.date.fromisoformat(ref)
+                           for d in dues) and dt.date.fromisoformat(ref) in hub}
+    return {"hub_rounds": len(hub), "rounds_with_release": len(with_release),
+            "rounds_missed": [str(ref) for ref in with_release if str(ref) not in made],
+            "rounds_duplicated": sorted(wrong_window),
+            "rounds_without_release": [str(ref) for ref in hub if ref not in with_release]}
+
+
 def _read_summary(out: Path) -> dict[str, list[dict[str, object]]]:
     path = out / SUMMARY_NAME
     if not path.is_file():
@@ -233,11 +281,18 @@ def _read_summary(out: Path) -> dict[str, list[dict[str, object]]]:
 def summarize(rounds: Sequence[dict[str, object]], config: ReplayConfig) -> dict[str, object]:
     """The replay's figures: rounds due, published, degraded (what, why), failed; seconds."""
     seconds = [float(str(r["seconds"])) for r in rounds]
-    published = [r for r in rounds if r["state"] != "Failed"]
+    published = [r for r in rounds if r["state"] in ("Completed", "Completed (degraded)")]
+    due = [r for r in rounds if r["state"] != "No round"]
+    calendar = config.run.calendar()
     return {
         "model_id": config.run.model_id, "disease": config.run.disease,
-        "rounds_due": len(rounds), "rounds_published": len(published),
-        "rounds_failed": len(rounds) - len(published),
+        "rounds_due": len(due), "rounds_published": len(published),
+        "rounds_failed": len(due) - len(published),
+        "no_round": [{"due": r["due"], "message": r["message"]}
+                     for r in rounds if r["state"] == "No round"],
+        "replaced": [{"due": r["due"], "reference_date": r["reference_date"],
+                      "replaces": r.get("replaces")} for r in rounds if r.get("replaces")],
+        "calendar": calendar_check(rounds, calendar) if calendar is not None else None,
         "degraded": [{"due": r["due"], "reference_date": r["reference_date"],
                       "message": r["message"], "dropped": r["dropped"]}
                      for r in rounds if r["state"] == "Completed (degraded)"],

@@ -41,7 +41,10 @@ from pipeline.members.nf.finetune import FineTuneConfig
 from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
 from pipeline.members.published import HubMembersConfig, build_hub_members, published_names
 from pipeline.members.nf.weekly import WeeklyFlowConfig
+from pipeline.outputs.hub_calendar import HubCalendar
+from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
+from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.members.isolation import Dropped
 from pipeline.panels.hub import hub_rounds, is_share, panel_of, reference_date_for
 from pipeline.panels.panel import Panel
@@ -56,12 +59,14 @@ Disease = Literal["covid", "flu", "rsv"]
 # Whether the seasonal member's climatology is the disease's ED share (COVID-19: NSSP's
 # vintages, measured on the 44 design rounds, bench/results/nhsn.json) or the admissions' own
 # earlier seasons (influenza: FluSight's data hold no ED vintage; measured on its 59 rounds,
-# bench/results/flusight.json; RSV: no hub config, refused)
-SEASONAL_READS_ED_SHARE: dict[Disease, bool] = {"covid": True, "flu": False, "rsv": False}
-# each disease's hub config beside the checkout: the CDC COVID-19 hub's, FluSight's; none of
-# the RSV hub is in reach, so an RSV round is refused by name (no unvalidated file)
+# bench/results/flusight.json; RSV as COVID-19: its NSSP ED share holds seasons from 2022-10
+# while its admissions begin 2024-11, bench/results/rsv.json)
+SEASONAL_READS_ED_SHARE: dict[Disease, bool] = {"covid": True, "flu": False, "rsv": True}
+# each disease's hub config beside the checkout: the CDC COVID-19 hub's, FluSight's, the RSV
+# hub's (CDCgov/rsv-forecast-hub)
 DEFAULT_HUB_CONFIGS: dict[str, Path] = {"covid": DEFAULT_HUB_CONFIG,
-                                        "flu": SHARED_DATA / "flusight" / "hub-config"}
+                                        "flu": SHARED_DATA / "flusight" / "hub-config",
+                                        "rsv": SHARED_DATA / "rsv" / "hub-config"}
 HubPreset = Literal["default", "tiny"]
 HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
     "default": HubMembersConfig(),
@@ -128,6 +133,30 @@ class HubRunConfig:
         default = DEFAULT_HUB_CONFIGS.get(self.disease)
         return default if default and (default / "tasks.json").is_file() else None
 
+    def calendar(self) -> HubCalendar | None:
+        """The hub's calendar (its ``tasks.json``'s rounds and their deadlines); None without
+        a hub config."""
+        folder = self.hub_config_dir()
+        if folder is None:
+            return None
+        return HubCalendar.of_tasks(load_tasks_config(folder / "tasks.json"), self.disease,
+                                    f"the {self.disease} hub")
+
+    def due_round(self, calendar: HubCalendar | None) -> dt.date | None:
+        """The round due ``self.due`` (None when no day is given): the hub calendar's round
+        open that day (:meth:`HubCalendar.round_for`), or the weekly round without a hub
+        config. A day the hub has no round open (FluSight off season) is
+        :class:`NoHubRoundError`, before any work."""
+        if self.due is None:
+            return None
+        if calendar is None:
+            return reference_date_for(pd.Timestamp(self.due)).date()
+        found = calendar.round_for(self.due)
+        if found is None:
+            raise NoHubRoundError(f"the {self.disease} hub has no round open on {self.due} "
+                                  f"({calendar.describe()}): no round written")
+        return found
+
 
 @dataclass(frozen=True, eq=False)
 class HubRun:
@@ -142,11 +171,15 @@ class HubRun:
     seconds: dict[str, float]
     # what the round left out (members, locations, targets) or replaced (refits), and why
     dropped: tuple[Dropped, ...] = ()
+    # the round due ``config.due`` by the hub's calendar (None: no day given)
+    due_reference: dt.date | None = None
 
     @property
     def reference_date(self) -> dt.date:
-        """The round's reference date: that of the week it is due (``config.due``), else the
-        newest round any target's release serves."""
+        """The round's reference date: the one due ``config.due`` by the hub's calendar, else
+        the newest round any target's release serves."""
+        if self.due_reference is not None:
+            return self.due_reference
         if self.config.due is not None:
             return reference_date_for(pd.Timestamp(self.config.due)).date()
         return max(r.rounds[-1].reference for r in self.results.values()).date()
@@ -190,6 +223,11 @@ class HubRun:
         return self.config.data_source == "live" and any(
             p.from_cache for p in self.provenance.values())
 
+    def held(self) -> dict[str, dict[str, str]]:
+        """Per target, the locations whose revision waits for review, and how the round
+        treats each (forecast from its accepted series, or left out)."""
+        return {p.target: dict(p.held) for p in self.provenance.values() if p.held}
+
     def skipped(self) -> dict[str, dict[str, str]]:
         """Per target, the locations left out of this round and why."""
         return {t: dict(r.rounds[-1].panel.skipped) for t, r in self.results.items()}
@@ -219,6 +257,9 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     progress = progress or SilentProgress()
     seconds: dict[str, float] = {}
     started = time.perf_counter()
+    calendar = config.calendar()
+    due_reference = config.due_round(calendar)      # off season: said before any work
+    serving = calendar.serving if calendar is not None else reference_date_for
     targets = disease_targets(config.disease)
     provenance, missing = _load(config)
     for loaded in provenance.values():     # their notes: pipeline.data.hub.nhsn logs them
@@ -244,7 +285,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         model_key, reused = members.model_key, reused and members.reused
         memo = ForecastMemo.load(memo_path(config, target))
         results[target] = run_hub_rounds(
-            hub_rounds(target_vintages), target_vintages[-1][1],
+            hub_rounds(target_vintages, serving), target_vintages[-1][1],
             [memo.wrap(m, config.rounds.n_samples) for m in members.published], config.rounds,
             references=[memo.wrap(m, config.rounds.n_samples) for m in members.references],
             progress=progress)
@@ -254,13 +295,14 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
             Dropped("member", target, name, why)
             for name, why in results[target].dropped_members().items() if name in published)]
         seconds[target] = time.perf_counter() - started
-    dropped += stale_targets(results, config.due)
+    dropped += stale_targets(results, due_reference)
     dropped += [Dropped("location", t, place, why)
                 for t, r in results.items() for place, why in r.rounds[-1].panel.skipped.items()]
     for item in dropped:
         if item.what != "location":
             log.warning("the round left out %s", item.line())
-    return HubRun(config, results, provenance, model_key, reused, seconds, tuple(dropped))
+    return HubRun(config, results, provenance, model_key, reused, seconds, tuple(dropped),
+                  due_reference)
 
 
 def _load(config: HubRunConfig) -> tuple[dict[str, NHSNProvenance], dict[str, str]]:
@@ -285,14 +327,15 @@ def _load(config: HubRunConfig) -> tuple[dict[str, NHSNProvenance], dict[str, st
     return provenance, missing
 
 
-def stale_targets(results: dict[str, HubRoundsResult], due: dt.date | None
+def stale_targets(results: dict[str, HubRoundsResult], due_reference: dt.date | None
                   ) -> list[Dropped]:
-    """The targets whose newest release serves an older round than this one (the round of
-    ``due``, else the newest any target serves): left out of the file, with their age."""
+    """The targets whose newest release serves an older round than this one (the round due,
+    ``due_reference``, else the newest any target serves): left out of the file, with their
+    age."""
     if not results:
         return []
     newest = max(r.rounds[-1].reference for r in results.values())
-    reference = reference_date_for(pd.Timestamp(due)) if due is not None else newest
+    reference = pd.Timestamp(due_reference) if due_reference is not None else newest
     out = []
     for target, result in results.items():
         last = result.rounds[-1]

@@ -20,7 +20,7 @@ itself (hub horizon −1 when the data are a week behind) is still being reporte
 """
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,10 +136,13 @@ class HubRound:
         return self.reference + pd.Timedelta(days=DAYS_PER_WEEK * horizon)
 
 
-def hub_rounds(vintages: Sequence[tuple[pd.Timestamp, Panel]]) -> list[HubRound]:
+def hub_rounds(vintages: Sequence[tuple[pd.Timestamp, Panel]],
+               serving: Callable[[pd.Timestamp], pd.Timestamp] = reference_date_for
+               ) -> list[HubRound]:
     """One round per vintage (the newest vintage released by a round's due date serves it),
-    oldest first."""
+    oldest first; ``serving`` maps a release date to the round it serves (the hub's calendar,
+    :meth:`pipeline.outputs.hub_calendar.HubCalendar.serving`; by default the weekly rule)."""
     by_round: dict[pd.Timestamp, tuple[pd.Timestamp, Panel]] = {}
     for as_of, panel in sorted(vintages, key=lambda v: v[0]):
-        by_round[reference_date_for(as_of)] = (as_of, panel)
+        by_round[pd.Timestamp(serving(as_of))] = (as_of, panel)
     return [HubRound(ref, as_of, panel) for ref, (as_of, panel) in sorted(by_round.items())]

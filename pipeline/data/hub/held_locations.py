@@ -5,13 +5,20 @@ revised beyond the policy, held for review one by one while the other locations 
 A release is judged location by location (:func:`pipeline.data.hub.nhsn_vintages.
 check_weekly_successor`). A location whose settled weeks change beyond the revision policy is
 **held**: the release goes live for every other location, and the held one is left out of every
-vintage read from then on (named in the vintage's ``skipped``: "revision held for review …"),
-so no forecast is made from the revised series nor from a series that stopped weeks ago. Its
-last accepted series stays in the archive (``vintages/``) and is the reference every later
-release is judged against, until
+vintage read from then on, and, while it is held, is forecast from its last accepted series:
+the weeks the release revised beyond the policy keep their accepted values, the weeks after
+them are the release's (named in the vintage's ``held``: "revision held for review …"), so no
+forecast is made from the disputed revision and the location is not left out. Its last
+accepted series stays in the archive (``vintages/``) and is the reference every later release
+is judged against, until
 
 * a later release no longer breaks the policy against that reference (the source took the
   revision back): the hold ends by itself; or
+* the next release repeats the revision (its series of the location agrees, within the policy,
+  with the release that was held: the source stands by it): the revision is accepted by itself
+  for that location, recorded on the hold (``settled``: what changed, when, why), and the
+  location reads from the revised series from that release on (issue 49: an unattended
+  deployment must not leave a location out for a season because nobody answered); or
 * the operator accepts it for that location alone (``flowcast data accept-revisions
   --target T LOCATION``): from the live vintage on, the location reads as released.
 
@@ -63,6 +70,8 @@ class Hold:
     reason: str
     until: str | None = None
     kind: HoldKind = "revision"
+    # how the hold ended, in words (None while waiting, and in files written before it)
+    settled: str | None = None
 
     def note(self) -> str:
         """How a vintage read without this place names it (its ``skipped``)."""
@@ -92,15 +101,28 @@ class Holds:
         return {h.location: h for h in self.entries if h.covers(as_of)}
 
     def opened(self, found: Mapping[str, str], *, since: str, reference: str,
-               missing: Mapping[str, str] | None = None) -> Holds:
+               missing: Mapping[str, str] | None = None,
+               repeated: Mapping[str, str] | None = None) -> Holds:
         """These holds after a release of ``since`` judged ``found`` (location -> why) beyond
         the policy and left ``missing`` (location -> why) out: new holds opened (against
         ``reference``), holds no longer breaking nor missing ended (a location that is back
-        and agrees with its reference reads again)."""
-        waiting, gone = self.waiting(), dict(missing or {})
+        and agrees with its reference reads again: the source took the revision back), and
+        the revisions the release ``repeated`` (location -> what) accepted: the source stands
+        by them, so the location reads from the revised series from this release on."""
+        waiting, gone, kept = self.waiting(), dict(missing or {}), dict(repeated or {})
         held = {**found, **gone}
-        ended = [replace(h, until=since) if h.until is None and h.location not in held else h
-                 for h in self.entries]
+
+        def settle(h: Hold) -> Hold:
+            if h.until is not None or h.location in held:
+                return h
+            why = (f"accepted on {since}: the release of {since} repeats the revision (the "
+                   "source stands by it)" if h.location in kept else
+                   f"ended on {since}: the location is back in the release of {since}"
+                   if h.kind == "missing" else
+                   f"ended on {since}: the release of {since} takes the revision back")
+            return replace(h, until=since, settled=why)
+
+        ended = [settle(h) for h in self.entries]
         new = [Hold(loc, since, reference, why, kind="missing" if loc in gone else "revision")
                for loc, why in sorted(held.items()) if loc not in waiting]
         return Holds((*ended, *new))
@@ -113,7 +135,9 @@ class Holds:
         if unknown:
             raise ConfigError(f"no revision waits for {', '.join(unknown)}; waiting: "
                               f"{', '.join(sorted(waiting)) or 'none'}")
-        return Holds(tuple(replace(h, until=live) if h.until is None and h.location in locations
+        return Holds(tuple(replace(h, until=live, settled=f"accepted by the operator from the "
+                                                          f"release of {live}")
+                           if h.until is None and h.location in locations
                            else h for h in self.entries))
 
 
@@ -137,12 +161,14 @@ def write_holds(directory: Path, holds: Holds) -> None:
 
 def record_release(directory: Path, holds: Holds, *, as_of: str, accepted: bool,
                    found: Mapping[str, str], missing: Mapping[str, str] | None = None,
-                   reference: str | None = None) -> None:
+                   reference: str | None = None,
+                   repeated: Mapping[str, str] | None = None) -> None:
     """The holds after a release of ``as_of`` went live, written when they change: with
     ``accepted`` (the operator took the whole release) every waiting hold ends; otherwise the
     places ``found`` revised and those ``missing`` are held against ``reference`` (the live
     vintage the release was judged against) and the others' holds end (:meth:`Holds.opened`)."""
     after = (holds.accepted(tuple(holds.waiting()), live=as_of) if accepted else
-             holds.opened(found, since=as_of, reference=reference or as_of, missing=missing))
+             holds.opened(found, since=as_of, reference=reference or as_of, missing=missing,
+                          repeated=repeated))
     if after != holds:
         write_holds(directory, after)

@@ -158,7 +158,9 @@ def _provenance(manifest: CacheManifest, vintage: WeeklyVintage, *, from_cache: 
         last_week=manifest.last_date, from_cache=from_cache, stale_days=stale_days,
         final_url=manifest.final_url, notes=notes + skipped_note(vintage),
         skipped=dict(vintage.skipped),
-        held={loc: f"since the release of {h.since}: {h.reason}" for loc, h in waiting.items()})
+        held={loc: f"since the release of {h.since}: {h.reason}; "
+                   + ("forecast from its accepted series" if loc in vintage.held
+                      else "left out") for loc, h in waiting.items()})
 
 
 def _from_cache(cache: DatasetCache, spec: TargetSpec, now: datetime,

@@ -129,6 +129,8 @@ class WeeklyVintage:
     source: str = ""
     derived: Mapping[str, str] = field(default_factory=dict)   # location -> how it was made
     missing: Mapping[str, tuple[str, ...]] = field(default_factory=dict)  # NA weeks, by place
+    # locations forecast from their accepted series while a revision is held, with why
+    held: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def locations(self) -> tuple[str, ...]:
@@ -311,6 +313,8 @@ class Successor:
 
     revised: Mapping[str, str] = field(default_factory=dict)
     missing: Mapping[str, str] = field(default_factory=dict)
+    # held locations whose revision this release repeats (the source stands by it): accepted
+    repeated: Mapping[str, str] = field(default_factory=dict)
 
 
 def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: RevisionPolicy,
@@ -326,15 +330,18 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: Re
     refs = references or {}
     _refuse_shape(new, cached)
     missing = _missing_locations(new, cached, refs)
-    held = {loc: why for loc, why in (_location_revised(new, refs.get(loc, cached), loc, policy)
-                                      for loc in new.locations) if why is not None}
+    judged = {loc: why for loc, why in (_location_revised(new, refs.get(loc, cached), loc, policy)
+                                        for loc in new.locations) if why is not None}
+    repeated = {loc: why for loc, why in judged.items()
+                if loc in refs and _location_revised(new, cached, loc, policy)[1] is None}
+    held = {loc: why for loc, why in judged.items() if loc not in repeated}
     if len(held) > MAX_HELD_SHARE * len(POPULATION):
         first = next(iter(held.values()))
         raise RevisionRefusedError(f"{new.target}: {len(held)} of the {len(POPULATION)} "
                                    f"locations revise settled weeks beyond the policy (more than "
                                    f"{MAX_HELD_SHARE:.0%}: the release is held whole); e.g. "
                                    f"{first}; {HELD}", hold=True)
-    return Successor(held, missing)
+    return Successor(held, missing, repeated)
 
 
 def _missing_locations(new: WeeklyVintage, cached: WeeklyVintage,
@@ -403,16 +410,44 @@ def _location_revised(new: WeeklyVintage, reference: WeeklyVintage, location: st
                                                f"{reference.as_of.date()})")
 
 
-def with_holds(vintage: WeeklyVintage, holds: Holds) -> WeeklyVintage:
-    """``vintage`` without the locations held at its release date, each named in ``skipped``
-    ("revision held for review since …")."""
+def with_holds(vintage: WeeklyVintage, holds: Holds,
+               references: Mapping[str, WeeklyVintage] | None = None) -> WeeklyVintage:
+    """``vintage`` as read while locations are held at its release date: a held revision is
+    forecast from its accepted series (``references``: the release each hold's accepted
+    series is from; the weeks it revised beyond the policy take their accepted values back,
+    named in ``held``); a location missing from the release, or whose reference is not at
+    hand, is left out (named in ``skipped``)."""
     held = holds.at(str(vintage.as_of.date()))
     if not held:
         return vintage
-    frame = vintage.frame[~vintage.frame["location"].isin(list(held))].reset_index(drop=True)
-    skipped = {**vintage.skipped, **{loc: h.note() for loc, h in held.items()}}
+    refs = references or {}
+    kept = {loc: h for loc, h in held.items() if h.kind == "revision" and h.reference in refs
+            and loc in vintage.locations}
+    frame = vintage.frame[~vintage.frame["location"].isin([loc for loc in held
+                                                           if loc not in kept])]
+    frame = _accepted_values(frame, {loc: refs[h.reference] for loc, h in kept.items()},
+                             policy_of(target_spec(vintage.target)))
+    skipped = {**vintage.skipped, **{loc: h.note() for loc, h in held.items() if loc not in kept}}
     return WeeklyVintage(vintage.target, vintage.as_of, frame, dict(sorted(skipped.items())),
-                         vintage.source, vintage.derived, vintage.missing)
+                         vintage.source, vintage.derived, vintage.missing,
+                         {loc: h.note() for loc, h in sorted(kept.items())})
+
+
+def _accepted_values(frame: pd.DataFrame, references: Mapping[str, WeeklyVintage],
+                     policy: RevisionPolicy) -> pd.DataFrame:
+    """``frame`` with each location of ``references`` given back its accepted value on every
+    week its release revised beyond ``policy`` against that reference."""
+    out = frame.reset_index(drop=True).copy()
+    for location, reference in references.items():
+        theirs = reference.frame[reference.frame["location"] == location]
+        mine = out[out["location"] == location]
+        common = mine.reset_index().merge(theirs, on="target_end_date", suffixes=("", "_ref"))
+        breaks = settled_breaks(common["value_ref"].to_numpy(), common["value"].to_numpy(),
+                                common["target_end_date"].to_numpy(), policy=policy,
+                                last=reference.last_week)
+        rows = common["index"].to_numpy()[breaks]
+        out.loc[rows, "value"] = common["value_ref"].to_numpy()[breaks]
+    return out
 
 
 # ------------------------------------------------------------------------------ the cache
@@ -480,7 +515,11 @@ def commit_weekly(cache: DatasetCache, vintage: WeeklyVintage, payload: bytes, *
         judged = found[0] if found else Successor()
         record_release(folder, holds, as_of=str(vintage.as_of.date()), accepted=accept_revisions,
                        found=judged.revised, missing=judged.missing,
-                       reference=reference[0] if reference else None)
+                       reference=reference[0] if reference else None,
+                       repeated=judged.repeated)
+        for location, what in judged.repeated.items():
+            log.warning("%s: the revision of %s held for review is repeated by the release of "
+                        "%s: accepted (%s)", spec.target, location, vintage.as_of.date(), what)
     return committed
 
 
@@ -548,9 +587,10 @@ def cached_weekly_vintages(target: str, data_dir: str | os.PathLike[str] | None 
     spec = target_spec(target)
     cache = DatasetCache.default(data_dir)
     kept, holds = archive(cache, spec), read_holds(cache.directory(spec))
-    return [with_holds(parse_vintage(spec, kept.read(path), suffix=path.suffix.lstrip("."),
-                                     as_of=as_of, source=str(path)), holds)
-            for as_of, path in kept.listing()]
+    vintages = [parse_vintage(spec, kept.read(path), suffix=path.suffix.lstrip("."),
+                              as_of=as_of, source=str(path)) for as_of, path in kept.listing()]
+    by_date = {str(v.as_of.date()): v for v in vintages}
+    return [with_holds(v, holds, by_date) for v in vintages]
 
 
 def vintage_as_of(vintages: Sequence[WeeklyVintage], when: date | datetime | str | pd.Timestamp
