@@ -774,7 +774,7 @@ def _totals(results: list[CaseResult]) -> dict[str, int]:
             "cases_tried": len(results), "cases_passed": passed, "bytes_of_good_cache_lost": lost}
 
 
-SOURCES = ("datasf", "cdph", "nhsn", "hub_round", "import")
+SOURCES = ("datasf", "cdph", "nhsn", "hub_round", "import", "replay")
 # Issue 39's round cases (round_published, dropped per case, bench.faults_round)
 HUB_ROUND_NOTE = ("rounds on the tiny preset from the cache after a faulted newer release of "
                   "admissions or the ED share; each records whether the round was published "
@@ -785,13 +785,13 @@ def main() -> int:
     """The whole catalogue: DataSF, CDPH (CKAN) and NHSN (data.cdc.gov), every case."""
     import logging
 
-    from bench import faults_cdph, faults_nhsn, faults_release, faults_round
+    from bench import faults_cdph, faults_nhsn, faults_release, faults_replay, faults_round
 
     logging.basicConfig(level=logging.ERROR)
     started = time.monotonic()
     results: list[CaseResult] = []
     for run in (run_all, faults_cdph.run_all, faults_nhsn.run_all, faults_release.run_all,
-                faults_round.run_all):
+                faults_round.run_all, faults_replay.run_all):
         with _scratch() as tmp:
             results += run(tmp)
     sources = sorted({r.source for r in results} | set(SOURCES))

@@ -135,10 +135,13 @@ def _hub_round(disease: str, data_source: str, preset: str, output_dir: Path, se
         raise typer.Exit(code=2)
     from pipeline.cli.hub_options import hub_config_folder, writable_output_dir
     from pipeline.errors import ConfigError
+    from pipeline.hub_round.run import HubRunConfig
     try:  # every option checked before Prefect starts (issue 39)
         writable_output_dir(output_dir)
-        if hub_config is not None:
-            hub_config_folder(hub_config)
+        # the option, $FLOWCAST_HUB_CONFIG or the default: each tasks.json judged (issue 49)
+        folder = hub_config or HubRunConfig(disease=disease).hub_config_dir()
+        if folder is not None:
+            hub_config_folder(folder, option="--hub-config" if hub_config else "hub-config")
     except ConfigError as error:
         typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from None
@@ -196,33 +199,20 @@ def replay_command(
 ) -> None:
     """Replay the hub's Wednesdays: every release in order, from an empty model store, each
     week the deployment's run (the hub_forecast flow) offline into OUT."""
-    import datetime as dt
-
-    import pandas as pd
-
     from pipeline.errors import FlowcastError
     from pipeline.hub_round import replay as rp
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset
+    from pipeline.hub_round.replay_input import judge_replay_input
 
     if hub not in ("covid", "flu", "rsv") or preset not in ("default", "tiny"):
         typer.secho(f"error: --hub takes covid, flu or rsv (got {hub!r}) and --preset default "
                     f"or tiny (got {preset!r})", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2)
-    try:
-        first = dt.date.fromisoformat(start) if start else None
-        last = dt.date.fromisoformat(end) if end else None
-        run = HubRunConfig(disease=hub, members=hub_members_preset(preset), seed=seed,
-                           hub_config=str(hub_config) if hub_config else None)
-        config = rp.ReplayConfig(out, run, first, last)
-        releases = (rp.releases_of_time_series(pd.read_parquet(source), hub) if source
-                    else rp.cached_releases(hub))
-    except (ValueError, FlowcastError, OSError) as error:
+    try:  # every option and the source judged before Prefect starts (issue 49)
+        judged = judge_replay_input(out, hub, preset, seed, start, end, source, hub_config)
+    except (FlowcastError, OSError) as error:
         typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from None
-    if not rp.wednesdays(releases, first, last):
-        typer.secho("error: no release to replay in that span: import the hub's target data "
-                    "first (`flowcast data import <hub folder>`)", fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=1)
+    config, releases, run = judged.config, judged.releases, judged.config.run
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
     from flows.server_guard import start_temporary_server

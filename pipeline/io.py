@@ -14,6 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 from pipeline.errors import FlowcastError
 
 
@@ -54,6 +56,40 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
 
 def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
+
+
+class JSONBoundError(FlowcastError):
+    """A JSON file larger or more deeply nested than its reader allows: refused unparsed."""
+
+
+def json_depth(text: bytes) -> int:
+    """The deepest nesting of ``[``/``{`` in the JSON ``text``, brackets inside strings not
+    counted; vectorized, so a file is judged without the recursive parse a deep one would
+    crash (``RecursionError``)."""
+    # escaped backslashes and quotes never open or close a string: drop them first
+    plain = np.frombuffer(text.replace(b"\\\\", b"").replace(b'\\"', b""), dtype=np.uint8)
+    in_string = np.cumsum(plain == ord('"')) % 2 == 1
+    step = (np.isin(plain, (ord("["), ord("{"))).astype(np.int64)
+            - np.isin(plain, (ord("]"), ord("}"))).astype(np.int64))
+    return int(np.cumsum(np.where(in_string, 0, step)).max(initial=0))
+
+
+def read_bounded_json(path: str | os.PathLike[str], *, max_bytes: int, max_depth: int,
+                      what: str = "") -> Any:
+    """The JSON file ``path`` parsed, once its size (at most ``max_bytes``, read no further)
+    and nesting (at most ``max_depth``) are known to be within bounds; else one
+    :class:`JSONBoundError` naming the file and the bound."""
+    name = what or str(path)
+    with open(path, "rb") as handle:
+        text = handle.read(max_bytes + 1)        # a huge file is never read whole
+    if len(text) > max_bytes:
+        raise JSONBoundError(f"{name}: more than {max_bytes:,} bytes; refused unread (a "
+                             f"config of this kind is far smaller)")
+    depth = json_depth(text)
+    if depth > max_depth:
+        raise JSONBoundError(f"{name}: nested {depth} levels deep, more than the {max_depth} "
+                             f"allowed; refused unparsed")
+    return json.loads(text)
 
 
 def sha256_bytes(data: bytes) -> str:

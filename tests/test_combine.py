@@ -113,6 +113,20 @@ def test_weights_hand_computed_and_equal_without_past_scores():
                                           np.array([0.75, 0.25])), [[1.5, 4.0]])
 
 
+def test_a_cell_without_a_forecast_is_unscored_not_fatal():
+    """A cell with a non-finite quantile (no member's forecast there) scores NaN, like an
+    unobserved one; the other cells' WIS are unchanged (issue 49, item 7)."""
+    levels = np.array([0.05, 0.5, 0.95])
+    q = np.array([[0.0, 10.0, 20.0], [np.nan, np.nan, np.nan], [0.0, 5.0, np.inf],
+                  [0.0, 20.0, 40.0]])
+    y = np.array([10.0, 10.0, 10.0, np.nan])
+    wis = scored_wis(levels, q, y)
+    assert np.isnan(wis[1:]).all()
+    np.testing.assert_allclose(wis[0], scored_wis(levels, q[:1], y[:1])[0])
+    # by hand: (½·|10 − 10| + (0.1 / 2)·IS of the 90 % interval [0, 20], i.e. 20) / (K + ½)
+    np.testing.assert_allclose(wis[0], (0.0 + 0.05 * 20.0) / 1.5)
+
+
 def test_scored_before_is_the_real_time_mask_by_dates():
     """A forecast from origin o at horizon h is scored at origin t only when o + 7h ≤ t — by
     dates, so a missing week (a hub round without a vintage) counts as it should."""

@@ -24,7 +24,8 @@ LEVELS = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
 @dataclasses.dataclass(frozen=True)
 class Broken:
     """A member that fails the way it is told to: ``raise``, ``nan`` (every other cell),
-    ``cross`` (every third cell's quantiles reversed) or ``slow``."""
+    ``horizon`` (every other cell: no forecast at all at its furthest horizon, which it
+    reaches), ``cross`` (every third cell's quantiles reversed) or ``slow``."""
 
     how: str
     inner: LogNormalMember = LogNormalMember("inner", 0.2)
@@ -38,6 +39,8 @@ class Broken:
         count = self.inner.forecast(cells, horizons, levels).count.copy()
         if self.how == "nan":
             count[::2, 1, 2] = np.nan
+        if self.how == "horizon":
+            count[::2, -1, :] = np.nan
         if self.how == "cross":
             count[::3] = count[::3, :, ::-1]
         return MemberForecast(count)
@@ -78,6 +81,29 @@ def test_a_horizon_beyond_reach_is_not_a_failure():
     assert not failed.any() and why == ""
     count[1, 0, 3] = np.inf
     assert invalid_cells(count)[0].tolist() == [False, True]
+    # within the reach the member declares, an all-NaN horizon is a failure, not its reach
+    failed, why = invalid_cells(count, np.array([True, True, True]))
+    assert failed.tolist() == [True, True] and why == "non-finite quantiles in 2 cell(s)"
+    assert not invalid_cells(count[:1], np.array([True, True, False]))[0].any()
+
+
+def test_a_member_without_a_forecast_at_a_horizon_it_reaches_is_dropped_not_fatal():
+    """Issue 49, item 7: the only member returns no forecast (all NaN) at its furthest horizon
+    in every other cell. Taken for "beyond reach", the cells had no forecast, and once their
+    weeks ended the online calibration's scorer failed the whole run (``ScoringError: quantile
+    values contain NaN or inf``, naming no member). Now the member is named as failed there
+    and the hub baseline stands in: every published cell is finite."""
+    history = random_walk_history(70, seed=3, sigma=0.3)
+    origins = weekly_origins(history.dates, scored_only=False)[-12:]
+    config = BacktestConfig(horizons=(1, 2, 3), combine=CombineConfig(
+        beyond_reach="reachable-members", calibration="aggregated-aci"))
+    result = run_backtest(OneVintage(Panel({"place": history})), [Broken("horizon")], origins,
+                          config)
+    failure = result.failures["broken"]
+    assert failure.why == "non-finite quantiles in 6 cell(s)"
+    assert failure.cells[0].tolist() == [True, False] * 6
+    published = result.forecasts[result.panel.count_target][PUBLISHED]
+    assert published.shape == (1, 12, 3, 23) and np.isfinite(published).all()
 
 
 def test_the_combiner_averages_the_members_left_and_the_baseline_is_the_floor():
@@ -116,7 +142,7 @@ def test_the_combiner_averages_the_members_left_and_the_baseline_is_the_floor():
     assert np.isnan(unreached.published[0, 1]).all()
 
 
-@pytest.mark.parametrize("how", ["raise", "nan", "cross"])
+@pytest.mark.parametrize("how", ["raise", "nan", "horizon", "cross"])
 def test_a_failing_member_leaves_the_backtest_of_the_others_unchanged(how):
     """The published forecast with a failing member is, cell for cell, the one without it
     where it failed (and the failures are named on the result)."""
@@ -131,6 +157,7 @@ def test_a_failing_member_leaves_the_backtest_of_the_others_unchanged(how):
     failure = both.failures["broken"]
     expected = {"raise": "raised ZeroDivisionError: injected",
                 "nan": "non-finite quantiles in 6 cell(s)",
+                "horizon": "non-finite quantiles in 6 cell(s)",
                 "cross": "crossing quantiles in 4 cell(s)"}[how]
     assert failure.why == expected and failure.cells.shape == (1, 12)
     cells = failure.cells[0]

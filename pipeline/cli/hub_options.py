@@ -12,8 +12,19 @@ from pathlib import Path
 
 from pipeline.cli.output_paths import OutputPathError, output_dir
 from pipeline.errors import ConfigError
+from pipeline.io import JSONBoundError, read_bounded_json
+from pipeline.outputs.hub_tasks import MAX_TASKS_BYTES, MAX_TASKS_DEPTH
 
 TASKS = "tasks.json"
+
+
+def read_tasks_json(tasks: Path) -> object:
+    """``tasks`` parsed once its size and nesting are within bounds (:func:`read_bounded_json`);
+    the file's problem as one :class:`ConfigError` otherwise."""
+    try:
+        return read_bounded_json(tasks, max_bytes=MAX_TASKS_BYTES, max_depth=MAX_TASKS_DEPTH)
+    except JSONBoundError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def hub_config_folder(path: Path, *, option: str = "--hub-config") -> Path:
@@ -25,9 +36,11 @@ def hub_config_folder(path: Path, *, option: str = "--hub-config") -> Path:
                           f"which holds {TASKS})")
     tasks = path / TASKS
     try:
-        config = json.loads(tasks.read_text(encoding="utf-8"))
+        config = read_tasks_json(tasks)
     except FileNotFoundError:
         raise ConfigError(f"{option} {path}: no {TASKS} in the folder") from None
+    except ConfigError as exc:
+        raise ConfigError(f"{option} {exc}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{option} {tasks}: not readable as JSON ({exc})") from None
     rounds = config.get("rounds") if isinstance(config, dict) else None

@@ -62,9 +62,13 @@ def vincentize(values: NDArray[np.float64], weights: NDArray[np.float64],
 
 def scored_wis(levels: NDArray[np.float64], q: NDArray[np.float64], y: NDArray[np.float64]
                ) -> NDArray[np.float64]:
-    """WIS of quantiles ``(..., Q)`` against ``y (...)``; NaN where ``y`` is not observed."""
-    seen = np.isfinite(y)
-    out = weighted_interval_score(levels, q, np.where(seen, y, 0.0)).wis
+    """WIS of quantiles ``(..., Q)`` against ``y (...)``; NaN where ``y`` is not observed or
+    the cell has no forecast (a non-finite quantile: a member left out there, or beyond its
+    reach), which the weights and the calibration then pass over, as an unobserved cell."""
+    forecast = np.asarray(np.isfinite(q).all(axis=-1), dtype=bool)
+    seen = np.isfinite(y) & forecast
+    out = weighted_interval_score(levels, np.where(forecast[..., None], q, 0.0),
+                                  np.where(seen, y, 0.0)).wis
     return np.where(seen, out, np.nan)
 
 

@@ -21,6 +21,7 @@ with a later release, the same command replays the later weeks.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as dt
 import json
@@ -43,7 +44,7 @@ from pipeline.data.hub.target_import import VintageImport, import_target_csv
 from pipeline.errors import ConfigError, FlowcastError
 from pipeline.hub_round.publish import publish_hub_round
 from pipeline.hub_round.run import Disease, HubRunConfig, run_hub_round
-from pipeline.io import atomic_write_bytes, atomic_write_json
+from pipeline.io import atomic_write_bytes, atomic_write_json, file_lock
 from pipeline.outputs.hub_calendar import HubCalendar
 from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
@@ -165,6 +166,22 @@ def _release_file(out: Path, release: Release) -> Path:
     return out / "releases" / _release_name(release)
 
 
+def _folder_lock(out: Path) -> contextlib.AbstractContextManager[None]:
+    """The replay folder's lock: two replays into one folder (issue 49) import each release
+    once and merge their summaries."""
+    # long: the other replay may be importing a season of releases at its first Wednesday
+    return file_lock(out / ".replay.lock", timeout_s=600.0, what=f"the replay folder {out}")
+
+
+def _import_due(releases: Sequence[Release], due: dt.date, out: Path, data_dir: Path
+                ) -> list[VintageImport]:
+    """The releases dated by ``due`` that the folder has not imported yet, under its lock."""
+    with _folder_lock(out):
+        return import_releases([r for r in releases if r.as_of <= due
+                                and not _release_file(out, r).is_file()], data_dir,
+                               out / "releases")
+
+
 def library_step(config: HubRunConfig) -> RoundOutcome:
     """One Wednesday through the library calls the deployment's tasks make (run, publish)."""
     assert config.due is not None
@@ -198,9 +215,7 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
             continue
         started = time.perf_counter()
         with data_folder(data_dir):
-            imported = import_releases([r for r in releases if r.as_of <= due
-                                        and not _release_file(out, r).is_file()], data_dir,
-                                       out / "releases")
+            imported = _import_due(releases, due, out, data_dir)
             run_config = dataclasses.replace(config.run, data_source="cache", due=due,
                                              output_dir=str(out / "rounds"))
             try:
@@ -223,12 +238,24 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
         log.info("replay %s: %s %s (%.1f s)", due, outcome.state, outcome.message,
                  outcome.seconds)
         rounds.append(json.loads(json.dumps(dataclasses.asdict(outcome))))  # as in the file
-        atomic_write_json(out / SUMMARY_NAME, summarize(rounds, config))
+        rounds = write_summary(out, rounds, config)
         if on_round is not None:
             on_round(summarize(rounds, config))
-    summary = summarize(rounds, config)
-    atomic_write_json(out / SUMMARY_NAME, summary)
-    return summary
+    return summarize(write_summary(out, rounds, config), config)
+
+
+def write_summary(out: Path, rounds: Sequence[dict[str, object]], config: ReplayConfig
+                  ) -> list[dict[str, object]]:
+    """``rounds`` merged with those another replay into ``out`` wrote meanwhile (ours win on a
+    shared Wednesday), written under the folder's lock; the merged rounds, by due date. Two
+    replays of different Wednesdays into one folder once left the last one's file alone,
+    without the other's (failed) round (issue 49)."""
+    with _folder_lock(out):
+        merged = {str(r["due"]): r for r in _read_summary(out).get("rounds", [])}
+        merged.update({str(r["due"]): r for r in rounds})
+        ordered = [merged[due] for due in sorted(merged)]
+        atomic_write_json(out / SUMMARY_NAME, summarize(ordered, config))
+    return ordered
 
 
 def _replaced(rounds: Sequence[dict[str, object]], outcome: RoundOutcome) -> str | None:

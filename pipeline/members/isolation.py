@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.errors import FlowcastError
-from pipeline.members.base import Member, MemberForecast, forecast_within_reach
+from pipeline.members.base import Member, MemberForecast, forecast_within_reach, reach
 from pipeline.panels.panel import Cells
 
 log = logging.getLogger(__name__)
@@ -66,10 +66,14 @@ class GuardedForecast:
     why: str
 
 
-def invalid_cells(count: NDArray[np.float64]) -> tuple[NDArray[np.bool_], str]:
-    """``(B,)`` the cells whose quantiles ``(B, H, Q)`` within reach (a horizon that is all NaN
-    is beyond the member's reach, not a failure) hold a non-finite value or cross, and why."""
-    reached = ~np.isnan(count).all(axis=-1, keepdims=True)                  # (B, H, 1)
+def invalid_cells(count: NDArray[np.float64], within: NDArray[np.bool_] | None = None
+                  ) -> tuple[NDArray[np.bool_], str]:
+    """``(B,)`` the cells whose quantiles ``(B, H, Q)`` within reach hold a non-finite value or
+    cross, and why. ``within`` ``(H,)``: the horizons the member declares it reaches
+    (:func:`~pipeline.members.base.reach`); an all-NaN horizon there is a failure. None: a
+    horizon that is all NaN is taken as beyond reach (for forecasts of unknown reach)."""
+    reached = (~np.isnan(count).all(axis=-1, keepdims=True) if within is None
+               else np.asarray(within, dtype=bool)[None, :, None])         # (B, H, 1)
     nonfinite = np.asarray((reached & ~np.isfinite(count)).any(axis=(1, 2)), dtype=bool)
     scale = np.nanmax(np.abs(count), axis=(1, 2), initial=1.0) if count.size else np.ones(0)
     steps = np.diff(np.where(np.isfinite(count), count, 0.0), axis=-1)
@@ -123,7 +127,10 @@ def guarded_forecast(member: Member, cells: Cells, horizons: tuple[int, ...],
     if time_limit_s is not None and elapsed > time_limit_s:
         return GuardedForecast(None, np.ones(len(cells), dtype=bool),
                                f"ran {elapsed:.0f} s, past its time limit of {time_limit_s:g} s")
-    failed, why = invalid_cells(made.count)
+    # judged on the horizons the member declares it reaches, not on where it returned NaN: a
+    # member that returned no forecast at a horizon it reaches (a stale origin's extra step)
+    # once passed as "beyond reach", and the NaN failed the whole round in the scorer
+    failed, why = invalid_cells(made.count, np.isin(horizons, reach(member, horizons)))
     if not failed.any():
         return GuardedForecast(made, failed, "")
     log.warning("member %s: %s; those cells are left out", member.name, why)

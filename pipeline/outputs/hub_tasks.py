@@ -17,6 +17,11 @@ from typing import Any
 from pipeline.errors import FlowcastError
 
 NA_TEXT = ("", "NA")          # how a task id without a value is written in a hubverse CSV
+# A hub's tasks.json is tens of KB (FluSight's 44 KB) and nested about a dozen levels: a file
+# past these bounds is refused before it is parsed (issue 49: a 300 MB one held the round past
+# 15 minutes; a deeply nested one crashed the parser with RecursionError).
+MAX_TASKS_BYTES = 4 << 20
+MAX_TASKS_DEPTH = 64
 
 
 class HubFormatError(FlowcastError):

@@ -37,9 +37,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.outputs.hub_tasks import (NA_TEXT, HubFormatError, HubValidationError,
-                                        describe_rounds, find_round, hub_round_ids,
-                                        round_id_column, task_values)
+from pipeline.io import JSONBoundError, read_bounded_json
+from pipeline.outputs.hub_tasks import (MAX_TASKS_BYTES, MAX_TASKS_DEPTH, NA_TEXT,
+                                        HubFormatError, HubValidationError, describe_rounds,
+                                        find_round, hub_round_ids, round_id_column, task_values)
 from pipeline.outputs.hubverse_task_checks import (check_dates, check_duplicates, check_pmfs,
                                                    check_quantile_sets, check_required_values,
                                                    check_sample_counts, file_row,
@@ -52,9 +53,10 @@ __all__ = ["HubFormatError", "HubValidationError", "frame_from_text", "frame_id_
 
 
 def load_tasks_config(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The hub's ``tasks.json``, its size and nesting bounded before it is parsed."""
     try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
+        return read_bounded_json(path, max_bytes=MAX_TASKS_BYTES, max_depth=MAX_TASKS_DEPTH)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, JSONBoundError) as exc:
         raise HubValidationError(f"cannot read the hub tasks config {path}: {exc}") from exc
 
 
