@@ -1,7 +1,8 @@
-"""Serve the deployments: ``weekly_forecast/sf-weekly`` (Mondays 06:00 America/Los_Angeles),
-``hub_forecast/hub-covid-weekly`` (the COVID-19 hub round, Wednesdays 15:00 America/New_York)
-and ``hub_forecast/hub-flu-weekly`` (FluSight's round, the Wednesdays of October … May 15:00
-America/New_York; no round where FluSight's config lists none).
+"""Serve the deployments: ``weekly_forecast/sf-weekly`` (Mondays 06:00 America/Los_Angeles) and
+the three CDC hubs' rounds, ``hub_forecast/hub-covid-weekly``, ``hub-flu-weekly`` (FluSight)
+and ``hub-rsv-weekly``: each runs Monday to Thursday 15:00 America/New_York and makes its
+round on the day its hub's calendar has one due (Wednesdays, a holiday's moved deadline); no
+round off season.
 
 Two ways to run the deployments, with the same schedules, parameters and tags:
 
@@ -65,27 +66,38 @@ SF_WEEKLY = DeploymentSpec(
     cron="0 6 * * 1", timezone="America/Los_Angeles",      # Mondays 06:00
     tags=("flowcast", "san-francisco", "weekly"),
     description="Weekly San Francisco SIR forecast with conditional normalizing flows.")
-# The hub's rounds are due Wednesdays 23:59 US Eastern; NHSN's preliminary release comes out
-# on Wednesdays, so the round runs that afternoon with a margin of hours for a retry.
+# The hubs' rounds are due Wednesdays 23:59 US Eastern, except where a hub moved a deadline for a
+# holiday (a Thursday in 2024, Monday 2025-12-29): each hub deployment runs at 15:00 US Eastern
+# on every day a deadline has fallen on (Monday to Thursday), after NHSN's release, with hours
+# left for a retry, and makes a round only on the day its hub's calendar has one due
+# (``deadline_only``: tasks.json's rounds and pipeline.outputs.hub_calendar's moved deadlines);
+# the other days, and FluSight's and the RSV hub's off season, end at once with "no round due
+# today" (rc 0, nothing written).
+HUB_CRON = "0 15 * * 1-4"
 HUB_COVID_WEEKLY = DeploymentSpec(
     name="hub-covid-weekly", flow_name="hub_forecast",
     entrypoint="flows/hub_forecast.py:hub_forecast",
-    cron="0 15 * * 3", timezone="America/New_York",        # Wednesdays 15:00
+    cron=HUB_CRON, timezone="America/New_York",
     tags=("flowcast", "forecast-hub", "covid", "weekly"),
     description="This week's CDC COVID-19 Forecast Hub round: NHSN admissions and the ED "
                 "share for the US and every state.")
-# FluSight's rounds are due Wednesdays (its submissions window: reference date − 6 … − 3) in
-# season only: its tasks.json lists rounds due from October to May. The schedule runs on
-# the Wednesdays of October … May; a Wednesday the hub's config lists no round for ends with
-# "no round" (rc 0, nothing written: pipeline.outputs.hub_conform).
 HUB_FLU_WEEKLY = DeploymentSpec(
     name="hub-flu-weekly", flow_name="hub_forecast",
     entrypoint="flows/hub_forecast.py:hub_forecast",
-    cron="0 15 * 10,11,12,1,2,3,4,5 3", timezone="America/New_York",  # in-season Wednesdays
+    cron=HUB_CRON, timezone="America/New_York",
     tags=("flowcast", "forecast-hub", "flu", "weekly"),
     description="This week's CDC FluSight round (in season): NHSN influenza admissions, their "
                 "rate change and peak, for the US and every state.")
-DEPLOYMENTS = (SF_WEEKLY, HUB_COVID_WEEKLY, HUB_FLU_WEEKLY)
+HUB_RSV_WEEKLY = DeploymentSpec(
+    name="hub-rsv-weekly", flow_name="hub_forecast",
+    entrypoint="flows/hub_forecast.py:hub_forecast",
+    cron=HUB_CRON, timezone="America/New_York",
+    tags=("flowcast", "forecast-hub", "rsv", "weekly"),
+    description="This week's CDC RSV Forecast Hub round (in season): NHSN RSV admissions and "
+                "the NSSP ED share for the US and every state.")
+HUB_DEPLOYMENTS = {"covid": HUB_COVID_WEEKLY, "flu": HUB_FLU_WEEKLY, "rsv": HUB_RSV_WEEKLY}
+DEPLOYMENTS = (SF_WEEKLY, HUB_COVID_WEEKLY, HUB_FLU_WEEKLY, HUB_RSV_WEEKLY)
+
 
 def deployment_parameters(args: argparse.Namespace) -> dict[str, object]:
     """The sf-weekly deployment's stored parameters (a triggered run may override any)."""
@@ -97,17 +109,18 @@ def deployment_parameters(args: argparse.Namespace) -> dict[str, object]:
 
 
 def hub_parameters(args: argparse.Namespace, disease: str = "covid") -> dict[str, object]:
-    """A hub deployment's stored parameters (hub-covid-weekly, hub-flu-weekly)."""
+    """A hub deployment's stored parameters (hub-covid-weekly, hub-flu-weekly,
+    hub-rsv-weekly): a round only on the day its hub has one due."""
     return {"disease": disease, "data_source": args.data_source,
-            "output_dir": args.output_dir, "seed": args.seed}
+            "output_dir": args.output_dir, "seed": args.seed, "deadline_only": True}
 
 
 def serve(args: argparse.Namespace) -> None:
     """Register the chosen deployments and run them until stopped (``--limit`` concurrent runs:
     runs share one model cache and one output folder, so they should not overlap)."""
     flows = {SF_WEEKLY.name: (weekly_forecast, deployment_parameters(args)),
-             HUB_COVID_WEEKLY.name: (hub_forecast, hub_parameters(args)),
-             HUB_FLU_WEEKLY.name: (hub_forecast, hub_parameters(args, "flu"))}
+             **{spec.name: (hub_forecast, hub_parameters(args, disease))
+                for disease, spec in HUB_DEPLOYMENTS.items()}}
     chosen = [spec for spec in DEPLOYMENTS if spec.name in args.deployments]
     serve_deployments(*[flows[spec.name][0].to_deployment(
         name=spec.name, schedules=[spec.schedule()], parameters=flows[spec.name][1],

@@ -114,10 +114,12 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                              f"{run.degraded_message()}")
 
 
-def due_today(config: HubRunConfig) -> dt.date:
-    """Today in the hub's timezone (US Eastern), when a round is due only on its deadline: a
-    day the calendar has no deadline on is :class:`NoHubRoundError` ("no round due today")."""
-    today = dt.datetime.now(ZoneInfo(HUB_TIMEZONE)).date()
+def due_today(config: HubRunConfig, now: dt.datetime | None = None) -> dt.date:
+    """Today (``now``, else the clock) in the hub's timezone (US Eastern), when a round is due
+    only on its deadline: a day the calendar has no deadline on is :class:`NoHubRoundError`
+    ("no round due today")."""
+    today = (now or dt.datetime.now(ZoneInfo(HUB_TIMEZONE))).astimezone(
+        ZoneInfo(HUB_TIMEZONE)).date()
     calendar = config.calendar()
     if calendar is None or calendar.due_on(today) is None:
         upcoming = calendar.round_for(today) if calendar is not None else None

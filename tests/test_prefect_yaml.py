@@ -19,8 +19,8 @@ def test_prefect_yaml_matches_the_served_deployments():
     assert sorted(by_name) == sorted(spec.name for spec in deploy.DEPLOYMENTS)
     args = deploy.build_parser().parse_args([])
     parameters = {deploy.SF_WEEKLY.name: deploy.deployment_parameters(args),
-                  deploy.HUB_COVID_WEEKLY.name: deploy.hub_parameters(args),
-                  deploy.HUB_FLU_WEEKLY.name: deploy.hub_parameters(args, "flu")}
+                  **{spec.name: deploy.hub_parameters(args, disease)
+                     for disease, spec in deploy.HUB_DEPLOYMENTS.items()}}
     for spec in deploy.DEPLOYMENTS:
         deployment = by_name[spec.name]
         assert deployment["entrypoint"] == spec.entrypoint
@@ -33,24 +33,22 @@ def test_prefect_yaml_matches_the_served_deployments():
         assert deployment["parameters"] == parameters[spec.name]
     assert (deploy.SF_WEEKLY.cron, deploy.SF_WEEKLY.timezone) == ("0 6 * * 1",
                                                                   "America/Los_Angeles")
-    # the hub's rounds are due Wednesdays: the run comes the same afternoon, US Eastern
-    assert (deploy.HUB_COVID_WEEKLY.cron, deploy.HUB_COVID_WEEKLY.timezone) == (
-        "0 15 * * 3", "America/New_York")
-    # FluSight's: the same Wednesday afternoon, October to May only: every round its own
-    # tasks.json lists is due (reference date − 3) on a Wednesday of those months
-    import datetime as dt
-
-    from pipeline.outputs.hub_tasks import hub_round_ids
-    from pipeline.outputs.hubverse_validation import load_tasks_config
-    tasks = load_tasks_config(REPO.parent / "shared" / "data" / "flusight" / "hub-config"
-                              / "tasks.json")
-    dues = [dt.date.fromisoformat(r) - dt.timedelta(days=3) for r in hub_round_ids(tasks)]
-    months = {int(m) for m in deploy.HUB_FLU_WEEKLY.cron.split()[3].split(",")}
-    assert len(dues) == 89 and all(d.weekday() == 2 and d.month in months for d in dues)
-    assert months == {d.month for d in dues}
-    assert (deploy.HUB_FLU_WEEKLY.cron, deploy.HUB_FLU_WEEKLY.timezone) == (
-        "0 15 * 10,11,12,1,2,3,4,5 3", "America/New_York")
-    assert deploy.hub_parameters(args, "flu")["disease"] == "flu"
+    # the three hubs, each its own deployment, each making a round only on its deadline
+    assert {spec.name for spec in deploy.HUB_DEPLOYMENTS.values()} == {
+        "hub-covid-weekly", "hub-flu-weekly", "hub-rsv-weekly"}
+    assert all(parameters[spec.name]["deadline_only"] is True
+               and parameters[spec.name]["disease"] == disease
+               for disease, spec in deploy.HUB_DEPLOYMENTS.items())
+    # every deadline of every hub's calendar (moved ones included) falls on a day the
+    # schedule runs: Monday (1) to Thursday (4), 15:00 US Eastern
+    from pipeline.hub_round.run import HubRunConfig
+    days = {int(d) for d in range(1, 5)}
+    for disease, spec in deploy.HUB_DEPLOYMENTS.items():
+        assert (spec.cron, spec.timezone) == ("0 15 * * 1-4", "America/New_York")
+        calendar = HubRunConfig(disease=disease).calendar()   # type: ignore[arg-type]
+        assert calendar is not None
+        deadlines = [calendar.deadline(r) for r in calendar.references]
+        assert all(d.isoweekday() in days for d in deadlines), disease
 
 
 def test_flow_parameters_are_documented():
