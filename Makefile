@@ -2,7 +2,7 @@
 #   make forecast   -> the weekly San Francisco forecast (offline-capable defaults)
 #   make test       -> the test suite
 # and `make hub` (= make forecast FORECAST_ARGS="--hub covid"): this week's CDC COVID-19
-# Forecast Hub round.
+# Forecast Hub round; `make hub HUB=flu` FluSight's, `make hub HUB=rsv` the RSV hub's.
 # Both create or refresh .venv (torch==2.13.0 CPU wheel first) and the system packages.
 PYTHON ?= python3
 VENV   := .venv
@@ -65,8 +65,16 @@ forecast: venv sysdeps
 	  FLOWCAST_CDPH_ARCHIVE=$${FLOWCAST_CDPH_ARCHIVE:-$(CDPH_ARCHIVE)} \
 	  $(VENV)/bin/flowcast forecast $(FORECAST_ARGS)
 
-hub:
-	$(MAKE) forecast FORECAST_ARGS="--hub covid $(FORECAST_ARGS)"
+# Each hub's data (every vintage of its time series) imported into an empty cache first, so
+# that its round runs offline; live, the run fetches data.cdc.gov.
+HUB ?= covid
+HUB_ARCHIVE_covid = $(NHSN_ARCHIVE)
+HUB_ARCHIVE_flu = ../shared/data/flusight
+HUB_ARCHIVE_rsv = ../shared/data/rsv
+hub: venv
+	@if [ -f "$(HUB_ARCHIVE_$(HUB))/time-series.parquet" ]; then \
+	  $(VENV)/bin/flowcast data import --if-empty "$(HUB_ARCHIVE_$(HUB))/time-series.parquet"; fi
+	$(MAKE) forecast FORECAST_ARGS="--hub $(HUB) $(FORECAST_ARGS)"
 
 # The project's own modules byte-compiled first (PYTHONDONTWRITEBYTECODE: see the venv above).
 # The type check (pyright over pipeline/ and flows/, settings in pyproject.toml: zero errors)

@@ -6,7 +6,10 @@
 (through the gate and the per-location revision review), and at each day the hub's calendar
 has a round for, the newest vintage of each target read as the round reads it: the locations
 of the hub's ``locations.csv`` missing from it (no forecast: ``rounds_missing`` per location,
-``max_rounds_missing``) and those forecast from a held series (``rounds_held``). This is the
+``max_rounds_missing``; a location no release of the target ever held is ``never_released``,
+not counted) and those forecast from a held series (``rounds_held``). ``before_issue_49``:
+the same figures on the code before (commit 90868f4, a scratch run of the same data path),
+where a held location was left out until the operator accepted its revision. This is the
 replay's data path without the forecast (seconds, not hours); the files themselves are made
 by the ``rsv`` part and ``bench.replay --part warm``.
 
@@ -116,12 +119,17 @@ def held_figures(hub: str, days: list[dict[str, Any]]) -> dict[str, Any]:
         present = [d for d in rounds if target in d]
         missing: dict[str, int] = {}
         held: dict[str, int] = {}
+        # a hub location no release of the target ever held (NSSP has no ED data of Missouri
+        # nor Puerto Rico) cannot be forecast by anyone: named apart, not counted as missing
+        never = set.intersection(*(set(d[target]["missing"]) for d in days if target in d)) \
+            if any(target in d for d in days) else set()
         for d in present:
-            for loc in d[target]["missing"]:
+            for loc in set(d[target]["missing"]) - never:
                 missing[loc] = missing.get(loc, 0) + 1
             for loc in d[target]["held"]:
                 held[loc] = held.get(loc, 0) + 1
         out[target] = {"rounds": len(present),
+                       "never_released": sorted(never),
                        "max_rounds_missing": max(missing.values(), default=0),
                        "rounds_missing": dict(sorted(missing.items())),
                        "rounds_held": dict(sorted(held.items())),

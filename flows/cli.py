@@ -201,7 +201,7 @@ def replay_command(
     week the deployment's run (the hub_forecast flow) offline into OUT."""
     from pipeline.errors import FlowcastError
     from pipeline.hub_round import replay as rp
-    from pipeline.hub_round.replay_input import judge_replay_input
+    from pipeline.cli.replay_input import judge_replay_input
 
     if hub not in ("covid", "flu", "rsv") or preset not in ("default", "tiny"):
         typer.secho(f"error: --hub takes covid, flu or rsv (got {hub!r}) and --preset default "
