@@ -74,27 +74,26 @@ SF_WEEKLY = DeploymentSpec(
 # the other days, and FluSight's and the RSV hub's off season, end at once with "no round due
 # today" (rc 0, nothing written).
 HUB_CRON = "0 15 * * 1-4"
-HUB_COVID_WEEKLY = DeploymentSpec(
-    name="hub-covid-weekly", flow_name="hub_forecast",
-    entrypoint="flows/hub_forecast.py:hub_forecast",
-    cron=HUB_CRON, timezone="America/New_York",
-    tags=("flowcast", "forecast-hub", "covid", "weekly"),
-    description="This week's CDC COVID-19 Forecast Hub round: NHSN admissions and the ED "
-                "share for the US and every state.")
-HUB_FLU_WEEKLY = DeploymentSpec(
-    name="hub-flu-weekly", flow_name="hub_forecast",
-    entrypoint="flows/hub_forecast.py:hub_forecast",
-    cron=HUB_CRON, timezone="America/New_York",
-    tags=("flowcast", "forecast-hub", "flu", "weekly"),
-    description="This week's CDC FluSight round (in season): NHSN influenza admissions, their "
-                "rate change and peak, for the US and every state.")
-HUB_RSV_WEEKLY = DeploymentSpec(
-    name="hub-rsv-weekly", flow_name="hub_forecast",
-    entrypoint="flows/hub_forecast.py:hub_forecast",
-    cron=HUB_CRON, timezone="America/New_York",
-    tags=("flowcast", "forecast-hub", "rsv", "weekly"),
-    description="This week's CDC RSV Forecast Hub round (in season): NHSN RSV admissions and "
-                "the NSSP ED share for the US and every state.")
+
+
+def hub_deployment(disease: str, description: str) -> DeploymentSpec:
+    """The deployment of one hub's round (``hub-<disease>-weekly``)."""
+    return DeploymentSpec(name=f"hub-{disease}-weekly", flow_name="hub_forecast",
+                          entrypoint="flows/hub_forecast.py:hub_forecast", cron=HUB_CRON,
+                          timezone="America/New_York",
+                          tags=("flowcast", "forecast-hub", disease, "weekly"),
+                          description=description)
+
+
+HUB_COVID_WEEKLY = hub_deployment(
+    "covid", "This week's CDC COVID-19 Forecast Hub round: NHSN admissions and the ED share "
+             "for the US and every state.")
+HUB_FLU_WEEKLY = hub_deployment(
+    "flu", "This week's CDC FluSight round (in season): NHSN influenza admissions, their rate "
+           "change and peak, for the US and every state.")
+HUB_RSV_WEEKLY = hub_deployment(
+    "rsv", "This week's CDC RSV Forecast Hub round (in season): NHSN RSV admissions and the "
+           "NSSP ED share for the US and every state.")
 HUB_DEPLOYMENTS = {"covid": HUB_COVID_WEEKLY, "flu": HUB_FLU_WEEKLY, "rsv": HUB_RSV_WEEKLY}
 DEPLOYMENTS = (SF_WEEKLY, HUB_COVID_WEEKLY, HUB_FLU_WEEKLY, HUB_RSV_WEEKLY)
 
