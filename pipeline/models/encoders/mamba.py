@@ -39,8 +39,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from pipeline.models.encoders import (MambaEncoderConfig, check_window, gather_rows,
-                                      last_real_index, zero_padding)
+from pipeline.models.encoders.config import MambaEncoderConfig
+from pipeline.models.encoders.window import check_window, gather_rows, last_real_index, zero_padding
 
 
 def _discretize(u: Tensor, delta: Tensor, A: Tensor, B: Tensor) -> tuple[Tensor, Tensor]:

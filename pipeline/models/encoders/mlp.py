@@ -4,7 +4,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from pipeline.models.encoders import MLPEncoderConfig, check_window, zero_padding
+from pipeline.models.encoders.config import MLPEncoderConfig
+from pipeline.models.encoders.window import check_window, zero_padding
 
 
 class MLPEncoder(nn.Module):

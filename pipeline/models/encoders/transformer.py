@@ -26,8 +26,8 @@ from typing import TypedDict
 import torch
 from torch import Tensor, nn
 
-from pipeline.models.encoders import (TransformerEncoderConfig, check_window, gather_rows,
-                                      last_real_index, relative_positions, zero_padding)
+from pipeline.models.encoders.config import TransformerEncoderConfig
+from pipeline.models.encoders.window import check_window, gather_rows, last_real_index, relative_positions, zero_padding
 
 
 def sinusoidal_encoding(positions: Tensor, d_model: int) -> Tensor:
