@@ -214,8 +214,9 @@ class Fault:
     """One failure served after a good fetch of ``target``: ``respond`` builds the server's
     answer from the good rows and another host (None: ``rows`` edits the good rows);
     ``expect``: text the note must hold; ``skipped``: the place the new payload must skip
-    (the outcome is then the new payload, not the cache); ``held``: the payload lands in
-    held/."""
+    (the outcome is then the new payload, not the cache); ``held_place``: the place the new
+    payload must hold, forecast from its accepted series (in the vintage, named in its
+    ``held``; issue 49); ``held``: the payload lands in held/."""
 
     name: str
     expect: str
@@ -225,6 +226,7 @@ class Fault:
     config: dict[str, float] = field(default_factory=dict)
     base_url: Callable[[], str] | None = None
     skipped: str | None = None
+    held_place: str | None = None
     held: bool = False
     hold_lock: bool = False
     max_seconds: float | None = None
@@ -289,7 +291,7 @@ def faults() -> list[Fault]:
         Fault("revised-settled-week",
               "revision held for review since the release of 2025-09-24 (its series of "
               "2025-09-24 kept): wk inc covid hosp: revision beyond policy: 'value' changed on "
-              "1 settled week(s)", rows=revised_settled, skipped="06"),
+              "1 settled week(s)", rows=revised_settled, held_place="06", issue=49),
         Fault("duplicate-week", "06: two rows for 2025-08-02",
               rows=lambda r: sorted(r + [x for x in r if at("CA", "2025-08-02")(x)],
                                     key=lambda x: (x["weekendingdate"], x["jurisdiction"]))),
@@ -394,16 +396,19 @@ def run_fault(fault: Fault, data_dir: Path) -> CaseResult:
         left = leftovers(cdc.http.port)
         note = " | ".join(provenance.notes) + left
         after = cache_bytes(data_dir)
-        if fault.skipped is None:
+        if fault.skipped is None and fault.held_place is None:
             lost = bytes_lost(before, after)
             outcome = provenance.from_cache
         else:
             lost = bytes_lost({k: v for k, v in before.items()
                                if not k.endswith("manifest.json")}, after)
             real = set(hub_vintage(fault.target)["location"])
-            outcome = (not provenance.from_cache
-                       and len(vintage.locations) == len(real - {fault.skipped})
-                       and fault.expect in vintage.skipped.get(fault.skipped, ""))
+            outcome = not provenance.from_cache and (
+                len(vintage.locations) == len(real - {fault.skipped})
+                and fault.expect in vintage.skipped.get(fault.skipped, "")
+                if fault.skipped is not None else
+                set(vintage.locations) == real
+                and fault.expect in vintage.held.get(str(fault.held_place), ""))
         passed = (outcome and fault.expect in note and lost == 0 and not left
                   and bool(held_files(data_dir, fault.target)) == fault.held
                   and not other.http.seen

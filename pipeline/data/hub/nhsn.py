@@ -48,7 +48,7 @@ from pipeline.data.hub.nhsn_vintages import (ED_COVID, ED_FLU, ED_RSV, FIRST_WEE
                                              NSSP, TARGETS, TargetSpec, WeeklyVintage,
                                              cached_weekly_vintages, commit_weekly, disease_targets,
                                              parse_vintage, skipped_note, target_spec,
-                                             vintage_as_of, with_holds)
+                                             read_with_holds, vintage_as_of)
 from pipeline.data.hub.held_locations import read_holds
 from pipeline.data.core.soda import SodaClient, SodaConfig
 from pipeline.errors import ConfigError
@@ -170,10 +170,9 @@ def _from_cache(cache: DatasetCache, spec: TargetSpec, now: datetime,
         raise no_cache_error(f"NHSN data for {spec.target!r}", cache.directory(spec), why,
                              fetch="flowcast data fetch --source nhsn", otherwise=IMPORT_HINT)
     as_of = date.fromisoformat(str(cached.manifest.data_as_of)[:10])
-    vintage = with_holds(parse_vintage(spec, cached.payload,
-                                       suffix=cached.path.suffix.lstrip("."), as_of=as_of,
-                                       source=str(cached.path)),
-                         read_holds(cache.directory(spec)))
+    vintage = read_with_holds(cache, spec, parse_vintage(
+        spec, cached.payload, suffix=cached.path.suffix.lstrip("."), as_of=as_of,
+        source=str(cached.path)))
     stale = cached.manifest.age_days(now)
     notes = ((why,) if why else ()) + (
         f"using cache: the vintage of {as_of}, fetched {stale:.0f} days ago (its last week "
@@ -210,7 +209,7 @@ def _fetch_live(cache: DatasetCache, spec: TargetSpec, config: NHSNConfig,
                               accept_revisions=config.accept_revisions,
                               lock_timeout_s=config.lock_timeout_s, today=now.date())
     assert committed.manifest is not None  # older="refuse": live or refused, never archived
-    vintage = with_holds(vintage, read_holds(cache.directory(spec)))
+    vintage = read_with_holds(cache, spec, vintage)
     notes = (f"{resource}: {len(got.rows):,} rows in {got.pages} page(s)",)
     return vintage, _provenance(committed.manifest, vintage, from_cache=False, stale_days=0.0,
                                 notes=notes, cache=cache)

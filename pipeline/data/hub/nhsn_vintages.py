@@ -540,6 +540,22 @@ def _references(cache: DatasetCache, spec: TargetSpec, holds: Holds) -> dict[str
     return out
 
 
+def read_with_holds(cache: DatasetCache, spec: TargetSpec, vintage: WeeklyVintage
+                    ) -> WeeklyVintage:
+    """``vintage`` as the round reads it (:func:`with_holds`), its held locations' accepted
+    series from the archive."""
+    holds = read_holds(cache.directory(spec))
+    wanted = {h.reference for h in holds.at(str(vintage.as_of.date())).values()}
+    if not wanted:
+        return vintage
+    kept = archive(cache, spec)
+    references = {str(as_of): parse_vintage(spec, kept.read(path),
+                                            suffix=path.suffix.lstrip("."), as_of=as_of,
+                                            source=str(path))
+                  for as_of, path in kept.listing() if str(as_of) in wanted}
+    return with_holds(vintage, holds, references)
+
+
 def revisions_waiting(target: str, data_dir: str | os.PathLike[str] | None = None
                       ) -> dict[str, Hold]:
     """The locations of ``target`` whose revision waits for review (what the report shows),
@@ -572,6 +588,10 @@ def skipped_note(vintage: WeeklyVintage) -> tuple[str, ...]:
                     f"(those weeks left out, the locations kept): "
                     + "; ".join(f"{loc} {len(d)} week(s) from {d[0]}"
                                 for loc, d in vintage.missing.items()),)
+    if vintage.held:
+        derived += (f"{len(vintage.held)} location(s) of the {vintage.target} vintage of "
+                    f"{vintage.as_of.date()} forecast from their accepted series while a "
+                    "revision is held: " + "; ".join(vintage.held.values()),)
     if not vintage.skipped:
         return derived
     return derived + (f"{len(vintage.skipped)} location(s) left out of the {vintage.target} "
