@@ -225,11 +225,13 @@ def replay_command(
     with local_api():
         summary = rp.replay(config, releases,
                             flow_step("tiny" if preset == "tiny" else "default"))
-    degraded = summary["degraded"]
-    assert isinstance(degraded, list)
+    degraded, no_round, replaced = summary["degraded"], summary["no_round"], summary["replaced"]
+    assert isinstance(degraded, list) and isinstance(no_round, list)
+    assert isinstance(replaced, list)
     typer.echo(f"replay: {summary['rounds_due']} rounds due, {summary['rounds_published']} "
-               f"published ({len(degraded)} degraded), {summary['rounds_failed']} "
-               f"failed → {out / rp.SUMMARY_NAME}")
+               f"published ({len(degraded)} degraded, {len(replaced)} replacing an earlier "
+               f"file of their round), {summary['rounds_failed']} failed; {len(no_round)} "
+               f"day(s) with no hub round open (off season) → {out / rp.SUMMARY_NAME}")
     if summary["rounds_failed"]:
         raise typer.Exit(code=1)
 
