@@ -291,7 +291,7 @@ def faults() -> list[Fault]:
         Fault("revised-settled-week",
               "revision held for review since the release of 2025-09-24 (its series of "
               "2025-09-24 kept): wk inc covid hosp: revision beyond policy: 'value' changed on "
-              "1 settled week(s)", rows=revised_settled, held_place="06", issue=49),
+              "1 settled week(s)", rows=revised_settled, held_place="06"),
         Fault("duplicate-week", "06: two rows for 2025-08-02",
               rows=lambda r: sorted(r + [x for x in r if at("CA", "2025-08-02")(x)],
                                     key=lambda x: (x["weekendingdate"], x["jurisdiction"]))),
