@@ -307,9 +307,10 @@ def _read_summary(out: Path) -> dict[str, list[dict[str, object]]]:
 
 def summarize(rounds: Sequence[dict[str, object]], config: ReplayConfig) -> dict[str, object]:
     """The replay's figures: rounds due, published, degraded (what, why), failed; seconds."""
-    seconds = [float(str(r["seconds"])) for r in rounds]
     published = [r for r in rounds if r["state"] in ("Completed", "Completed (degraded)")]
     due = [r for r in rounds if r["state"] != "No round"]
+    # the rounds' seconds (a day with no round open costs only its import: not a round)
+    seconds = [float(str(r["seconds"])) for r in due]
     calendar = config.run.calendar()
     return {
         "model_id": config.run.model_id, "disease": config.run.disease,
