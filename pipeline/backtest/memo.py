@@ -157,9 +157,9 @@ class MemoizedMember(MemberWrapper):
                     self.member_key, self.member.cell_identity(origin, panel))
             return member_keys[(origin, id(panel))]
 
+        steps = fingerprint(tuple(horizons), np.asarray(levels, dtype=np.float64))  # all cells'
         return [fingerprint(member_key(history.origin, panel), history.fingerprint(),
-                            panel_key(panel) if pools else None, tuple(horizons),
-                            np.asarray(levels, dtype=np.float64), seed)
+                            panel_key(panel) if pools else None, steps, seed)
                 for history, panel, seed in zip(cells.histories, cells.panels, cells.seeds)]
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
