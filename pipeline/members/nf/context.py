@@ -30,6 +30,7 @@ ranks) as well as quantiles.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,7 +48,8 @@ from pipeline.members.nf.context_features import ContextChannels, ContextSources
 from pipeline.members.nf.context_training import (NF_CONTEXT, TINY_CONTEXT_FLOW,
                                                   TINY_CONTEXT_REFIT, ContextFlowConfig,
                                                   ContextRefitConfig, TrainingPool,
-                                                  refit_windows, stored_pretrained, stored_refit)
+                                                  refit_inputs, refit_windows, stored_pretrained,
+                                                  stored_refit)
 from pipeline.members.nf.finetune import refit_dates
 from pipeline.members.nf.model import HALF_CASE, cell_noise, decode_paths, single_thread
 from pipeline.models.estimator import ConditionalEstimator
@@ -218,8 +220,11 @@ def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
         raise ConfigError(f"{name}: {n_seeds} seeds for {n_samples} draws")
     dates = refit_dates(sorted({p.last_date for _, p in pools[0].vintages}),
                         refit.refit_every_weeks)
-    windows = {date: refit_windows(pools, date, refit.revision_days, config, channels)
+    # cut only where a refit is not stored (stored_refit), once for every seed
+    windows = {date: functools.cache(functools.partial(refit_windows, pools, date,
+                                                       refit.revision_days, config, channels))
                for date in dates}
+    inputs = {date: refit_inputs(pools, date) for date in dates}
     bases: list[ConditionalEstimator] = []
     refits: dict[pd.Timestamp, list[ConditionalEstimator]] = {}
     for k in range(n_seeds):
@@ -228,8 +233,8 @@ def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
         base, synthetic, base_key = stored_pretrained(flow, store_root)
         bases.append(base)
         for date in dates:
-            model = stored_refit(base, base_key, windows[date], synthetic, date, flow, again,
-                                 channels, store_root)
+            model = stored_refit(base, base_key, windows[date], inputs[date], synthetic, date,
+                                 flow, again, channels, store_root)
             if model is not None:       # too few windows: the same dates for every seed
                 refits.setdefault(date, []).append(model)
     return ContextFlowMember(tuple(bases), {d: tuple(m) for d, m in refits.items()}, config,
