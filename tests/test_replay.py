@@ -185,3 +185,9 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
     # page 1 says the revision waits for review (the operator's `data accept-revisions`)
     report = (Path(last["model_output"]).parents[2] / "report.html").read_text()
     assert f"{HOSP}: revision of 06 waiting for review" in report
+    # each round's seconds per target and member, summed up per target and member
+    for target, seconds in last["target_seconds"].items():
+        assert {"total", "nf-context", "nf-real", "nf-weekly", "seasonal"} <= set(seconds)
+        assert 0 < seconds["total"] and all(0 <= v <= seconds["total"] for v in seconds.values())
+        assert again["seconds_by_target"][target]["total"]["first_round"] == \
+            first["rounds"][0]["target_seconds"][target]["total"]
