@@ -186,8 +186,10 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
     report = (Path(last["model_output"]).parents[2] / "report.html").read_text()
     assert f"{HOSP}: revision of 06 waiting for review" in report
     # each round's seconds per target and member, summed up per target and member
+    assert set(last["target_seconds"]) == {HOSP, ED}
+    assert "nf-real" in last["target_seconds"][HOSP]         # its refit date 2025-09-06
     for target, seconds in last["target_seconds"].items():
-        assert {"total", "nf-context", "nf-real", "nf-weekly", "seasonal"} <= set(seconds)
+        assert {"total", "nf-context", "nf-weekly", "seasonal", "hub-baseline"} <= set(seconds)
         assert 0 < seconds["total"] and all(0 <= v <= seconds["total"] for v in seconds.values())
         assert again["seconds_by_target"][target]["total"]["first_round"] == \
             first["rounds"][0]["target_seconds"][target]["total"]
