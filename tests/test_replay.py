@@ -9,6 +9,7 @@ import dataclasses
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -36,7 +37,8 @@ def releases(every_release):
     return [r for r in every_release if str(r.as_of) >= "2025-09-10"]
 
 
-def _replay(tmp_path: Path, releases, start: str = DUE, end: str = DUE):  # noqa: ANN001, ANN202
+def _replay(tmp_path: Path, releases, start: str = DUE,  # noqa: ANN001
+            end: str = DUE) -> tuple[Path, dict[str, Any]]:
     import datetime as dt
 
     from flows.hub_forecast import flow_step
