@@ -10,6 +10,13 @@ model-output folder read back with ``hubdata`` (``hubdata_rows``); and
 hub exactly as ``bench/nhsn.py`` scores them (its ``leaderboards``), beside ``nhsn.json``'s
 published figure. The JSON is rewritten after every round (``"partial": true`` until the last).
 
+``warm``: the same replay from a Wednesday mid-period (:data:`WARM_FROM`, ``--from``; both
+targets released, the model store and the memo empty there: the releases before it are imported
+at its start) to the last: the first round trains every refit up to it and forecasts every
+past round; each later one, the store and the memo carried over, forecasts one round.
+``seconds`` as ``full``'s, ``seconds_by_target`` (per target and member: the first round's, the
+median and max of the later ones) and each round's ``target_seconds``.
+
 ``injected``: one-Wednesday replays (the tiny preset; the releases before it imported at its
 start) with a failure injected: ``member_raises`` (nf-weekly raises), ``member_nan`` (seasonal
 returns a NaN median), ``refit_diverges`` (every nf-real fine-tune diverges), ``location_revised`` (the
@@ -24,6 +31,7 @@ rates measured by their best validation NLL.
 
     python -m bench.replay                      # every part
     python -m bench.replay --part full          # the full replay only (long: run it nice'd)
+    python -m bench.replay --part warm          # from WARM_FROM (--from) on
 """
 from __future__ import annotations
 
@@ -43,17 +51,22 @@ from typing import Any
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "nhsn"
 INJECTED_DUE = "2025-08-20"       # a Wednesday with both targets released (and five before it)
+# the warm replay's first Wednesday: both targets released (the ED share since 2025-06-18),
+# nine Wednesdays to the last release (2025-09-24), three refit dates among them
+WARM_FROM = "2025-07-30"
 
 
 def _parse(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--part", choices=("full", "injected", "refits", "all"), default="all")
+    p.add_argument("--part", choices=("full", "warm", "injected", "refits", "all"),
+                   default="all")
     p.add_argument("--hub", default=str(SHARED), help="the hub data (time series, forecasts)")
     p.add_argument("--work", default="data/replay-bench", help="the replays' folders")
     p.add_argument("--preset", choices=("default", "tiny"), default="default",
                    help="the full replay's members")
-    p.add_argument("--from", dest="start", default=None)
+    p.add_argument("--from", dest="start", default=None,
+                   help=f"the first Wednesday (warm: {WARM_FROM})")
     p.add_argument("--to", dest="end", default=None)
     p.add_argument("--case", action="append", default=None,
                    choices=("member_raises", "member_nan", "refit_diverges", "location_revised",
@@ -178,6 +191,40 @@ def run_full(args: argparse.Namespace, releases: list[Any], path: Path) -> None:
     _merge(path, {"full": figures, **{k: figures[k] for k in (
         "rounds_due", "rounds_published", "rounds_failed", "degraded", "seconds")},
         "skill": skill(out, Path(args.hub), CDC_HUB_MODEL_ID)})
+
+
+def run_warm(args: argparse.Namespace, releases: list[Any], path: Path) -> None:
+    """The replay from a Wednesday mid-period, from an empty store and memo (module
+    docstring)."""
+    import datetime as dt
+
+    from pipeline.hub_round.replay import wednesdays
+
+    out = Path(args.work) / "warm"
+    if out.exists():
+        shutil.rmtree(out)
+    start = args.start or WARM_FROM
+    due = len(wednesdays(releases, dt.date.fromisoformat(start),
+                         dt.date.fromisoformat(args.end) if args.end else None))
+    started = time.perf_counter()
+
+    def figures(summary: dict[str, object]) -> dict[str, object]:
+        rounds = summary["rounds"]
+        assert isinstance(rounds, list)
+        return {**_figures(summary), "from": start, "preset": args.preset,
+                "rounds_expected": due, "seconds_by_target": summary["seconds_by_target"],
+                "rounds": [{k: r[k] for k in ("due", "state", "seconds", "target_seconds")}
+                           for r in rounds]}
+
+    def partial(summary: dict[str, object]) -> None:
+        _merge(path, {"warm": {**figures(summary), "partial": True}})
+        print(f"warm round {summary['rounds_due']}/{due} "
+              f"({time.perf_counter() - started:.0f} s)", flush=True)
+
+    with _prefect():
+        summary = _replay(out, releases, args.preset, start, args.end, partial)
+    _merge(path, {"warm": {**figures(summary), "partial": False,
+                           "valid": valid_files(out, Path(args.hub)), "folder": str(out)}})
 
 
 def _figures(summary: dict[str, object]) -> dict[str, object]:
@@ -308,6 +355,8 @@ def main(argv: list[str] | None = None) -> None:
         _merge(path, {"refits": run_refits()})
     if args.part in ("full", "all"):
         run_full(args, releases, path)
+    if args.part in ("warm", "all"):
+        run_warm(args, releases, path)
     print(f"→ {path}")
 
 

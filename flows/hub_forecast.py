@@ -142,6 +142,7 @@ def round_outcome(run: HubRun, published: PublishedRound) -> dict[str, object]:
     return {"reference_date": published.reference_date, "output_dir": str(published.folder),
             "model_output": str(published.model_output), "files": list(published.files),
             "data_stale": run.stale, "seconds": run.seconds,
+            "target_seconds": run.target_seconds,
             "published_targets": list(run.published_targets), "degraded": run.degraded,
             "held": run.held(),
             "dropped": [dataclasses.asdict(d) for d in run.dropped]}
@@ -177,9 +178,16 @@ def flow_step(preset: Literal["default", "tiny"]) -> RoundStep:
             (state.message or "") if degraded else "", str(outcome["reference_date"]),
             str(outcome["model_output"]), tuple(str(t) for t in targets),
             tuple({str(k): str(v) for k, v in d.items()} for d in dropped),
-            time.perf_counter() - started)
+            time.perf_counter() - started, target_seconds=_target_seconds(outcome))
 
     return step
+
+
+def _target_seconds(outcome: dict[str, object]) -> dict[str, dict[str, float]]:
+    """The flow's per-target seconds (target, member), typed again."""
+    given = outcome.get("target_seconds") or {}
+    assert isinstance(given, dict)
+    return {str(t): {str(n): float(v) for n, v in parts.items()} for t, parts in given.items()}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from pipeline.backtest.backtest import BacktestConfig, OneVintage, run_backtest
@@ -16,7 +17,8 @@ from pipeline.members.nf.growth import NFGrowthMember
 from pipeline.members.nf.model import GrowthModelConfig, train_or_reuse_growth_model
 from pipeline.members.growth_regression import PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
-from pipeline.panels.history import EpiHistory
+from pipeline.members.seasonal import SeasonalGrowthMember
+from pipeline.panels.history import EpiHistory, WeeklyHistory
 from pipeline.panels.panel import Cells, Panel, weekly_origins
 from pipeline.panels.targets import HUB_QUANTILE_LEVELS
 from tests.forecasting_helpers import LogNormalMember, forecast_one, random_walk_history
@@ -166,13 +168,13 @@ def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) ->
                NFGrowthMember(stored.estimator, TINY_FLOW, n_samples=100)]
     config = BacktestConfig(n_paths=50)
     plain = run_backtest(data, members, origins, config)
-    results = []
+    results, memos = [], []
     for _ in range(2):
-        memo = ForecastMemo.load(tmp_path / "memo.npz")
-        results.append(run_backtest(data, [memo.wrap(m, config.n_paths) for m in members],
+        memos.append(ForecastMemo.load(tmp_path / "memo.npz"))
+        results.append(run_backtest(data, [memos[-1].wrap(m, config.n_paths) for m in members],
                                     origins, config))
-        memo.save()
-    assert memo.misses == 0 and memo.hits == len(plain.origins) * len(members)
+        memos[-1].save()
+    assert memos[-1].misses == 0 and memos[-1].hits == len(plain.origins) * len(members)
     # only the 50 paths the backtest uses are kept of the flow's 100
     kept = {f.paths.shape for f in ForecastMemo.load(tmp_path / "memo.npz")._stored.values()
             if f.paths is not None}
@@ -183,3 +185,32 @@ def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) ->
                 assert np.array_equal(result.forecasts[target][name], values), name
         assert plain.paths is not None and result.paths is not None
         assert np.array_equal(result.paths, plain.paths)
+
+
+def _weekly_panel(seed: int, as_of: str, weeks: int = 130) -> Panel:
+    """Two places' weekly counts (a yearly wave), released ``as_of``."""
+    rng = np.random.default_rng(seed)
+    dates = pd.date_range("2022-10-01", periods=weeks, freq="7D")
+    wave = 200 + 150 * np.sin(2 * np.pi * np.arange(weeks) / 52)
+    return Panel({p: WeeklyHistory(dates, np.round(wave * rng.uniform(0.8, 1.2, weeks)),
+                                   1_000_000, "wk inc covid hosp") for p in ("01", "02")},
+                 name="hub", as_of=pd.Timestamp(as_of))
+
+
+def test_a_member_keyed_by_cell_keeps_its_past_cells_keys_when_a_later_release_comes(
+        tmp_path: Path) -> None:
+    """The seasonal member reads the climatology released by the cell's vintage: a later
+    release of it leaves last week's cells as they were (read back), while a revision of the
+    release the cell read is another key."""
+    cell = _weekly_panel(1, "2025-03-05")
+    history = cell.histories["01"].up_to(pd.Timestamp("2025-03-01"))
+    first = (pd.Timestamp("2025-03-05"), _weekly_panel(2, "2025-03-05"))
+    later = (pd.Timestamp("2025-03-12"), _weekly_panel(3, "2025-03-12"))
+    revised = (first[0], _weekly_panel(4, "2025-03-05"))
+    memo = ForecastMemo.load(tmp_path / "memo.npz")
+    made = forecast_one(memo.wrap(SeasonalGrowthMember((first,))), history, panel=cell)
+    read = forecast_one(memo.wrap(SeasonalGrowthMember((first, later))), history, panel=cell)
+    assert (memo.hits, memo.misses) == (1, 1)
+    assert np.array_equal(read.values["wk inc covid hosp"], made.values["wk inc covid hosp"])
+    forecast_one(memo.wrap(SeasonalGrowthMember((revised, later))), history, panel=cell)
+    assert (memo.hits, memo.misses) == (1, 2)

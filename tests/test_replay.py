@@ -9,6 +9,7 @@ import dataclasses
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -36,7 +37,8 @@ def releases(every_release):
     return [r for r in every_release if str(r.as_of) >= "2025-09-10"]
 
 
-def _replay(tmp_path: Path, releases, start: str = DUE, end: str = DUE):  # noqa: ANN001, ANN202
+def _replay(tmp_path: Path, releases, start: str = DUE,  # noqa: ANN001
+            end: str = DUE) -> tuple[Path, dict[str, Any]]:
     import datetime as dt
 
     from flows.hub_forecast import flow_step
@@ -194,3 +196,11 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
     # page 1 says the revision waits for review (the operator's `data accept-revisions`)
     report = (folder / "report.html").read_text()
     assert f"{HOSP}: 06 held: a revision waiting for review" in report
+    # each round's seconds per target and member, summed up per target and member
+    assert set(last["target_seconds"]) == {HOSP, ED}
+    assert "nf-real" in last["target_seconds"][HOSP]         # its refit date 2025-09-06
+    for target, seconds in last["target_seconds"].items():
+        assert {"total", "nf-context", "nf-weekly", "seasonal", "hub-baseline"} <= set(seconds)
+        assert 0 < seconds["total"] and all(0 <= v <= seconds["total"] for v in seconds.values())
+        assert again["seconds_by_target"][target]["total"]["first_round"] == \
+            first["rounds"][0]["target_seconds"][target]["total"]

@@ -10,7 +10,11 @@ the code. The memo keys each cell's forecast by a SHA-256 digest of exactly thos
 * the **member**: every dataclass field, array and tensor it holds, recursively
   (:mod:`pipeline.fingerprint`: model weights through ``state_dict``, a stored nf-real refit by
   its model-store key and version, whose name carries its files' hash; private fields, i.e.
-  derived caches, are skipped);
+  derived caches, are skipped). A member refitted on a calendar or reading sources by release
+  (:class:`~pipeline.members.base.KeyedByCell`: nf-real, nf-context, seasonal) is keyed cell by
+  cell by what that cell's forecast reads — the refit current at its origin, the sources
+  released by its vintage's date — not by every refit and release it holds: next week's refit
+  or release leaves the past rounds' keys as they were, so a warm round forecasts one round;
 * the **history** the cell sees (:meth:`~pipeline.panels.history.EpiHistory.fingerprint`) — a
   revised count, a new nowcast completion or a longer series is a different key;
 * for a member that learns across places (``pools``), the cell's **panel** (all its places);
@@ -34,9 +38,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.members.base import Member, MemberForecast, MemberWrapper
+from pipeline.members.base import KeyedByCell, Member, MemberForecast, MemberWrapper
 from pipeline.panels.panel import Cells, Panel
 from pipeline.panels.targets import SHARE, TargetError
 from pipeline.fingerprint import code_fingerprint, fingerprint
@@ -88,7 +93,9 @@ class ForecastMemo:
         """``member`` through this memo; ``paths_kept``: how many of its sample paths the caller
         uses (the backtest's ``n_paths``), the only ones kept, hit or miss (a member's 1,000
         paths per cell would make the file hundreds of MB)."""
-        return MemoizedMember(member, self, fingerprint(code_fingerprint(), member, paths_kept),
+        # a member keyed by cell is fingerprinted per cell (MemoizedMember.keys), not whole
+        whole = type(member).__qualname__ if isinstance(member, KeyedByCell) else member
+        return MemoizedMember(member, self, fingerprint(code_fingerprint(), whole, paths_kept),
                               paths_kept)
 
     def lookup(self, key: str) -> CellForecast | None:
@@ -121,7 +128,8 @@ class ForecastMemo:
 @dataclass(frozen=True, eq=False)
 class MemoizedMember(MemberWrapper):
     """``member`` whose cells' forecasts go through ``memo``; ``member_key`` fingerprints the
-    member and the code."""
+    member and the code (a member keyed by cell: its type and the code, each cell's key adding
+    the member's identity at that cell)."""
 
     memo: ForecastMemo
     member_key: str
@@ -131,6 +139,8 @@ class MemoizedMember(MemberWrapper):
              ) -> list[str]:
         pools = bool(getattr(self.member, "pools", False))
         panel_keys: dict[int, str] = {}
+        # within this call the cells hold their panels, so a panel's id names it
+        member_keys: dict[tuple[pd.Timestamp, int], str] = {}
 
         def panel_key(panel: Panel) -> str:
             if id(panel) not in panel_keys:
@@ -139,9 +149,17 @@ class MemoizedMember(MemberWrapper):
                            (*panel.histories.items(), *panel.references.items())))
             return panel_keys[id(panel)]
 
-        return [fingerprint(self.member_key, history.fingerprint(),
-                            panel_key(panel) if pools else None, tuple(horizons),
-                            np.asarray(levels, dtype=np.float64), seed)
+        def member_key(origin: pd.Timestamp, panel: Panel) -> str:
+            if not isinstance(self.member, KeyedByCell):
+                return self.member_key
+            if (origin, id(panel)) not in member_keys:
+                member_keys[(origin, id(panel))] = fingerprint(
+                    self.member_key, self.member.cell_identity(origin, panel))
+            return member_keys[(origin, id(panel))]
+
+        steps = fingerprint(tuple(horizons), np.asarray(levels, dtype=np.float64))  # all cells'
+        return [fingerprint(member_key(history.origin, panel), history.fingerprint(),
+                            panel_key(panel) if pools else None, steps, seed)
                 for history, panel, seed in zip(cells.histories, cells.panels, cells.seeds)]
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],

@@ -80,6 +80,8 @@ class RoundOutcome:
     # the Wednesday whose file of the same round this one replaces (a second release in the
     # round's window), said in the log and the summary
     replaces: str | None = None
+    # per target: its seconds in all and each member's (pipeline.hub_round.run.target_seconds)
+    target_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 RoundStep = Callable[[HubRunConfig], RoundOutcome]
@@ -194,7 +196,8 @@ def library_step(config: HubRunConfig) -> RoundOutcome:
         str(config.due), "Completed (degraded)" if run.degraded else "Completed",
         run.degraded_message(), published.reference_date, str(published.model_output),
         run.published_targets, tuple({"what": d.what, "target": d.target, "name": d.name,
-                                      "why": d.why} for d in run.dropped))
+                                      "why": d.why} for d in run.dropped),
+        target_seconds=run.target_seconds)
 
 
 def replay(config: ReplayConfig, releases: Sequence[Release],
@@ -329,7 +332,26 @@ def summarize(rounds: Sequence[dict[str, object]], config: ReplayConfig) -> dict
         "seconds": ({"first_round": seconds[0], "per_round_median": statistics.median(seconds),
                      "per_round_max": max(seconds), "total": round(sum(seconds), 1)}
                     if seconds else {}),
+        "seconds_by_target": seconds_by_target(rounds),
         "rounds": list(rounds)}
+
+
+def seconds_by_target(rounds: Sequence[dict[str, object]]) -> dict[str, dict[str, object]]:
+    """Per target and member (and the target ``total``): the seconds of the first round and
+    the median and max of the later ones (a warm round's, the memo and the store carried
+    over)."""
+    figures: dict[str, dict[str, list[float]]] = {}
+    for r in rounds:
+        by_target = r.get("target_seconds") or {}
+        assert isinstance(by_target, dict)
+        for target, parts in by_target.items():
+            for name, value in parts.items():
+                figures.setdefault(target, {}).setdefault(name, []).append(float(value))
+    return {target: {name: {"first_round": values[0],
+                            "later_median": statistics.median(values[1:]) if values[1:] else None,
+                            "later_max": max(values[1:]) if values[1:] else None}
+                     for name, values in parts.items()}
+            for target, parts in figures.items()}
 
 
 def copy_hub_config(hub_config: Path | None, out: Path) -> None:

@@ -173,6 +173,8 @@ class HubRun:
     dropped: tuple[Dropped, ...] = ()
     # the round due ``config.due`` by the hub's calendar (None: no day given)
     due_reference: dt.date | None = None
+    # per target, its seconds in all and each member's (target_seconds)
+    target_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def reference_date(self) -> dt.date:
@@ -275,6 +277,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     dropped = [Dropped("target", t, t, f"no release of it yet ({missing[t]})") for t in missing]
     results: dict[str, HubRoundsResult] = {}
     model_key, reused = "", True
+    per_target: dict[str, dict[str, float]] = {}
     for target, target_vintages in ((t, v) for t, v in vintages.items() if v):
         started = time.perf_counter()
         members = build_hub_members(config.members, default_store_root(), target_vintages,
@@ -295,6 +298,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
             Dropped("member", target, name, why)
             for name, why in results[target].dropped_members().items() if name in published)]
         seconds[target] = time.perf_counter() - started
+        per_target[target] = target_seconds(seconds[target], members.seconds, results[target])
     dropped += stale_targets(results, due_reference)
     dropped += [Dropped("location", t, place, why)
                 for t, r in results.items() for place, why in r.rounds[-1].panel.skipped.items()]
@@ -302,7 +306,18 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         if item.what != "location":
             log.warning("the round left out %s", item.line())
     return HubRun(config, results, provenance, model_key, reused, seconds, tuple(dropped),
-                  due_reference)
+                  due_reference, target_seconds=per_target)
+
+
+def target_seconds(total: float, built: dict[str, float], result: HubRoundsResult
+                   ) -> dict[str, float]:
+    """A target's seconds in a round: ``total``, and each member's, built (trained or read
+    back from the model store) and forecast (its cells read back from the memo or forecast):
+    where a warm round spends its time."""
+    forecast = result.backtest.seconds
+    names = (*result.backtest.members, *result.backtest.references)
+    return {"total": round(total, 1)} | {
+        name: round(built.get(name, 0.0) + forecast.get(name, 0.0), 1) for name in names}
 
 
 def _load(config: HubRunConfig) -> tuple[dict[str, NHSNProvenance], dict[str, str]]:

@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.panels.history import History
-from pipeline.panels.panel import Cells
+from pipeline.panels.panel import Cells, Panel
 from pipeline.panels.targets import SHARE, TargetError
 
 
@@ -67,6 +68,19 @@ class Member(Protocol):
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast: ...
+
+
+@runtime_checkable
+class KeyedByCell(Protocol):
+    """A member whose parts differ by a cell's origin or release: a model refitted on a
+    calendar, sources as released by the cell's own vintage. ``cell_identity`` is what its
+    forecast of a cell at ``origin`` from ``panel`` depends on beyond the cell's own history,
+    seed, horizons and levels (its settings, the refit of that origin, the sources released
+    by the panel's date). The forecast memo keys such a cell by that rather than by the whole
+    member: a refit or release that came later would otherwise re-key every past cell, and a
+    warm round would forecast every past round again."""
+
+    def cell_identity(self, origin: pd.Timestamp, panel: Panel) -> object: ...
 
 
 @runtime_checkable

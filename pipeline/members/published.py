@@ -17,6 +17,7 @@ worse than the baseline it would be averaged with).
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -212,6 +213,8 @@ class HubMembers:
     model_key: str
     reused: bool
     dropped: tuple[Dropped, ...] = ()
+    # the seconds each member took to build (train, or read back from the model store)
+    seconds: dict[str, float] = field(default_factory=dict)
 
 
 def context_sources(target: str, climatology: Sequence[tuple[pd.Timestamp, Panel]],
@@ -257,10 +260,12 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     members for ``target``. ``seasonal_own_seasons``: the seasonal member reads the target's own
     earlier seasons instead of the ``climatology`` (influenza: no ED vintage in FluSight's
     data)."""
+    started = time.perf_counter()
     synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
     stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
                                          synthetic=synthetic)
     flow = WeeklyFlowMember(stored.estimator, config.flow, n_samples=config.flow_samples)
+    seconds = {NF_WEEKLY: time.perf_counter() - started}
     vintages = sorted(refit_vintages, key=lambda v: v[0])
 
     def known_at(date: pd.Timestamp) -> list[History]:
@@ -277,6 +282,7 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
         PooledGrowthMember(config.regression)]
     dropped: list[Dropped] = []
+    started = time.perf_counter()
     try:
         members.append(fit_context_member(
             config.context, config.context_refit,
@@ -289,8 +295,10 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         log.warning("nf-context could not be built and is left out: %s", error, exc_info=True)
         dropped.append(Dropped("member", target, NF_CONTEXT,
                                f"training failed: {type(error).__name__}: {error}"))
+    seconds[NF_CONTEXT] = time.perf_counter() - started
     refitted = False
     if dates:
+        started = time.perf_counter()
         try:
             refits = fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
                                           store_root, progress, known_at=known_at)
@@ -304,6 +312,7 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
             members.append(refits)
             refitted = True
             dropped += newest_refit_fallbacks(refits, target)
+        seconds[NF_REAL] = time.perf_counter() - started
     lost = {d.name for d in dropped}     # a member that could not be built: the rest average
     published = tuple(n for n in published_names(config, target, refitted=refitted,
                                                  own_seasons=seasonal_own_seasons)
@@ -314,4 +323,4 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
                           f"{[m.name for m in members]}")
     return HubMembers([m for m in members if m.name in published],
                       [m for m in members if m.name not in published], stored.key,
-                      stored.reused, tuple(dropped))
+                      stored.reused, tuple(dropped), seconds)

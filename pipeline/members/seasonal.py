@@ -95,6 +95,12 @@ class SeasonalGrowthMember:
         known = [p for as_of, p in self.climatology if as_of <= panel.as_of]
         return known[-1] if known else None
 
+    def cell_identity(self, origin: pd.Timestamp, panel: Panel) -> object:
+        """What a cell from ``panel`` reads (:class:`~pipeline.members.base.KeyedByCell`):
+        the climatology as known when the panel was released — the panel itself when it is
+        its own — not the releases that came later."""
+        return (self.name, self.config, self.climatology_required, self.source_for(panel))
+
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
         levels = np.asarray(levels, dtype=np.float64)

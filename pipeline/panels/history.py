@@ -15,6 +15,7 @@ first) and the susceptible share S the flows' coordinates are bounded by.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -250,6 +251,11 @@ class WeeklyHistory:
         return 1.0 - np.cumsum(np.nan_to_num(self.cases)) / self.population
 
     def fingerprint(self) -> str:
+        return self._fingerprint
+
+    @functools.cached_property
+    def _fingerprint(self) -> str:
+        """Hashed once: the memo keys every member's cell of the same history by it."""
         return fingerprint(self.dates, self.cases, self.population, self.target, self.depletes)
 
     def observed(self, origin: pd.Timestamp, horizons: tuple[int, ...]

@@ -16,6 +16,7 @@ every place of the cell's panel up to the same origin (:meth:`Panel.pool`), noth
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -26,13 +27,21 @@ from numpy.typing import NDArray
 from pipeline.panels.history import EpiHistory, History, WeeklyHistory
 from pipeline.panels.targets import DAYS_PER_WEEK, SATURDAY, TargetError
 
+NS_PER_DAY = 86_400 * 10**9
+
 
 def weeks_ending(history: History, end: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
     """Counts of the ``n_weeks`` weeks ending ``end``, ``end`` − 7, … (oldest first) of any
     history; NaN for weeks not wholly inside it (or after its last day)."""
     if isinstance(history, WeeklyHistory):
-        first = history.dates[0]
-        offset = (pd.Timestamp(end) - first).days
+        # whole days from the first week in integers, no Timestamp boxed: the nowcast and the
+        # report read one week of every place of every earlier vintage, 300,000 calls a round
+        offset = (pd.Timestamp(end).value
+                  - int(history.dates.values[:1].view(np.int64)[0])) // NS_PER_DAY
+        if n_weeks == 1:
+            week = offset // DAYS_PER_WEEK
+            inside = offset % DAYS_PER_WEEK == 0 and 0 <= week < len(history)
+            return np.array([history.cases[week] if inside else np.nan], dtype=np.float64)
         index = offset // DAYS_PER_WEEK - np.arange(n_weeks)[::-1]
         inside = (offset % DAYS_PER_WEEK == 0) & (index >= 0) & (index < len(history))
         return np.where(inside, history.cases[np.clip(index, 0, len(history) - 1)], np.nan)
@@ -95,8 +104,10 @@ class Panel:
         """The calendar of its first place (the places of one source share it)."""
         return next(iter(self.histories.values())).dates
 
-    @property
+    @functools.cached_property
     def last_date(self) -> pd.Timestamp:
+        """The newest day any place reports; kept once read (a round's origin: the report
+        reads it per place and round, 50,000 times a round over a season's rounds)."""
         return max(h.origin for h in self.histories.values())
 
     @property

@@ -30,8 +30,9 @@ ranks) as well as quantiles.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,18 +41,20 @@ import torch
 from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
+from pipeline.fingerprint import fingerprint
 from pipeline.members.base import MemberForecast, quantiles_of_samples
 from pipeline.members.nf.context_features import ContextChannels, ContextSources, WindowInputs, \
     context_windows
 from pipeline.members.nf.context_training import (NF_CONTEXT, TINY_CONTEXT_FLOW,
                                                   TINY_CONTEXT_REFIT, ContextFlowConfig,
                                                   ContextRefitConfig, TrainingPool,
-                                                  refit_windows, stored_pretrained, stored_refit)
+                                                  refit_inputs, refit_windows, stored_pretrained,
+                                                  stored_refit)
 from pipeline.members.nf.finetune import refit_dates
 from pipeline.members.nf.model import HALF_CASE, cell_noise, decode_paths, single_thread
 from pipeline.models.estimator import ConditionalEstimator
 from pipeline.panels.history import History, WeeklyHistory
-from pipeline.panels.panel import Cells
+from pipeline.panels.panel import Cells, Panel
 from pipeline.panels.targets import TargetError
 
 __all__ = ["NF_CONTEXT", "TINY_CONTEXT_FLOW", "TINY_CONTEXT_REFIT", "ContextFlowConfig",
@@ -102,6 +105,9 @@ class ContextFlowMember:
     channels: ContextChannels = ContextChannels()
     name: str = NF_CONTEXT
     n_samples: int = 1000
+    # fingerprints of the refits' flows and of the sources by release date (cell_identity)
+    _keys: dict[tuple[str, pd.Timestamp | None], str] = field(
+        default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.base or any(len(m) != len(self.base) for m in self.models.values()):
@@ -116,9 +122,27 @@ class ContextFlowMember:
     def n_seeds(self) -> int:
         return len(self.base)
 
-    def model_for(self, origin: pd.Timestamp) -> Seeds:
+    def refit_for(self, origin: pd.Timestamp) -> pd.Timestamp | None:
+        """The latest refit date on or before ``origin`` (None: before the first refit)."""
         dates = [r for r in self.models if r <= origin]
-        return self.models[max(dates)] if dates else self.base
+        return max(dates) if dates else None
+
+    def model_for(self, origin: pd.Timestamp) -> Seeds:
+        refit = self.refit_for(origin)
+        return self.base if refit is None else self.models[refit]
+
+    def cell_identity(self, origin: pd.Timestamp, panel: Panel) -> object:
+        """What a cell at ``origin`` from ``panel`` reads (:class:`~pipeline.members.base.
+        KeyedByCell`): the flows of its origin's refit and the sources as released by the
+        panel's date — not the later refits and releases the member also holds."""
+        refit = self.refit_for(origin)
+        flows, sources = ("refit", refit), ("sources", panel.as_of)
+        if flows not in self._keys:         # the weights hashed once per refit, not per cell
+            self._keys[flows] = fingerprint(self.model_for(origin))
+        if sources not in self._keys:
+            self._keys[sources] = fingerprint(self.sources.released_by(panel.as_of))
+        return (self.name, self.config, self.channels, self.n_samples, refit,
+                self._keys[flows], self._keys[sources])
 
     def cell_context(self, cells: Cells) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """The cells' context windows: the other signal and climatology as released by each
@@ -196,8 +220,11 @@ def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
         raise ConfigError(f"{name}: {n_seeds} seeds for {n_samples} draws")
     dates = refit_dates(sorted({p.last_date for _, p in pools[0].vintages}),
                         refit.refit_every_weeks)
-    windows = {date: refit_windows(pools, date, refit.revision_days, config, channels)
+    # cut only where a refit is not stored (stored_refit), once for every seed
+    windows = {date: functools.cache(functools.partial(refit_windows, pools, date,
+                                                       refit.revision_days, config, channels))
                for date in dates}
+    inputs = {date: refit_inputs(pools, date) for date in dates}
     bases: list[ConditionalEstimator] = []
     refits: dict[pd.Timestamp, list[ConditionalEstimator]] = {}
     for k in range(n_seeds):
@@ -206,8 +233,8 @@ def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
         base, synthetic, base_key = stored_pretrained(flow, store_root)
         bases.append(base)
         for date in dates:
-            model = stored_refit(base, base_key, windows[date], synthetic, date, flow, again,
-                                 channels, store_root)
+            model = stored_refit(base, base_key, windows[date], inputs[date], synthetic, date,
+                                 flow, again, channels, store_root)
             if model is not None:       # too few windows: the same dates for every seed
                 refits.setdefault(date, []).append(model)
     return ContextFlowMember(tuple(bases), {d: tuple(m) for d, m in refits.items()}, config,

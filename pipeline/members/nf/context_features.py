@@ -171,6 +171,17 @@ class ContextSources:
     populations: Mapping[str, int] | None = None
     seasonal: SeasonalConfig = SeasonalConfig()
 
+    def released_by(self, as_of: pd.Timestamp | None) -> ContextSources:
+        """These sources as a panel released ``as_of`` reads them: of each, only the newest
+        vintage released by then (what a cell's forecast depends on, not the later ones)."""
+        def newest(vintages: Sequence[tuple[pd.Timestamp, Panel]]
+                   ) -> tuple[tuple[pd.Timestamp, Panel], ...]:
+            released = [v for v in vintages if as_of is not None and v[0] <= as_of]
+            return tuple(released[-1:])
+
+        return dataclasses.replace(self, other=newest(self.other),
+                                   climatology=newest(self.climatology))
+
     def people(self, place: str, history: WeeklyHistory) -> float:
         """The place's population (a share's history carries its 100,000 visits instead)."""
         if self.populations is not None and place in self.populations:

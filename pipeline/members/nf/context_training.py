@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -17,12 +18,12 @@ import pandas as pd
 import torch
 
 import pipeline
-from pipeline.errors import ConfigError
+from pipeline.errors import CheckpointError, ConfigError
 from pipeline.members.nf.context_features import (ContextChannels, ContextSources, WindowInputs,
                                                   context_windows, empty_windows,
                                                   fixed_channels, joined, known_by,
                                                   n_channels, vintage_windows)
-from pipeline.members.nf.model import CHECKPOINT_NAME, RealWindows
+from pipeline.members.nf.model import CHECKPOINT_NAME, RealWindows, SyntheticWindows
 from pipeline.members.nf.weekly import (ADMISSIONS_PRIOR, WeeklyFlowConfig, simulate_admissions,
                                         weekly_targets)
 from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig, TransformerEncoderConfig
@@ -34,6 +35,7 @@ from pipeline.training.checkpoints import load_checkpoint, save_checkpoint
 from pipeline.training.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDataset,
                                         compute_standardization, dataset_sha256,
                                         validation_trajectories)
+from pipeline.training.digests import DataDigests, Digests
 from pipeline.training.model_store import ModelStore
 from pipeline.training.trainer import TrainConfig, train
 
@@ -206,22 +208,23 @@ def pretrain(config: ContextFlowConfig, dataset: WindowedDataset) -> Conditional
 
 
 def stored_pretrained(config: ContextFlowConfig, store_root: Path
-                      ) -> tuple[ConditionalEstimator, WindowedDataset, str]:
-    """(the pre-trained flow from the model store, trained there if absent; its windows; key)."""
-    dataset = synthetic_dataset(config)
+                      ) -> tuple[ConditionalEstimator, SyntheticWindows, str]:
+    """(the pre-trained flow from the model store, trained there if absent; its windows,
+    simulated only when a model trains on them; key)."""
+    synthetic = SyntheticWindows(config, DataDigests(store_root))
 
     def build(out_dir: Path) -> dict[str, object]:
-        estimator = pretrain(config, dataset)
+        estimator = pretrain(config, synthetic.dataset)
         save_checkpoint(out_dir / CHECKPOINT_NAME, estimator, config=config.estimator_config(),
-                        stats=estimator.stats, data_sha256=dataset.meta.data_sha256,
+                        stats=estimator.stats, data_sha256=synthetic.data_sha256,
                         extra={"kind": NF_CONTEXT})
         return {}
 
     entry = ModelStore(store_root).get_or_build({NF_CONTEXT: config.identity()},
-                                                dataset.meta.data_sha256, build)
+                                                synthetic.data_sha256, build)
     loaded = load_checkpoint(entry.path / CHECKPOINT_NAME,
                              expected_config=config.estimator_config())
-    return loaded.estimator, dataset, entry.key
+    return loaded.estimator, synthetic, entry.key
 
 
 # ------------------------------------------------------------------------------------ refits
@@ -239,22 +242,34 @@ class TrainingPool:
     channels: ContextChannels = ContextChannels()      # what its windows may show
 
 
-def refit_windows(pools: Sequence[TrainingPool], date: pd.Timestamp, revision_days: int,
-                  config: ContextFlowConfig, channels: ContextChannels) -> RealWindows:
-    """The real windows known at refit ``date``: the first pool's vintage whose data end by
-    ``date`` (the round's own), every other pool's newest vintage released by then, cut
-    ``revision_days`` before ``date``."""
-    cutoff = date - pd.Timedelta(days=revision_days)
+def read_at(pools: Sequence[TrainingPool], date: pd.Timestamp
+            ) -> list[tuple[TrainingPool, Panel]]:
+    """The vintage each pool's refit at ``date`` reads: the first pool's whose data end by
+    ``date`` (the round's own), every other pool's newest released by then."""
     target = [(a, p) for a, p in sorted(pools[0].vintages, key=lambda v: v[0])
               if p.last_date <= date]
     if not target:
-        return empty_windows(config.context_weeks, config.horizon_weeks)
+        return []
     released = target[-1][0]
+    read = [(pool, target[-1][1] if i == 0 else known_by(pool.vintages, released))
+            for i, pool in enumerate(pools)]
+    return [(pool, panel) for pool, panel in read if panel is not None]
+
+
+def refit_inputs(pools: Sequence[TrainingPool], date: pd.Timestamp) -> list[object]:
+    """What the refit windows of ``date`` are cut from (:func:`refit_windows`): each pool's
+    vintage read then and its sources as released by that vintage — not the later ones."""
+    return [(panel, pool.sources.released_by(panel.as_of), dataclasses.asdict(pool.channels))
+            for pool, panel in read_at(pools, date)]
+
+
+def refit_windows(pools: Sequence[TrainingPool], date: pd.Timestamp, revision_days: int,
+                  config: ContextFlowConfig, channels: ContextChannels) -> RealWindows:
+    """The real windows known at refit ``date`` (the vintages of :func:`read_at`), cut
+    ``revision_days`` before ``date``."""
+    cutoff = date - pd.Timedelta(days=revision_days)
     parts, offset = [], 0
-    for i, pool in enumerate(pools):
-        panel = target[-1][1] if i == 0 else known_by(pool.vintages, released)
-        if panel is None:
-            continue
+    for pool, panel in read_at(pools, date):
         parts.append(vintage_windows(panel, pool.sources, cutoff, config.context_weeks,
                                      config.horizon_weeks, channels.both(pool.channels),
                                      place_offset=offset))
@@ -306,26 +321,51 @@ def refit_flow(base: ConditionalEstimator, train_ds: WindowedDataset, val_ds: Wi
     return model
 
 
-def stored_refit(base: ConditionalEstimator, base_key: str, windows: RealWindows,
-                 synthetic: WindowedDataset, date: pd.Timestamp, config: ContextFlowConfig,
+def stored_refit(base: ConditionalEstimator, base_key: str,
+                 windows: Callable[[], RealWindows], inputs: Sequence[object],
+                 synthetic: SyntheticWindows, date: pd.Timestamp, config: ContextFlowConfig,
                  refit: ContextRefitConfig, channels: ContextChannels, store_root: Path
                  ) -> ConditionalEstimator | None:
     """The refit at ``date`` from the model store (trained first if absent); None when the
-    places known then give fewer than ``min_windows`` windows or fewer than two places."""
-    if len(windows.place) < refit.min_windows or len(np.unique(windows.place)) < 2:
+    places known then give fewer than ``min_windows`` windows or fewer than two places.
+    ``windows`` cuts the real windows of ``inputs`` (:func:`refit_inputs`); their datasets'
+    hashes are kept in the store's digests by those inputs, so a week whose refits are all
+    stored cuts no window and simulates no prior (as nf-real's,
+    :func:`~pipeline.members.nf.finetune.fit_finetuned_member`)."""
+    @functools.cache
+    def datasets() -> tuple[WindowedDataset, WindowedDataset] | None:
+        real = windows()
+        if len(real.place) < refit.min_windows or len(np.unique(real.place)) < 2:
+            return None
+        return refit_datasets(real, synthetic.dataset, refit)
+
+    def hashed() -> Digests:
+        cut = datasets()
+        return ({"skipped": "too few real windows"} if cut is None else
+                {"train_sha256": cut[0].meta.data_sha256,
+                 "validation_sha256": cut[1].meta.data_sha256})
+
+    digests = DataDigests(store_root).get_or_compute(
+        ("nf-context refit windows", refit.identity(), config.identity(),
+         synthetic.data_sha256, dataclasses.asdict(channels), date, *inputs), hashed)
+    if "skipped" in digests:
         return None
-    train_ds, val_ds = refit_datasets(windows, synthetic, refit)
 
     def build(out_dir: Path) -> dict[str, object]:
-        model = refit_flow(base, train_ds, val_ds, refit)
+        if hashed() != digests:
+            raise CheckpointError(f"the {NF_CONTEXT} refit windows of {date.date()} do not "
+                                  f"match their recorded digests in {store_root}")
+        cut = datasets()
+        assert cut is not None
+        model = refit_flow(base, *cut, refit)
         save_checkpoint(out_dir / CHECKPOINT_NAME, model, config=config.estimator_config(),
-                        stats=model.stats, data_sha256=train_ds.meta.data_sha256,
+                        stats=model.stats, data_sha256=digests["train_sha256"],
                         extra={"kind": f"{NF_CONTEXT} refit"})
         return {}
 
     key = {f"{NF_CONTEXT} refit": refit.identity(), "base": base_key,
            "channels": dataclasses.asdict(channels), "date": str(date.date()),
-           "validation_sha256": val_ds.meta.data_sha256}
-    entry = ModelStore(store_root).get_or_build(key, train_ds.meta.data_sha256, build)
+           "validation_sha256": digests["validation_sha256"]}
+    entry = ModelStore(store_root).get_or_build(key, digests["train_sha256"], build)
     return load_checkpoint(entry.path / CHECKPOINT_NAME,
                            expected_config=config.estimator_config()).estimator

@@ -35,8 +35,9 @@ from numpy.typing import NDArray
 from pipeline.members.base import Member, MemberForecast
 from pipeline.members.nf.model import (CHECKPOINT_NAME, FlowModelConfig, RealWindows,
                                        SyntheticWindows)
+from pipeline.fingerprint import fingerprint
 from pipeline.panels.history import History
-from pipeline.panels.panel import Cells
+from pipeline.panels.panel import Cells, Panel
 from pipeline.panels.targets import DAYS_PER_WEEK
 from pipeline.errors import CheckpointError, ConfigError, TrainingDivergedError
 from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
@@ -219,6 +220,17 @@ class FineTunedGrowthMember:
         """The latest refit date on or before ``origin`` (None: before the first refit)."""
         dates = [r for r in self.models if r <= origin]
         return max(dates) if dates else None
+
+    @functools.cached_property
+    def _base_key(self) -> str:
+        return fingerprint(self.base)
+
+    def cell_identity(self, origin: pd.Timestamp, panel: Panel) -> object:
+        """What a cell at ``origin`` is forecast with (:class:`~pipeline.members.base.
+        KeyedByCell`): the base flow and the refit of its origin, not the later refits (a
+        round's refit leaves the earlier rounds' keys as they were)."""
+        refit = self.refit_for(origin)
+        return (self.name, self._base_key, refit, None if refit is None else self.models[refit])
 
     def model_for(self, origin: pd.Timestamp) -> FlowMember:
         refit = self.refit_for(origin)
