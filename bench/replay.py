@@ -62,6 +62,9 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--part", choices=("full", "warm", "injected", "refits", "all"),
                    default="all")
     p.add_argument("--hub", default=str(SHARED), help="the hub data (time series, forecasts)")
+    p.add_argument("--disease", choices=("covid", "flu", "rsv"), default="covid",
+                   help="the hub's disease (warm: flu writes warm_flu; FluSight: --hub "
+                        "../shared/data/flusight)")
     p.add_argument("--work", default="data/replay-bench", help="the replays' folders")
     p.add_argument("--preset", choices=("default", "tiny"), default="default",
                    help="the full replay's members")
@@ -104,14 +107,15 @@ def _prefect() -> Iterator[None]:
 
 
 def _replay(out: Path, releases: list[Any], preset: str, start: str | None, end: str | None,
-            on_round: Callable[[dict[str, object]], None] | None = None) -> dict[str, object]:
+            on_round: Callable[[dict[str, object]], None] | None = None,
+            disease: str = "covid") -> dict[str, object]:
     import datetime as dt
 
     from flows.hub_forecast import flow_step
     from pipeline.hub_round import replay as rp
     from pipeline.hub_round.run import HubRunConfig, hub_members_preset
 
-    run = HubRunConfig(members=hub_members_preset(preset))
+    run = HubRunConfig(disease=disease, members=hub_members_preset(preset))  # type: ignore[arg-type]
     config = rp.ReplayConfig(out, run, dt.date.fromisoformat(start) if start else None,
                              dt.date.fromisoformat(end) if end else None)
     rp.copy_hub_config(run.hub_config_dir(), out)
@@ -200,7 +204,8 @@ def run_warm(args: argparse.Namespace, releases: list[Any], path: Path) -> None:
 
     from pipeline.hub_round.replay import wednesdays
 
-    out = Path(args.work) / "warm"
+    key = "warm" if args.disease == "covid" else f"warm_{args.disease}"
+    out = Path(args.work) / key
     if out.exists():
         shutil.rmtree(out)
     start = args.start or WARM_FROM
@@ -217,13 +222,13 @@ def run_warm(args: argparse.Namespace, releases: list[Any], path: Path) -> None:
                            for r in rounds]}
 
     def partial(summary: dict[str, object]) -> None:
-        _merge(path, {"warm": {**figures(summary), "partial": True}})
+        _merge(path, {key: {**figures(summary), "partial": True}})
         print(f"warm round {summary['rounds_due']}/{due} "
               f"({time.perf_counter() - started:.0f} s)", flush=True)
 
     with _prefect():
-        summary = _replay(out, releases, args.preset, start, args.end, partial)
-    _merge(path, {"warm": {**figures(summary), "partial": False,
+        summary = _replay(out, releases, args.preset, start, args.end, partial, args.disease)
+    _merge(path, {key: {**figures(summary), "partial": False,
                            "valid": valid_files(out, Path(args.hub)), "folder": str(out)}})
 
 
@@ -344,9 +349,10 @@ def main(argv: list[str] | None = None) -> None:
     args = _parse(argv)
     path = Path(args.out)
     releases = releases_of_time_series(pd.read_parquet(Path(args.hub) / "time-series.parquet"),
-                                       "covid")
+                                       args.disease)
     command = "python -m bench.replay " + " ".join(argv if argv is not None else sys.argv[1:])
-    _merge(path, {f"command_{args.part}": command})
+    suffix = "" if args.disease == "covid" else f"_{args.disease}"
+    _merge(path, {f"command_{args.part}{suffix}": command})
     if args.part in ("injected", "all"):
         run_injected(args, releases, path)
     if args.part in ("refits", "all"):
