@@ -81,7 +81,7 @@ def test_an_in_season_flu_round_is_flusights(tmp_path, monkeypatch):
         pytest.approx((rising + 2 * 0.5) / (len(paths) + 5 * 0.5), rel=1e-6)
 
 
-def test_no_round_off_season_and_rsv_refused_by_name(tmp_path, monkeypatch):
+def test_no_round_off_season_and_the_rsv_hubs_config(tmp_path, monkeypatch):
     from pipeline.errors import ConfigError
     from pipeline.hub_round.publish import publish_hub_round, require_hub_config
     from pipeline.hub_round.run import HubRunConfig
@@ -92,18 +92,19 @@ def test_no_round_off_season_and_rsv_refused_by_name(tmp_path, monkeypatch):
         publish_hub_round(run)
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.csv"))
     monkeypatch.delenv("FLOWCAST_HUB_CONFIG", raising=False)
-    with pytest.raises(ConfigError, match=r"the rsv hub's tasks.json is needed .* none is in "
-                       r"the project's reach .* no RSV round is written"):
-        require_hub_config(HubRunConfig(disease="rsv"))
+    # the RSV hub's config is beside the checkout now (issue 49): its round validates there
+    assert require_hub_config(HubRunConfig(disease="rsv")) == FLUSIGHT.parent / "rsv" / \
+        "hub-config"
+    with pytest.raises(ConfigError, match="no readable tasks.json"):
+        require_hub_config(HubRunConfig(disease="rsv", hub_config=str(tmp_path)))
 
 
-def test_the_flow_ends_off_season_without_a_round_and_refuses_rsv(prefect_harness, tmp_path,
-                                                                  monkeypatch):
+def test_the_flow_ends_off_season_without_a_round(prefect_harness, tmp_path, monkeypatch):
     """The deployment's flow on an off-season week: no round, said by name, a result and not a
-    failure (rc 0 from the command line); RSV refused before any work."""
+    failure (rc 0 from the command line); a due day the hub's calendar has no round open on is
+    said before any work (the RSV hub off season: no data needed to know it)."""
     from flows.hub_forecast import hub_forecast
     from pipeline.data.hub.target_import import import_hub_time_series
-    from pipeline.errors import ConfigError
 
     series = pd.read_parquet(FLUSIGHT / "time-series.parquet")
     as_of = pd.to_datetime(series["as_of"])
@@ -116,6 +117,9 @@ def test_the_flow_ends_off_season_without_a_round_and_refuses_rsv(prefect_harnes
     assert "takes no round for the reference date 2025-06-21" in str(result["no_round"])
     assert not list((tmp_path / "out").rglob("*.csv"))
     monkeypatch.delenv("FLOWCAST_HUB_CONFIG", raising=False)
-    with pytest.raises(ConfigError, match="no RSV round is written"):
-        hub_forecast(disease="rsv", data_source="cache", output_dir=str(tmp_path / "out"),
-                     preset="tiny")
+    import datetime as dt
+    off = hub_forecast(disease="rsv", data_source="cache", output_dir=str(tmp_path / "out"),
+                       preset="tiny", due=dt.date(2025, 7, 9))
+    assert off["model_output"] is None and off["reference_date"] is None
+    assert str(off["no_round"]).startswith("the rsv hub has no round open on 2025-07-09 (the "
+                                           "rsv hub's 37 rounds, 2025-09-20 … 2026-05-30)")
