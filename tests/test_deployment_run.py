@@ -123,12 +123,14 @@ def test_serve_and_run_deployment(tmp_path, datasf_dir):
         assert schedule["cron"] == "0 6 * * 1"
         assert schedule["timezone"] == "America/Los_Angeles"
         assert deployment["paused"] is False
-        # the hub round's deployment is served beside it, on the hub's Wednesday
+        # the hub round's deployment is served beside it, Monday to Thursday afternoons
+        # (a round only on its hub's deadline: deadline_only)
         hub = registered["hub-covid-weekly"]
         hub_schedule = hub["schedules"][0]["schedule"]
-        assert (hub_schedule["cron"], hub_schedule["timezone"]) == ("0 15 * * 3",
+        assert (hub_schedule["cron"], hub_schedule["timezone"]) == ("0 15 * * 1-4",
                                                                     "America/New_York")
         assert hub["paused"] is False and hub["parameters"]["disease"] == "covid"
+        assert hub["parameters"]["deadline_only"] is True
 
         run = subprocess.run([PREFECT, "deployment", "run", "weekly_forecast/sf-weekly",
                               "--param", "seed=3", "--watch", "--watch-timeout", "150"],

@@ -74,7 +74,9 @@ def test_prefect_yaml_deploy_worker_run_and_stale_artifact(tmp_path, datasf_dir)
         assert hub["entrypoint"] == "flows/hub_forecast.py:hub_forecast"
         assert hub["work_pool_name"] == POOL
         assert (hub["schedules"][0]["schedule"]["cron"],
-                hub["schedules"][0]["schedule"]["timezone"]) == ("0 15 * * 3", "America/New_York")
+                hub["schedules"][0]["schedule"]["timezone"]) == ("0 15 * * 1-4",
+                                                                 "America/New_York")
+        assert hub["parameters"]["deadline_only"] is True
         assert deployment["work_pool_name"] == POOL
         assert deployment["entrypoint"] == "flows/weekly_forecast.py:weekly_forecast"
         schedule = deployment["schedules"][0]["schedule"]
