@@ -39,11 +39,13 @@ class RoundFault:
     target and name, in ``HubRun.dropped`` too (``expect`` in the reason of the first);
     ``kept``: locations that must be in the round; ``target_left_out``: the target has no
     current release, so the round publishes the other alone and names the target as left out
-    (issue 39 problem 7)."""
+    (issue 39 problem 7); ``held``: locations held for review and still forecast, from their
+    accepted series (issue 49; ``expect`` in the hold's words in ``HubRun.held``)."""
 
     name: str
     change: Change
     dropped: tuple[str, ...] = ()
+    held: tuple[str, ...] = ()
     expect: str = ""
     kept: tuple[str, ...] = ()
     target_left_out: bool = False
@@ -71,8 +73,8 @@ def _without(location: str) -> Change:
 
 def round_faults() -> list[RoundFault]:
     return [
-        RoundFault("round-location-revised-held-alone", _tenfold, dropped=("06",),
-                   expect="revision held for review since the release of 2025-09-24"),
+        RoundFault("round-location-revised-held-alone", _tenfold, held=("06",), kept=("06",),
+                   expect="revision beyond policy"),
         RoundFault("round-no-national-row", lambda f: f[f["location"] != "US"],
                    kept=("US", "06")),
         RoundFault("round-na-week-keeps-its-state", _na_week, kept=("25",)),
@@ -146,7 +148,9 @@ def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult
                   and all(loc not in hosp for loc in fault.dropped)
                   and all(loc in hosp for loc in fault.kept)
                   and "US" in other
-                  and (not fault.dropped or fault.expect in left_out[fault.dropped[0]]))
+                  and (not fault.dropped or fault.expect in left_out[fault.dropped[0]])
+                  and all(fault.expect in run.held().get(target, {}).get(loc, "")
+                          for loc in fault.held))
     note = (f"round_published: true ({published.reference_date}, {len(hosp)} locations of "
             f"{target}); dropped: "
             + ("; ".join([*left_out.values(), *(f"target {t}: {why}" for t, why in said.items())])

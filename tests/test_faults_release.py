@@ -24,16 +24,18 @@ def test_an_import_fault(case, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_round_after_a_release_that_revises_one_location_publishes_without_it(tmp_path):
+def test_a_round_after_a_release_that_revises_one_location_publishes_it_held(tmp_path):
     """The hub round (tiny preset, from the cache) after a newer release that revised
-    California's settled week tenfold: published, California left out and named."""
+    California's settled week tenfold: published, California held, named, and still forecast
+    from its accepted series (issue 49)."""
     from bench.faults_round import round_faults, run_round_fault
     fault = next(f for f in round_faults() if f.name == "round-location-revised-held-alone")
     result = run_round_fault(fault, tmp_path / "round", tmp_path / "models")
     assert result.passed, result.note
     assert result.detail["round_published"] is True
     dropped = result.detail["dropped"]
-    assert isinstance(dropped, dict) and list(dropped[HOSP_COVID]) == ["06"]
+    assert isinstance(dropped, dict) and dropped[HOSP_COVID] == {}
+    assert result.detail["locations"][HOSP_COVID] == 53
 
 
 @pytest.mark.slow

@@ -231,4 +231,4 @@ def test_a_hub_config_folder_without_tasks_json_is_refused_not_passed_over(tmp_p
         HubRunConfig().hub_config_dir()
     monkeypatch.delenv(HUB_CONFIG_ENV)
     assert HubRunConfig().hub_config_dir() == DEFAULT_HUB_CONFIGS["covid"]
-    assert HubRunConfig(disease="rsv").hub_config_dir() is None
+    assert HubRunConfig(disease="rsv").hub_config_dir() == DEFAULT_HUB_CONFIGS["rsv"]
