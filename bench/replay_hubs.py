@@ -166,7 +166,9 @@ def run_data_parts(args: argparse.Namespace, path: Path) -> None:
     calendar: dict[str, Any] = {}
     for hub in HUBS:
         result = data_path(hub)
-        held[hub] = {**held_figures(hub, result["days"]), "seconds": result["seconds"]}
+        figures = held_figures(hub, result["days"])
+        held[hub] = {**figures, "seconds": result["seconds"],
+                     "max_rounds_missing": max(f["max_rounds_missing"] for f in figures.values())}
         calendar[hub] = calendar_figures(hub, result["days"])
         print(f"{hub}: held {json.dumps({t: v['max_rounds_missing'] for t, v in held[hub].items() if isinstance(v, dict)})}; "
               f"calendar missed {calendar[hub]['rounds_missed']} duplicated "
