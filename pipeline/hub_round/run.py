@@ -45,8 +45,9 @@ from pipeline.outputs.hub_calendar import HubCalendar
 from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
 from pipeline.outputs.hubverse_validation import load_tasks_config
+from pipeline.hub_round.member_training import hub_member_training, target_inputs
 from pipeline.members.isolation import Dropped
-from pipeline.panels.hub import hub_rounds, is_share, panel_of, reference_date_for
+from pipeline.panels.hub import hub_rounds, panel_of, reference_date_for
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.training.model_store import default_store_root
@@ -77,7 +78,7 @@ HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
         finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
                                 batch_size=128),
         context=TINY_CONTEXT_FLOW, context_refit=TINY_CONTEXT_REFIT, context_seeds=1,
-        flow_samples=200, baseline_samples=2000),
+        flow_samples=200, baseline_samples=2000, background_training=False),
 }
 
 
@@ -273,32 +274,37 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     # the ED share's vintages are COVID-19's seasonal climatology (none released yet: no
     # seasonal forecast); influenza's seasonal member reads the admissions' own earlier seasons
     # (FluSight's data hold no influenza ED vintage: SEASONAL_READS_ED_SHARE)
-    climatology = next((v for t, v in vintages.items() if is_share(t)), [])
+    inputs = target_inputs(vintages)
     dropped = [Dropped("target", t, t, f"no release of it yet ({missing[t]})") for t in missing]
     results: dict[str, HubRoundsResult] = {}
     model_key, reused = "", True
     per_target: dict[str, dict[str, float]] = {}
-    for target, target_vintages in ((t, v) for t, v in vintages.items() if v):
-        started = time.perf_counter()
-        members = build_hub_members(config.members, default_store_root(), target_vintages,
-                                    climatology, progress, target=target,
-                                    seasonal_own_seasons=config.seasonal_own_seasons,
-                                    other_signal=next((v for t, v in vintages.items()
-                                                       if t != target and v), None))
-        model_key, reused = members.model_key, reused and members.reused
-        memo = ForecastMemo.load(memo_path(config, target))
-        results[target] = run_hub_rounds(
-            hub_rounds(target_vintages, serving), target_vintages[-1][1],
-            [memo.wrap(m, config.rounds.n_samples) for m in members.published], config.rounds,
-            references=[memo.wrap(m, config.rounds.n_samples) for m in members.references],
-            progress=progress)
-        _save(memo)
-        published = {m.name for m in members.published}
-        dropped += [*members.dropped, *(
-            Dropped("member", target, name, why)
-            for name, why in results[target].dropped_members().items() if name in published)]
-        seconds[target] = time.perf_counter() - started
-        per_target[target] = target_seconds(seconds[target], members.seconds, results[target])
+    store_root = default_store_root()
+    cold = any(not memo_path(config, t.target).is_file() for t in inputs)
+    with hub_member_training(config.members, store_root, inputs, config.seasonal_own_seasons,
+                             needed=cold):
+        for target in inputs:
+            started = time.perf_counter()
+            members = build_hub_members(config.members, store_root, target.vintages,
+                                        target.climatology, progress, target=target.target,
+                                        seasonal_own_seasons=config.seasonal_own_seasons,
+                                        other_signal=target.other_signal)
+            model_key, reused = members.model_key, reused and members.reused
+            memo = ForecastMemo.load(memo_path(config, target.target))
+            result = results[target.target] = run_hub_rounds(
+                hub_rounds(target.vintages, serving), target.vintages[-1][1],
+                [memo.wrap(m, config.rounds.n_samples) for m in members.published],
+                config.rounds,
+                references=[memo.wrap(m, config.rounds.n_samples) for m in members.references],
+                progress=progress)
+            _save(memo)
+            published = {m.name for m in members.published}
+            dropped += [*members.dropped, *(
+                Dropped("member", target.target, name, why)
+                for name, why in result.dropped_members().items() if name in published)]
+            seconds[target.target] = time.perf_counter() - started
+            per_target[target.target] = target_seconds(seconds[target.target], members.seconds,
+                                                       result)
     dropped += stale_targets(results, due_reference)
     dropped += [Dropped("location", t, place, why)
                 for t, r in results.items() for place, why in r.rounds[-1].panel.skipped.items()]

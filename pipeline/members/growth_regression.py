@@ -256,14 +256,16 @@ def _fitted_log_quantiles(x: NDArray[np.float64], y: NDArray[np.float64],
         spread[np.arange(x.shape[0]), group_now]
 
 
-def _pools(cells: Cells, n_weeks: list[int]) -> dict[tuple[int, pd.Timestamp, int, str | None],
-                                                   list[int]]:
-    """Cells that share a pool: the same panel, origin and length (and, with references, the
-    same place, whose own reference series its pool leaves out)."""
+def _pools(cells: Cells, n_weeks: list[int]
+           ) -> dict[tuple[int, pd.Timestamp, int, str | None], list[int]]:
+    """Cells that share a pool: the same panel, origin and length (and the same place where
+    the place is also a reference: its pool leaves its own reference series out; a reference
+    of another name changes no place's pool)."""
     groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
     for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
                                                     cells.histories)):
-        key = (id(panel), history.origin, n_weeks[b], place if panel.references else None)
+        key = (id(panel), history.origin, n_weeks[b],
+               place if place in panel.references else None)
         groups.setdefault(key, []).append(b)
     return groups
 
@@ -273,8 +275,9 @@ class PooledGrowthMember:
     """``growth-qr`` (module docstring). A cell's pool is its panel as known at its origin
     (:meth:`~pipeline.panels.panel.Panel.pool`: the references other than its place, then every
     place of the panel), with the cell's own history as its place's row. Cells whose own rows
-    are their panel's share one regression per origin; cells with their own version of a
-    place's data (a nowcast's completions) are fitted one regression each, in one batch."""
+    are their panel's share one regression per origin (and length); cells with their own
+    version of a place's data (a nowcast's completions) are fitted one regression each, in one
+    batch."""
 
     config: GrowthRegressionConfig = GrowthRegressionConfig()
     name: str = GROWTH_QR

@@ -33,7 +33,8 @@ from pipeline.members.nf.finetune import (NF_REAL, FineTuneConfig, FineTunedGrow
                                           fit_finetuned_member, refit_dates)
 from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMember
 from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
-from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextRefitConfig,
+from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextFlowMember,
+                                         ContextRefitConfig,
                                          TrainingPool, fit_context_member)
 from pipeline.members.nf.context_features import ContextChannels, ContextSources
 from pipeline.data.hub.locations import POPULATION
@@ -183,6 +184,10 @@ class HubMembersConfig:
     published_own_seasons: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY)
     flow_samples: int = 1000
     baseline_samples: int = BASELINE_SAMPLES
+    # A round from an empty model store trains its members in a background process too,
+    # from the other end (pipeline.hub_round.member_training); the same models either way.
+    # Off for toy sizes, where starting a second Python costs more than their training.
+    background_training: bool = True
 
 
 def published_names(config: HubMembersConfig, target: str, *, refitted: bool,
@@ -243,13 +248,29 @@ def context_pool(target: str, vintages: Sequence[tuple[pd.Timestamp, Panel]],
     return TrainingPool(vintages, context_sources(target, climatology, other_signal))
 
 
+def fit_hub_context(config: HubMembersConfig, store_root: Path, target: str,
+                    vintages: Sequence[tuple[pd.Timestamp, Panel]],
+                    climatology: Sequence[tuple[pd.Timestamp, Panel]],
+                    other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None,
+                    own_seasons: bool, *, newest_first: bool = False) -> ContextFlowMember:
+    """``target``'s context flow (:func:`~pipeline.members.nf.context.fit_context_member`):
+    its seeds pre-trained and refitted on its pool (:func:`context_pool`)."""
+    return fit_context_member(
+        config.context, config.context_refit,
+        [context_pool(target, sorted(vintages, key=lambda v: v[0]), climatology, other_signal,
+                      own_seasons)],
+        store_root, channels=context_channels(config, own_seasons),
+        n_samples=config.flow_samples, n_seeds=config.context_seeds, newest_first=newest_first)
+
+
 def build_hub_members(config: HubMembersConfig, store_root: Path,
                       refit_vintages: Sequence[tuple[pd.Timestamp, Panel]],
                       climatology: Sequence[tuple[pd.Timestamp, Panel]],
                       progress: ProgressReporter | None = None, *,
                       target: str,
                       other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None = None,
-                      seasonal_own_seasons: bool = False) -> HubMembers:
+                      seasonal_own_seasons: bool = False,
+                      newest_first: bool = False) -> HubMembers:
     """The hub forecast's members (docs/forecasting.md "The hub forecast"): the weekly flow
     (model store), that flow fine-tuned at the refit dates among the vintages' last weeks on
     the windows of the vintage of each (``nf-real``), the context flow refitted globally on
@@ -259,7 +280,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     and growth-qr pooled over the 53 locations; :func:`published_names` chooses the average's
     members for ``target``. ``seasonal_own_seasons``: the seasonal member reads the target's own
     earlier seasons instead of the ``climatology`` (influenza: no ED vintage in FluSight's
-    data)."""
+    data). ``newest_first``: the refits latest first (:mod:`pipeline.hub_round.
+    member_training`); the same members either way."""
     started = time.perf_counter()
     synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
     stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
@@ -284,11 +306,9 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     dropped: list[Dropped] = []
     started = time.perf_counter()
     try:
-        members.append(fit_context_member(
-            config.context, config.context_refit,
-            [context_pool(target, vintages, climatology, other_signal, seasonal_own_seasons)],
-            store_root, channels=context_channels(config, seasonal_own_seasons),
-            n_samples=config.flow_samples, n_seeds=config.context_seeds))
+        members.append(fit_hub_context(config, store_root, target, vintages, climatology,
+                                       other_signal, seasonal_own_seasons,
+                                       newest_first=newest_first))
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as error:  # noqa: BLE001 - isolation: the context flow alone is lost
@@ -301,7 +321,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
         started = time.perf_counter()
         try:
             refits = fit_finetuned_member(flow, synthetic, [], dates, config.finetune,
-                                          store_root, progress, known_at=known_at)
+                                          store_root, progress, known_at=known_at,
+                                          newest_first=newest_first)
         except (KeyboardInterrupt, SystemExit):
             raise
         except Exception as error:  # noqa: BLE001 - isolation: the refits alone are lost

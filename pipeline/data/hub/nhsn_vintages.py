@@ -330,10 +330,12 @@ def check_weekly_successor(new: WeeklyVintage, cached: WeeklyVintage, policy: Re
     refs = references or {}
     _refuse_shape(new, cached)
     missing = _missing_locations(new, cached, refs)
+    against_live = _revised_locations(new, cached, policy)
     judged = {loc: why for loc, why in (_location_revised(new, refs.get(loc, cached), loc, policy)
-                                        for loc in new.locations) if why is not None}
-    repeated = {loc: why for loc, why in judged.items()
-                if loc in refs and _location_revised(new, cached, loc, policy)[1] is None}
+                                        for loc in new.locations
+                                        if loc in refs or loc in against_live)
+              if why is not None}
+    repeated = {loc: why for loc, why in judged.items() if loc in refs and loc not in against_live}
     held = {loc: why for loc, why in judged.items() if loc not in repeated}
     if len(held) > MAX_HELD_SHARE * len(POPULATION):
         first = next(iter(held.values()))
@@ -388,6 +390,19 @@ def _refuse_shape(new: WeeklyVintage, cached: WeeklyVintage) -> None:
                                    f"vintage of {cached.as_of.date()} but fails it in a new "
                                    f"payload of the same date ({new.skipped[worse[0]]}); cached "
                                    f"copy kept")
+
+
+def _revised_locations(new: WeeklyVintage, reference: WeeklyVintage, policy: RevisionPolicy
+                       ) -> set[str]:
+    """The locations whose settled weeks in ``new`` break ``policy`` against ``reference``,
+    every location's weeks judged at once (what :func:`_location_revised` says of one)."""
+    columns = ["location", "target_end_date", "value"]
+    common = reference.frame[columns].merge(new.frame[columns], on=["location", "target_end_date"],
+                                            suffixes=("", "_new"))
+    breaks = settled_breaks(common["value"].to_numpy(), common["value_new"].to_numpy(),
+                            common["target_end_date"].to_numpy(), policy=policy,
+                            last=reference.last_week)
+    return set(common.loc[breaks, "location"])
 
 
 def _location_revised(new: WeeklyVintage, reference: WeeklyVintage, location: str,

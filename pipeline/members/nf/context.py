@@ -210,10 +210,13 @@ def _weekly(history: History, name: str) -> WeeklyHistory:
 def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
                        pools: Sequence[TrainingPool], store_root: Path, *,
                        channels: ContextChannels = ContextChannels(), name: str = NF_CONTEXT,
-                       n_samples: int = 1000, n_seeds: int = 1) -> ContextFlowMember:
+                       n_samples: int = 1000, n_seeds: int = 1,
+                       newest_first: bool = False) -> ContextFlowMember:
     """``n_seeds`` pre-trained flows (model store; seed k is both configs' seed + k) each
     refitted at every refit date among the first pool's vintages' last weeks (module
-    docstring)."""
+    docstring). ``newest_first``: the last seed and the latest refit first (a second process
+    filling the same store from the other end, :mod:`pipeline.training.background`); the
+    models are the same either way."""
     if not pools or not pools[0].vintages:
         raise ConfigError(f"{name}: no vintage of the target to train on")
     if n_seeds < 1 or n_samples < n_seeds:
@@ -225,17 +228,19 @@ def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
                                                        refit.revision_days, config, channels))
                for date in dates}
     inputs = {date: refit_inputs(pools, date) for date in dates}
-    bases: list[ConditionalEstimator] = []
-    refits: dict[pd.Timestamp, list[ConditionalEstimator]] = {}
-    for k in range(n_seeds):
+    bases: dict[int, ConditionalEstimator] = {}
+    refits: dict[tuple[pd.Timestamp, int], ConditionalEstimator] = {}
+    for k in (reversed(range(n_seeds)) if newest_first else range(n_seeds)):
         flow = dataclasses.replace(config, seed=config.seed + k)
         again = dataclasses.replace(refit, seed=refit.seed + k)
         base, synthetic, base_key = stored_pretrained(flow, store_root)
-        bases.append(base)
-        for date in dates:
+        bases[k] = base
+        for date in (reversed(dates) if newest_first else dates):
             model = stored_refit(base, base_key, windows[date], inputs[date], synthetic, date,
                                  flow, again, channels, store_root)
             if model is not None:       # too few windows: the same dates for every seed
-                refits.setdefault(date, []).append(model)
-    return ContextFlowMember(tuple(bases), {d: tuple(m) for d, m in refits.items()}, config,
+                refits[(date, k)] = model
+    by_date = {date: tuple(refits[(date, k)] for k in range(n_seeds))
+               for date in dates if all((date, k) in refits for k in range(n_seeds))}
+    return ContextFlowMember(tuple(bases[k] for k in range(n_seeds)), by_date, config,
                              pools[0].sources, channels, name, n_samples)
