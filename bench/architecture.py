@@ -311,10 +311,10 @@ def imports() -> dict[str, Any]:
         source = package_of(edge["from"], layer)
         dest = package_of(edge["to"], layer)
         assert source is not None and dest is not None
-        if not edge["type_checking"]:
-            module_graph[edge["from"]].add(edge["to"])
-            if source != dest:
-                package_graph[source].add(dest)
+        # a type-only import is a dependency too: cycles through one count
+        module_graph[edge["from"]].add(edge["to"])
+        if source != dest:
+            package_graph[source].add(dest)
         if layer[dest] > layer[source]:
             row = {"from": f"{edge['from']}:{edge['line']}", "to": edge["to"],
                    "layers": f"{source} ({layer[source] + 1}) -> {dest} ({layer[dest] + 1})",
@@ -327,7 +327,8 @@ def imports() -> dict[str, Any]:
                    "functions, under TYPE_CHECKING), resolved to the longest known module; "
                    "a package is the deepest folder named in the layering list; an import runs "
                    "back up when the imported package's layer is listed after the importer's; "
-                   "cycles are strongly connected components of the run-time import graph",
+                   "cycles are strongly connected components of the import graph, type-only "
+                   "imports included",
         "layering": [[("pipeline/" + n) if n.endswith(".py") else n for n in names]
                      for names in layers],
         "packages": len({package_of(m, layer) for m in known}),

@@ -51,7 +51,7 @@ def design_variants() -> tuple[Any, ...]:
     """The published forecast's design choices against their alternatives, scored on the same
     origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
     weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
-    from pipeline.backtest.backtest import Variant, tracking_rate_variants
+    from pipeline.backtest.config import Variant, tracking_rate_variants
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
     members = ("hub-baseline", "growth-qr", "nf-growth", "nf-real")

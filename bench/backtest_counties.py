@@ -45,7 +45,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
-    from pipeline.backtest.backtest import Variant, tracking_rate_variants
+    from pipeline.backtest.config import Variant, tracking_rate_variants
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
     long = 1_000                       # every past scored origin

@@ -62,7 +62,7 @@ def panel_summary(summary: dict[str, Any], key: str, outer: str = "coverage90"
 
 
 def counties(config: Any) -> tuple[dict[str, Any], float]:
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.config import Variant
     from pipeline.combine.combiner import LOG_AVERAGE
     from pipeline.data.california.cdph import find_vintage_files, read_vintages
     from pipeline.forecast.county_skill import county_backtest
@@ -77,7 +77,7 @@ def counties(config: Any) -> tuple[dict[str, Any], float]:
 
 
 def san_francisco(config: Any) -> tuple[dict[str, Any], float]:
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.config import Variant
     from pipeline.backtest.track_record import track_record
     from pipeline.combine.combiner import LOG_AVERAGE
     from pipeline import forecast as fc
@@ -98,7 +98,7 @@ def san_francisco(config: Any) -> tuple[dict[str, Any], float]:
 def nhsn() -> dict[str, Any]:
     """The hub's admissions rounds: coverage 50 %/95 % and Σ WIS / Σ WIS of the re-implemented
     hub baseline, per regime, published against the rule before."""
-    from pipeline.backtest.backtest import Variant
+    from pipeline.backtest.config import Variant
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED
     from pipeline.data.hub.target_import import import_hub_time_series

@@ -211,7 +211,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     forecast."""
     import dataclasses
 
-    from pipeline.backtest.backtest import Variant, tracking_rate_variants
+    from pipeline.backtest.config import Variant, tracking_rate_variants
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
     from pipeline.members.published import HubMembersConfig, build_hub_members

@@ -292,7 +292,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     import numpy as np
     import pandas as pd
 
-    from pipeline.backtest.backtest import Variant, tracking_rate_variants
+    from pipeline.backtest.config import Variant, tracking_rate_variants
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED

@@ -53,7 +53,7 @@ COVID_SINCE, FLU_SINCE = "2025-08-01", "2025-01-01"
 
 def sf_report(root: Path) -> Any:
     from pipeline import forecast as fc
-    from pipeline.report.weekly import forecast_report_content
+    from pipeline.forecast.report.weekly import forecast_report_content
 
     results = fc.run_forecast(fc.resolve_config("tiny", data=fc.DataSourceConfig(
         kind="import", import_paths=(str(SHARED / "datasf"),))))
@@ -63,7 +63,7 @@ def sf_report(root: Path) -> Any:
 def county_report(root: Path) -> Any:
     from pipeline.forecast.config import resolve_config
     from pipeline.forecast.run import StepRunner, run_forecast
-    from pipeline.report.weekly import forecast_report_content
+    from pipeline.forecast.report.weekly import forecast_report_content
 
     class WithoutCountySkill(StepRunner):
         def invoke(self, step, fn, *args, **kwargs):  # type: ignore[no-untyped-def]

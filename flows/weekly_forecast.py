@@ -55,8 +55,8 @@ from pipeline.forecast.run import FETCH_STEPS, Step, StepRunner
 from pipeline.forecast.steps import REPORT_LEVELS
 from pipeline.progress import LogProgress
 from pipeline.report.render import preload_pdf_renderer
-from pipeline.report.headline import compute_headline, markdown
-from pipeline.report.weekly import data_banner
+from pipeline.forecast.report.headline import compute_headline, markdown
+from pipeline.forecast.report.weekly import data_banner
 
 FORECAST_PRESETS_CHOICES = tuple(fc.FORECAST_PRESETS)
 P = ParamSpec("P")

@@ -9,7 +9,9 @@ import pandas as pd
 import pytest
 from scipy.stats import norm
 
-from pipeline.backtest.backtest import BacktestConfig, OneVintage, run_backtest
+from pipeline.backtest.config import BacktestConfig
+
+from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.writers import HUB_COLUMNS
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
 from pipeline.evaluation.summary import score_cells, summarize_forecaster
@@ -168,7 +170,7 @@ def test_the_tracking_rate_variants_change_eta_alone():
     published combiner's."""
     import dataclasses
 
-    from pipeline.backtest.backtest import tracking_rate_variants
+    from pipeline.backtest.config import tracking_rate_variants
     from pipeline.combine.combiner import CombineConfig
 
     hub = CombineConfig(beyond_reach="reachable-members", outer_interval=0.95)

@@ -170,7 +170,7 @@ def test_county_nowcast_uses_its_own_delay_effect(county_run):
 def test_county_run_writes_its_own_hub_file_and_report(county_run):
     from pipeline.outputs.hubverse_validation import load_tasks_config, validate_model_output
     from pipeline.outputs.run_folders import render_index_html
-    from pipeline.report.weekly import forecast_report_content
+    from pipeline.forecast.report.weekly import forecast_report_content
 
     root, _, _, results, folder = county_run
     # its own folder beside San Francisco's reports/<reference-date>/

@@ -151,7 +151,7 @@ def test_a_poisoned_county_cell_stops_neither_san_franciscos_nor_a_countys_forec
     from pipeline.forecast.config import resolve_config
     from pipeline.forecast.run import run_forecast
     from pipeline.forecast.sources import load_reference_histories, load_series
-    from pipeline.report.weekly import backtest_section
+    from pipeline.forecast.report.weekly import backtest_section
 
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.delenv("FLOWCAST_CDPH_ARCHIVE", raising=False)

@@ -11,7 +11,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.backtest.backtest import BacktestConfig, OneVintage, run_backtest
+from pipeline.backtest.config import BacktestConfig
+
+from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig, combine
 from pipeline.members.base import MemberForecast
 from pipeline.members.isolation import guarded_forecast, invalid_cells

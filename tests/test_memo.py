@@ -10,7 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.backtest.backtest import BacktestConfig, OneVintage, run_backtest
+from pipeline.backtest.config import BacktestConfig
+
+from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.fingerprint import fingerprint
 from pipeline.members.nf.growth import NFGrowthMember

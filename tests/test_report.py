@@ -526,7 +526,7 @@ def real_results(datasf_dir, tmp_path_factory):
 @pytest.fixture(scope="module")
 def real_report(real_results, tmp_path_factory):
     from pipeline.report.render import pdf_bytes, start_report
-    from pipeline.report.weekly import forecast_report_content
+    from pipeline.forecast.report.weekly import forecast_report_content
 
     out = tmp_path_factory.mktemp("real-report")
     written = start_report(forecast_report_content(real_results)).write(out)  # as publish does
@@ -550,7 +550,7 @@ def test_page_one_carries_the_published_forecast(real_results, real_report):
     if reason := missing_tool_reason("pdftotext"):
         pytest.skip(reason)
     from pipeline.backtest.writers import hub_frame
-    from pipeline.report.headline import (compute_headline, fmt_count, fmt_prob, fmt_range,
+    from pipeline.forecast.report.headline import (compute_headline, fmt_count, fmt_prob, fmt_range,
                                           fmt_rt, fmt_share, week_label)
 
     weekly = real_results.weekly
@@ -654,8 +654,8 @@ def test_real_report_pages_are_neither_blank_nor_mixed_conventions(real_results,
 def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results):
     """Diagnostic sections drawn in a forked child (as publish draws half of them): the report
     holds the same sections, captions and images as when all are drawn here."""
-    from pipeline.report.diagnostics import start_diagnostics
-    from pipeline.report.weekly import forecast_report_content
+    from pipeline.forecast.report.diagnostics import start_diagnostics
+    from pipeline.forecast.report.weekly import forecast_report_content
 
     def parts(content):
         return [(s.key, [getattr(i, "png", None) for i in s.items],
@@ -669,7 +669,7 @@ def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results):
 
 @pytest.mark.slow
 def test_malformed_diagnostic_is_named_and_a_renamed_field_fails(real_results):
-    from pipeline.report.weekly import forecast_report_content
+    from pipeline.forecast.report.weekly import forecast_report_content
 
     smc = real_results.smc
     broken = dataclasses.replace(real_results, smc=dataclasses.replace(
@@ -688,7 +688,7 @@ def test_summary_artifact_and_index_carry_the_headline(real_results):
     import html
     import json
 
-    from pipeline.report.headline import compute_headline, fmt_count, markdown
+    from pipeline.forecast.report.headline import compute_headline, fmt_count, markdown
     from pipeline.outputs.run_folders import RunRecord, render_index_html
 
     h = compute_headline(real_results)
@@ -710,7 +710,7 @@ def test_rollout_band_quantiles_are_nanquantiles_of_the_paths():
     NaN on some paths), computed through np.quantile where every path has a value."""
     import warnings
 
-    from pipeline.report.diagnostics import LEVELS, _path_quantiles
+    from pipeline.forecast.report.diagnostics import LEVELS, _path_quantiles
 
     rng = np.random.default_rng(0)
     samples = rng.lognormal(size=(64, 50, 3))

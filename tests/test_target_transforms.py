@@ -185,7 +185,8 @@ def sf_joint(tmp_path_factory):
     config = TrainConfig(iterations=40, batch_size=256, lr=3e-3, eval_every=20, seed=0)
     out = tmp_path_factory.mktemp("sf-joint")
     result = train_and_save(estimator, train_ds, val_ds, config, None, out,
-                            estimator_config=preset.estimator, preset=preset)
+                            estimator_config=preset.estimator,
+                            extra={"preset": preset.to_dict()})
     return preset, estimator, train_ds, val_ds, result, out / "model.pt", ensemble
 
 

@@ -51,7 +51,8 @@ def test_fit_preset_is_the_hand_written_sequence_and_its_checkpoint_is_the_model
     fitted = fit_preset(preset, train_ds, val_ds, tmp_path / "fit")
     by_hand = build_estimator(preset.estimator, train_ds.stats, seed=preset.train.seed)
     manual = train_and_save(by_hand, train_ds, val_ds, preset.train, preset.kinetic,
-                            tmp_path / "hand", estimator_config=preset.estimator, preset=preset)
+                            tmp_path / "hand", estimator_config=preset.estimator,
+                            extra={"preset": preset.to_dict()})
     def without_clock(history: list[dict[str, float]]) -> list[dict[str, float]]:
         return [{k: v for k, v in record.items() if k != "wall_s"} for record in history]
 

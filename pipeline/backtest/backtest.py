@@ -15,10 +15,9 @@ are all this function on different panels.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -26,6 +25,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.members.isolation import MemberFailure, guarded_forecast
+from pipeline.backtest.config import BacktestConfig
 from pipeline.backtest.result import BacktestResult
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import (PUBLISHED, RESERVED_NAMES, UNCALIBRATED, CombineConfig,
@@ -36,54 +36,8 @@ from pipeline.members.base import Member, MemberForecast
 from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline
 from pipeline.panels.history import History
 from pipeline.panels.panel import Cells, Panel, origin_seed, truth_arrays
-from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS, SHARE
+from pipeline.panels.targets import SHARE
 from pipeline.progress import ProgressReporter, SilentProgress, start_phase
-
-
-@dataclass(frozen=True)
-class Variant:
-    """A design alternative scored beside the published forecast: another combiner over the
-    same members, or the published combiner over a subset of them (``members``)."""
-
-    name: str
-    combine: CombineConfig = field(default_factory=CombineConfig)
-    members: tuple[str, ...] | None = None
-
-
-# the single online calibrations: η = 0.15 (published until 2026-11-29), a third and twice it
-TRACKING_RATE_VARIANTS = (0.05, 0.15, 0.3)
-
-
-def tracking_rate_variants(published: CombineConfig, prefix: str = "v-") -> tuple[Variant, ...]:
-    """The published combiner with one adaptive conformal tracker (``"regime-aci"``, its misses
-    not standardized) at each η of :data:`TRACKING_RATE_VARIANTS` in place of the aggregate,
-    named ``<prefix>regime-aci eta=<η>`` (every panel's backtest scores them beside it)."""
-    return tuple(Variant(f"{prefix}regime-aci eta={rate}", dataclasses.replace(
-        published, calibration="regime-aci", tracking_rate=rate, tracking_standardized=False))
-                 for rate in TRACKING_RATE_VARIANTS)
-
-
-@dataclass(frozen=True)
-class BacktestConfig:
-    """Horizons (weeks after each origin), levels, the members' seed, the published combiner,
-    the variants scored beside it, and the published forecast's sample paths per cell (0: none;
-    their ranks follow the first member that simulates paths)."""
-
-    horizons: tuple[int, ...] = HORIZONS_WEEKS
-    levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
-    seed: int = 0
-    combine: CombineConfig = field(default_factory=CombineConfig)
-    variants: tuple[Variant, ...] = ()
-    n_paths: int = 0
-    # a member still forecasting after this long is left out (pipeline.members.isolation);
-    # the slowest, nf-weekly's 1,000 draws over 44 rounds × 53 places, takes about a minute
-    member_time_limit_s: float | None = 1800.0
-
-    def __post_init__(self) -> None:
-        if not self.horizons or min(self.horizons) < 1:
-            raise EnsembleError(f"horizons {self.horizons} must be weeks >= 1")
-        if self.n_paths < 0:
-            raise EnsembleError(f"n_paths={self.n_paths} must be >= 0")
 
 
 class DataAtOrigins(Protocol):

@@ -27,7 +27,9 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.backtest.backtest import BacktestConfig, Variant, Vintages, run_backtest
+from pipeline.backtest.config import BacktestConfig, Variant
+
+from pipeline.backtest.backtest import Vintages, run_backtest
 from pipeline.backtest.result import BacktestResult
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig

@@ -30,7 +30,7 @@ from pipeline.panels.panel import Panel
 from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, TargetError
 
 if TYPE_CHECKING:
-    from pipeline.backtest.backtest import BacktestConfig
+    from pipeline.backtest.config import BacktestConfig
 
 SCORE_COLUMNS = ("place", "forecaster", "target", "horizon", "origin_date", "target_end_date",
                  "observed", "median", "wis", "dispersion", "overprediction", "underprediction",

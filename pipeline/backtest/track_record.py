@@ -19,7 +19,9 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.backtest.backtest import BacktestConfig, OneVintage, Variant, run_backtest
+from pipeline.backtest.config import BacktestConfig, Variant
+
+from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.backtest.result import BacktestResult, QuantileForecast
 from pipeline.combine.combiner import PUBLISHED, CombineConfig

@@ -25,7 +25,8 @@ import pandas as pd
 from pipeline.data.core.cache import data_dir
 from pipeline.data.california.cdph import CDPHVintage
 from pipeline.data.california.cdph_source import load_cdph_vintage
-from pipeline.backtest.backtest import BacktestConfig, OneVintage, Variant, run_backtest
+from pipeline.backtest.config import BacktestConfig, Variant
+from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.result import BacktestResult
 from pipeline.members.base import Member
 from pipeline.members.published import ChosenMembers, build_members

@@ -28,9 +28,9 @@ from pipeline.outputs.hubverse import (SF_COUNTY_FIPS, NowcastWeek, Submission, 
 from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
 from pipeline.report.render import start_report
-from pipeline.report.diagnostics import FORKED_DIAGNOSTICS, start_diagnostics
-from pipeline.report.weekly import forecast_report_content
-from pipeline.report.headline import compute_headline
+from pipeline.forecast.report.diagnostics import FORKED_DIAGNOSTICS, start_diagnostics
+from pipeline.forecast.report.weekly import forecast_report_content
+from pipeline.forecast.report.headline import compute_headline
 
 HUB_TASKS = Path(__file__).resolve().parents[2] / "hub-config" / "tasks.json"
 

@@ -1,6 +1,6 @@
 """The typed outputs of the forecast steps, and :class:`ForecastResults`, the run as a whole.
 
-The report (:mod:`pipeline.report.weekly`), the run's files (:mod:`pipeline.forecast.publish`) and
+The report (:mod:`pipeline.forecast.report.weekly`), the run's files (:mod:`pipeline.forecast.publish`) and
 the Prefect flow read these types and nothing else.
 """
 from __future__ import annotations

@@ -245,7 +245,7 @@ def render_index_html(runs: list[RunRecord], place: str = SAN_FRANCISCO) -> str:
         report = next((f for f in r.files if f.endswith(".html")), None)
         link = f'<a href="{date}/{html.escape(report)}">{date}</a>' if report else date
         stale = "stale (cached data)" if r.data_stale else "fresh"
-        # the report's page-1 headline in one line (pipeline.report.headline), when recorded
+        # the report's page-1 headline in one line (pipeline.forecast.report.headline), when recorded
         headline = str((r.summary.get("headline") or {}).get("text", ""))
         rows.append(f"<tr><td>{link}</td><td>{html.escape(headline)}</td>"
                     f"<td>{html.escape(r.data_vintage)}</td><td>{stale}</td>"

@@ -10,8 +10,8 @@ from pipeline.report.content import (SECTION_TITLES, FigureItem, Notice, NoticeK
 from pipeline.report.render import (ReportFiles, render_html, render_pdf, render_reproduction,
                                     write_report, write_reproduction)
 
-# The weekly forecast's report is pipeline.report.weekly.forecast_report_content: it reads
-# pipeline.forecast.results, so it is not imported here (the forecast package imports this one).
+# The weekly forecast's report is pipeline.forecast.report: it reads the weekly run's results
+# (pipeline.forecast.results), a layer above this generic one.
 
 __all__ = [
     "SECTION_TITLES", "FigureItem", "Notice", "NoticeKind", "PageOne", "Provenance", "ReportContent", "ReportError", "ReportFiles",

@@ -39,7 +39,6 @@ def fit_preset(preset: TrainingPreset, train_ds: WindowedDataset, val_ds: Window
     another direction than the one it was trained for."""
     estimator = build_estimator(preset.estimator, train_ds.stats, seed=preset.train.seed)
     metadata = {**dict(extra or {}), "direction": preset.dataset.direction,
-                "training_preset": preset.run_name}
+                "training_preset": preset.run_name, "preset": preset.to_dict()}
     return train_and_save(estimator, train_ds, val_ds, preset.train, preset.kinetic, out_dir,
-                          estimator_config=preset.estimator, progress=progress, preset=preset,
-                          extra=metadata)
+                          estimator_config=preset.estimator, progress=progress, extra=metadata)

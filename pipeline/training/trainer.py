@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -53,9 +53,6 @@ from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.models.standardization import Standardization
 from pipeline.training.datasets import WindowedDataset
 from pipeline.training.kinetic import KineticWeights, kinetic_loss
-
-if TYPE_CHECKING:  # presets.py imports this module
-    from pipeline.training.presets import TrainingPreset
 
 Schedule = Literal["constant", "cosine", "onecycle"]
 StopReason = Literal["completed", "target_reached", "time_budget", "plateau"]
@@ -483,14 +480,13 @@ def train_and_save(estimator: ConditionalEstimator, train_ds: WindowedDataset,
                    out_dir: str | Path, *, estimator_config: EstimatorConfig,
                    extra: Mapping[str, object] | None = None,
                    progress: ProgressReporter | None = None,
-                   on_trained: Callable[[TrainResult], None] | None = None,
-                   preset: TrainingPreset | None = None) -> TrainResult:
+                   on_trained: Callable[[TrainResult], None] | None = None) -> TrainResult:
     """Train, then (only on success) write ``model.pt``, ``history.csv/json``, ``loss.png``.
 
-    ``preset`` is recorded as ``extra["preset"]``, which ``flowcast estimate``/``rollout`` read
-    (dataset, direction, window). Presets are trained through
-    :func:`pipeline.training.fit.fit_preset`, which passes it with the rest of the metadata every
-    flowcast checkpoint carries.
+    ``extra`` is recorded beside the training's own metadata; presets are trained through
+    :func:`pipeline.training.fit.fit_preset`, which records the preset there as
+    ``extra["preset"]`` (what ``flowcast estimate``/``rollout`` read: dataset, direction,
+    window) with the rest of the metadata every flowcast checkpoint carries.
 
     A :class:`TrainingDivergedError` propagates before anything is written, so a diverged run
     never leaves a checkpoint behind (nor replaces a previous good one).
@@ -508,8 +504,7 @@ def train_and_save(estimator: ConditionalEstimator, train_ds: WindowedDataset,
                            "best_val_nll": result.best_val_nll,
                            "best_val_nll_original": result.best_val_nll_original,
                            "best_iteration": result.best_iteration,
-                           "stop_reason": result.stop_reason, **(extra or {}),
-                           **({"preset": preset.to_dict()} if preset is not None else {})})
+                           "stop_reason": result.stop_reason, **(extra or {})})
     save_history(result.history, out / "history.csv", out / "history.json")
     plot_loss_curves(result.history, out / "loss.png")
     return result

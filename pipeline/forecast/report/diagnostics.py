@@ -5,7 +5,7 @@ estimates, rollouts, the NF-seeded SMC, the NLL table (paper Table 5) and the tr
 A section whose inputs are malformed (a :class:`ReportError` from its builder) is left out and
 named in the report's warnings; anything else fails the report, so a test notices. Some are
 drawn in a forked child while the rest of the report is written (:func:`start_diagnostics`).
-The report around them: :mod:`pipeline.report.weekly`.
+The report around them: :mod:`pipeline.forecast.report.weekly`.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from pipeline.names import COMPARTMENTS, DIRECTIONS
 from pipeline.report import checks, figures
 from pipeline.report.content import (FigureItem, ReportError, Section, SectionKey, TableItem,
                                      nll_table)
-from pipeline.report.headline import as_numpy, fmt_range
+from pipeline.forecast.report.headline import as_numpy, fmt_range
 
 if TYPE_CHECKING:
     from pipeline.forecast.results import ModelOutputs

@@ -6,9 +6,9 @@
 figures and frames into tables; ``report.html`` + ``report.pdf`` are written by
 :mod:`pipeline.report.render`.
 
-A decision document: page 1 is the headline (:mod:`pipeline.report.headline`, the published
+A decision document: page 1 is the headline (:mod:`pipeline.forecast.report.headline`, the published
 forecast ``results.weekly.latest`` and its backtest), then the forecast and its track record, then
-the model diagnostics (:mod:`pipeline.report.diagnostics`: S/I/R series, β/γ/R_t, state
+the model diagnostics (:mod:`pipeline.forecast.report.diagnostics`: S/I/R series, β/γ/R_t, state
 estimates, rollouts, SMC, NLL, training), then the provenance appendix. Every band is a 50 % or
 90 % central interval. Diagnostics that signal trouble (:mod:`pipeline.report.checks`) are said in
 words in their section and listed on page 1.
@@ -36,9 +36,9 @@ from pipeline.io import sha256_bytes, sha256_file
 from pipeline.report import checks, figures
 from pipeline.report.content import (FigureItem, Notice, NoticeKind, PageOne, Provenance,
                                      ReportContent, Section, SectionKey, TableItem)
-from pipeline.report.diagnostics import (DIAGNOSTICS, LEVELS, Q_COLUMNS, DiagnosticsUnderWay,
+from pipeline.forecast.report.diagnostics import (DIAGNOSTICS, LEVELS, Q_COLUMNS, DiagnosticsUnderWay,
                                          diagnostic_sections, figure_item)
-from pipeline.report.headline import (PUBLISHED, daily_history, Headline, Interval,
+from pipeline.forecast.report.headline import (PUBLISHED, daily_history, Headline, Interval,
                                       compute_headline, facts_frame, fmt_count, fmt_prob,
                                       fmt_range, fmt_share, forecast_frame,
                                       published_weekly, skill_frame)

@@ -1,0 +1,56 @@
+"""A backtest's settings: its horizons, levels and seed, the published combiner, the variants
+scored beside it (:class:`Variant`), its sample paths and the members' time limit."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from pipeline.combine.average import EnsembleError
+from pipeline.combine.combiner import CombineConfig
+from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A design alternative scored beside the published forecast: another combiner over the
+    same members, or the published combiner over a subset of them (``members``)."""
+
+    name: str
+    combine: CombineConfig = field(default_factory=CombineConfig)
+    members: tuple[str, ...] | None = None
+
+
+# the single online calibrations: η = 0.15 (published until 2026-11-29), a third and twice it
+TRACKING_RATE_VARIANTS = (0.05, 0.15, 0.3)
+
+
+def tracking_rate_variants(published: CombineConfig, prefix: str = "v-") -> tuple[Variant, ...]:
+    """The published combiner with one adaptive conformal tracker (``"regime-aci"``, its misses
+    not standardized) at each η of :data:`TRACKING_RATE_VARIANTS` in place of the aggregate,
+    named ``<prefix>regime-aci eta=<η>`` (every panel's backtest scores them beside it)."""
+    return tuple(Variant(f"{prefix}regime-aci eta={rate}", dataclasses.replace(
+        published, calibration="regime-aci", tracking_rate=rate, tracking_standardized=False))
+                 for rate in TRACKING_RATE_VARIANTS)
+
+
+@dataclass(frozen=True)
+class BacktestConfig:
+    """Horizons (weeks after each origin), levels, the members' seed, the published combiner,
+    the variants scored beside it, and the published forecast's sample paths per cell (0: none;
+    their ranks follow the first member that simulates paths)."""
+
+    horizons: tuple[int, ...] = HORIZONS_WEEKS
+    levels: tuple[float, ...] = HUB_QUANTILE_LEVELS
+    seed: int = 0
+    combine: CombineConfig = field(default_factory=CombineConfig)
+    variants: tuple[Variant, ...] = ()
+    n_paths: int = 0
+    # a member still forecasting after this long is left out (pipeline.members.isolation);
+    # the slowest, nf-weekly's 1,000 draws over 44 rounds × 53 places, takes about a minute
+    member_time_limit_s: float | None = 1800.0
+
+    def __post_init__(self) -> None:
+        if not self.horizons or min(self.horizons) < 1:
+            raise EnsembleError(f"horizons {self.horizons} must be weeks >= 1")
+        if self.n_paths < 0:
+            raise EnsembleError(f"n_paths={self.n_paths} must be >= 0")
