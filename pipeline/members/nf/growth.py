@@ -105,6 +105,9 @@ class NFGrowthMember:
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
         """Weekly count quantiles ``(B, H, Q)`` of every cell from its sampled paths (kept)."""
+        if max(horizons) > self.max_horizon or min(horizons) < 1:
+            raise TargetError(f"{self.name} forecasts weeks 1 … {self.max_horizon}, "
+                              f"not {horizons}")
         paths = self.sample_paths(cells.histories, cells.seeds)[:, :, [h - 1 for h in horizons]]
         cases = paths[..., 1] * cells.populations[:, None, None]                # (B, n, H)
         return MemberForecast(quantiles_of_samples(cases, levels), paths=paths)
