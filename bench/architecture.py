@@ -8,8 +8,9 @@
     packages of the layering that ``docs/ARCHITECTURE.md`` declares (its numbered list under
     "## Layering", parsed here: a package may import its own layer and the layers listed before
     it). Listed: every import running back up (a lower layer importing a higher one; those under
-    ``TYPE_CHECKING`` apart, since they never run), every cycle between packages (strongly
-    connected components of the package graph) and every cycle between modules.
+    ``TYPE_CHECKING`` listed apart), every cycle between packages (strongly connected components
+    of the package graph) and every cycle between modules, type-only imports included in both
+    graphs (a type is a dependency too).
 (c) **The weekly forecast's path**: one run of the weekly step on the ``tiny`` preset and the
     recorded DataSF exports (imported into a temporary ``FLOWCAST_DATA_DIR``, read offline, as
     ``tests/test_forecast_flow.py`` does) — the series from the cache, its S/I/R conversion, the
