@@ -113,7 +113,7 @@ def validate_round_files(result: Any, targets: Any, hub: Path) -> dict[str, Any]
     from pipeline.outputs.hubverse_validation import HubValidationError, load_tasks_config
 
     tasks = load_tasks_config(hub / "hub-config" / "tasks.json")
-    metadata = load_model_metadata(Path(__file__).resolve().parents[1] / "model-metadata"
+    metadata = load_model_metadata(Path(__file__).resolve().parents[1] / "pipeline" / "outputs" / "model_metadata"
                                    / f"{CDC_HUB_MODEL_ID}.yml")
     n_files, errors, no_round, rows, notes = 0, [], [], 0, set()
     with tempfile.TemporaryDirectory(prefix="flusight-rounds-") as tmp:

@@ -423,7 +423,7 @@ def write_round_files(results: dict[str, Any], folder: Path, hub: Path) -> int:
     from pipeline.outputs.hubverse_validation import load_tasks_config
 
     tasks = load_tasks_config(hub / "hub-config" / "tasks.json")
-    metadata = load_model_metadata(Path(__file__).resolve().parents[1] / "model-metadata" /
+    metadata = load_model_metadata(Path(__file__).resolve().parents[1] / "pipeline" / "outputs" / "model_metadata" /
                                    f"{CDC_HUB_MODEL_ID}.yml")
     by_round: dict[pd.Timestamp, list[pd.DataFrame]] = {}
     for result in results.values():

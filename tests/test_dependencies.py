@@ -89,3 +89,23 @@ def test_every_declared_dependency_is_imported_or_a_documented_pin():
     for pin, needed_by in PINS.items():   # a pin is of something a dependency really requires
         requires = {_name(r) for r in md.requires(needed_by) or [] if "extra ==" not in r}
         assert pin in requires and needed_by in declared(), (pin, needed_by)
+
+
+def test_the_models_metadata_ship_inside_the_package():
+    """A plain `pip install .` publishes a round: the metadata the publish path reads lie in
+    the package, and pyproject's package data names them (a repo-level folder is not
+    installed)."""
+    import fnmatch
+    import tomllib
+    from pathlib import Path
+
+    import pipeline
+    from pipeline.outputs.hubverse_round import MODEL_METADATA_DIR
+
+    package = Path(pipeline.__file__).resolve().parent
+    files = sorted(MODEL_METADATA_DIR.glob("*.yml"))
+    assert [f.name for f in files] == ["flowcast-nfens.yml", "flowcast-nfhub.yml"]
+    shipped = tomllib.loads((package.parent / "pyproject.toml").read_text())[
+        "tool"]["setuptools"]["package-data"]["pipeline"]
+    assert all(any(fnmatch.fnmatch(str(f.relative_to(package)), g) for g in shipped)
+               for f in files)

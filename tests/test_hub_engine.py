@@ -190,7 +190,7 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
     shutil.copytree(NHSN / "hub-config", root / "hub-config")
     written = write_hub_round(frame, hub_dir=root, model_id=CDC_HUB_MODEL_ID,
                               tasks=load_tasks_config(NHSN / "hub-config" / "tasks.json"),
-                              metadata=load_model_metadata(REPO / "model-metadata"
+                              metadata=load_model_metadata(REPO / "pipeline" / "outputs" / "model_metadata"
                                                            / f"{CDC_HUB_MODEL_ID}.yml"))
     back = hubdata.connect_hub(root).get_dataset().to_table().to_pandas()
     assert len(back) == 53 * 5 * (23 + 200) and set(back.location) == set(result.places)

@@ -33,7 +33,7 @@ def hub() -> dict:
                     "the repo)")
     return {"tasks": load_tasks_config(NHSN / "hub-config" / "tasks.json"),
             "locations": pd.read_csv(NHSN / "locations.csv", dtype={"location": str}),
-            "metadata": load_model_metadata(REPO / "model-metadata" / f"{CDC_HUB_MODEL_ID}.yml"),
+            "metadata": load_model_metadata(REPO / "pipeline" / "outputs" / "model_metadata" / f"{CDC_HUB_MODEL_ID}.yml"),
             "schema": json.loads((REPO / "hub-config" / "model-metadata-schema.json")
                                  .read_text())}
 

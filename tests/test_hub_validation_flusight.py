@@ -208,7 +208,7 @@ def test_several_round_definitions_each_by_its_own_rules(tasks):
 
 def _metadata() -> dict:
     from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID, load_model_metadata
-    return load_model_metadata(REPO / "model-metadata" / f"{CDC_HUB_MODEL_ID}.yml")
+    return load_model_metadata(REPO / "pipeline" / "outputs" / "model_metadata" / f"{CDC_HUB_MODEL_ID}.yml")
 
 
 def test_the_round_follows_flusights_config_not_the_products_constants(tasks, tmp_path):

@@ -180,7 +180,7 @@ def test_hub_config_and_model_metadata():
     schema = json.loads((REPO / "hub-config" / "model-metadata-schema.json").read_text())
     jsonschema.Draft202012Validator.check_schema(schema)
     config = SubmissionConfig()
-    metadata_path = REPO / "model-metadata" / f"{config.model_id}.yml"
+    metadata_path = REPO / "pipeline" / "outputs" / "model_metadata" / f"{config.model_id}.yml"
     metadata = yaml.safe_load(metadata_path.read_text())
     jsonschema.validate(metadata, schema)
     assert f"{metadata['team_abbr']}-{metadata['model_abbr']}" == config.model_id

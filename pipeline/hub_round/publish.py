@@ -35,7 +35,8 @@ from pipeline.outputs.derived_round import (PEAK_WEEK, RATE_CHANGE, derive_targe
                                             derived_round_frame)
 from pipeline.outputs.hub_conform import require_round
 from pipeline.outputs.hub_tasks import target_model_task, task_values
-from pipeline.outputs.hubverse_round import (compound_sample_ids, load_model_metadata,
+from pipeline.outputs.hubverse_round import (MODEL_METADATA_DIR, compound_sample_ids,
+                                             load_model_metadata,
                                              write_hub_round)
 from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.outputs.run_folders import RunOutputs, RunRecord, new_run_id
@@ -43,8 +44,6 @@ from pipeline.report.content import Notice, NoticeKind
 from pipeline.report.hub import hub_report_content, track_record_table
 from pipeline.report.render import write_report
 
-REPO = Path(__file__).resolve().parents[2]
-METADATA_DIR = REPO / "model-metadata"
 
 
 @dataclass(frozen=True)
@@ -160,7 +159,7 @@ def publish_hub_round(run: HubRun) -> PublishedRound:
     tasks = load_tasks_config(require_hub_config(config) / "tasks.json")
     # off season FluSight has no round: nothing is written, said by name (NoHubRoundError)
     require_round(tasks, pd.Timestamp(run.reference_date), f"the {config.disease} hub")
-    metadata = load_model_metadata(METADATA_DIR / f"{config.model_id}.yml")
+    metadata = load_model_metadata(MODEL_METADATA_DIR / f"{config.model_id}.yml")
     reference = str(run.reference_date)
     outputs = RunOutputs(Path(config.output_dir) / f"hub-{config.disease}",
                          place=f"CDC hub ({config.disease})")

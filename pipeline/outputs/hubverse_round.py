@@ -113,6 +113,11 @@ def _round_text_frame(frame: pd.DataFrame, source: object) -> pd.DataFrame:
     return out.drop(columns=["_kind", "_level"]).reset_index(drop=True)
 
 
+# the models' hubverse metadata (flowcast-nfhub, flowcast-nfens), shipped with the package so
+# that a plain `pip install .` publishes
+MODEL_METADATA_DIR = Path(__file__).resolve().parent / "model_metadata"
+
+
 def load_model_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
     """A hubverse model-metadata YAML file as a dict."""
     import yaml
