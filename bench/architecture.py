@@ -163,7 +163,7 @@ def layer_of_package(layers: list[list[str]]) -> dict[str, int]:
 
 
 def package_of(module: str, packages: Iterable[str]) -> str | None:
-    """The deepest declared package holding ``module`` (``pipeline.members.nf.model`` →
+    """The deepest declared package holding ``module`` (``pipeline.members.nf.flow`` →
     ``pipeline.members``); pipeline's own top-level modules → ``pipeline``."""
     best = None
     for package in packages:

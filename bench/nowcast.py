@@ -63,7 +63,7 @@ from pipeline.nowcast.completions import (CompletedHistories, NowcastConfig, com
 from pipeline.backtest.track_record import TrackRecordConfig
 from pipeline.combine.combiner import CombineConfig, Ensemble
 from pipeline.members.base import reach
-from pipeline.members.nf.finetune import latest_refit_date
+from pipeline.members.nf.refit import latest_refit_date
 from pipeline.members.published import build_members
 from pipeline.nowcast.hub_weeks import HUB_HORIZONS, hub_weeks, last_saturday
 from pipeline.nowcast.then_forecast import (Forecaster, nowcast_then_forecast_places,

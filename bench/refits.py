@@ -4,7 +4,7 @@ Every refit date of the hub's design rounds (both targets: the refit calendar ov
 vintages' last weeks, each refit on the vintage of its date, as the hub round fine-tunes) × 3
 training seeds (the seed of the validation split, the synthetic windows drawn and the batches),
 fine-tuned with the settings before issue 37 (no early stop, gradients clipped at norm 10) and
-after (:class:`~pipeline.members.nf.finetune.FineTuneConfig`: stop after two evaluations
+after (:class:`~pipeline.members.nf.real.FineTuneConfig`: stop after two evaluations
 without improvement, best state kept, clipped at norm 1): how many diverged
 (:class:`~pipeline.errors.TrainingDivergedError`), and each learning rate's mean best
 validation NLL with the new settings (``lr``: the one with the lowest is the default).
@@ -29,14 +29,13 @@ BEFORE_LR = 5e-4
 def _refit(flow: Any, cut: Any, config: Any) -> tuple[bool, float, int, str]:
     """(diverged, best validation NLL, iterations run, why) of one fine-tune."""
     from pipeline.errors import TrainingDivergedError
-    from pipeline.members.nf.finetune import train_config
     from pipeline.training.trainer import train
 
     model = copy.deepcopy(flow.estimator)
     model.train()
     train_ds, val_ds = cut
     try:
-        result = train(model, train_ds, val_ds, train_config(config))
+        result = train(model, train_ds, val_ds, config.train_config())
     except TrainingDivergedError as error:
         return True, float("nan"), -1, str(error)
     return False, float(result.best_val_nll), int(result.iterations_run), result.stop_reason
@@ -49,8 +48,9 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
     from pipeline.data.hub.target_import import import_hub_time_series
     from pipeline.data.core.cache import data_folder
     from pipeline.hub_round.run import load_vintages
-    from pipeline.members.nf.finetune import _refit_windows, refit_dates
-    from pipeline.members.nf.model import SyntheticWindows, train_or_reuse_growth_model
+    from pipeline.members.nf.flow import SyntheticWindows, stored_flow
+    from pipeline.members.nf.real import refit_windows
+    from pipeline.members.nf.refit import refit_dates
     from pipeline.members.nf.weekly import WeeklyFlowMember
     from pipeline.members.published import HubMembersConfig
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
@@ -67,7 +67,7 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
             import_hub_time_series(hub / "time-series.parquet")
             root = store or Path(tmp) / "data" / "models"
             synthetic = SyntheticWindows(members.flow, DataDigests(root))
-            stored = train_or_reuse_growth_model(members.flow, root, synthetic=synthetic)
+            stored = stored_flow(members.flow, root, synthetic=synthetic)
             flow = WeeklyFlowMember(stored.estimator, members.flow, n_samples=100)
             rows = []
             for target in (HOSP_COVID, ED_COVID):
@@ -83,8 +83,8 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
                                 *((f"lr={lr:g}", dataclasses.replace(after, lr=lr))
                                   for lr in lrs if lr != after.lr)):
                             config = dataclasses.replace(config, seed=seed)
-                            cut = _refit_windows(flow, list(known.histories.values()), cutoff,
-                                                 synthetic, config)
+                            cut = refit_windows(flow, list(known.histories.values()), cutoff,
+                                                synthetic, config)
                             if cut is None:
                                 continue
                             diverged, nll, its, why = _refit(flow, cut, config)
@@ -104,7 +104,7 @@ def run_refits(store: Path | None = None, hub: Path = SHARED, seeds: tuple[int, 
         "refits_each": int((frame["settings"] == "after").sum()),
         "diverged_by_settings": {s: int(g["diverged"].sum())
                                  for s, g in frame.groupby("settings")},
-        "rounds_lost_after": 0,   # a diverged refit falls back (pipeline.members.nf.finetune)
+        "rounds_lost_after": 0,   # a diverged refit falls back (pipeline.members.nf.real)
         "before_settings": {"early_stop_patience": None, "grad_clip_norm": 10.0,
                             "lr": BEFORE_LR},
         "after_settings": {"early_stop_patience": after.early_stop_patience,

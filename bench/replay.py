@@ -26,7 +26,7 @@ the round's file validated against the hub's tasks.json again and read back by h
 
 ``refits``: nf-real's fine-tuning at every refit date of the design rounds (both targets) × 3
 seeds, with the settings before this change (no early stop, gradients clipped at 10) and after
-(:class:`~pipeline.members.nf.finetune.FineTuneConfig`): how many diverged, and the learning
+(:class:`~pipeline.members.nf.real.FineTuneConfig`): how many diverged, and the learning
 rates measured by their best validation NLL.
 
     python -m bench.replay                      # every part
@@ -299,7 +299,7 @@ def _stale(releases: list[Any], due: str) -> list[Any]:
 def run_injected(args: argparse.Namespace, releases: list[Any], path: Path) -> None:
     import pytest
 
-    from pipeline.members.nf import finetune
+    from pipeline.members.nf import real
     from pipeline.members.nf.weekly import WeeklyFlowMember
     from pipeline.members.seasonal import SeasonalGrowthMember
 
@@ -309,7 +309,7 @@ def run_injected(args: argparse.Namespace, releases: list[Any], path: Path) -> N
         "member_nan": (lambda mp: mp.setattr(SeasonalGrowthMember, "forecast",
                                              _nan_median(SeasonalGrowthMember.forecast)),
                        releases),
-        "refit_diverges": (lambda mp: mp.setattr(finetune, "train", _diverge), releases),
+        "refit_diverges": (lambda mp: mp.setattr(real, "stored_refit", _diverge), releases),
         "location_revised": (lambda mp: None, _revised(releases, INJECTED_DUE)),
         "target_stale": (lambda mp: None, _stale(releases, INJECTED_DUE)),
     }

@@ -15,8 +15,11 @@ from pipeline.data.hub.locations import POPULATION
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
+from pipeline.errors import TrainingDivergedError
+from pipeline.members.nf import context as context_module
 from pipeline.members.nf.context import (NF_CONTEXT, TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT,
-                                         TrainingPool, decode_weekly, fit_context_member)
+                                         TrainingPool, fit_context_member)
+from pipeline.members.nf.flow import decode_weekly
 from pipeline.members.nf.context_training import refit_windows, synthetic_dataset
 from pipeline.members.nf.context_features import (ContextChannels, ContextSources,
                                                   WindowInputs, context_windows,
@@ -142,7 +145,8 @@ def test_windows_read_only_what_was_released_by_the_vintage(vintages):
     np.testing.assert_array_equal(refit.target, expected.target)
 
 
-def test_the_tiny_member_forecasts_real_rounds_from_its_refits(vintages, tmp_path):
+def test_the_tiny_member_forecasts_real_rounds_from_its_refits(vintages, tmp_path,
+                                                               monkeypatch):
     hosp, ed = vintages[HOSP_COVID][:36], vintages[ED_COVID]
     member = fit_context_member(TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT,
                                 [TrainingPool(hosp, context_sources(HOSP_COVID, ed))],
@@ -184,6 +188,23 @@ def test_the_tiny_member_forecasts_real_rounds_from_its_refits(vintages, tmp_pat
     np.testing.assert_allclose(mixed[:, 0::2], both[:, 0::2], rtol=1e-5)
     np.testing.assert_allclose(mixed[:, 1::2], seed1.sample_paths(cells)[:, 1::2], rtol=1e-5)
     assert not np.allclose(mixed[:, 1::2], both[:, 1::2], rtol=1e-3)     # another flow
+    # a refit that diverges (in any seed) is left out, recorded, and its origins forecast by the
+    # refit before it, as nf-real's: the member stays in the round
+    dates = sorted(member.models)
+    stored = context_module.stored_refit
+
+    def diverging(job, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        if job.date == dates[1] and job.identity["base"] != "never":
+            raise TrainingDivergedError("injected: validation NLL 30.64 at iteration 240")
+        return stored(job, *args, **kwargs)
+
+    monkeypatch.setattr(context_module, "stored_refit", diverging)
+    fallen = fit_context_member(TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT, pools, tmp_path,
+                                n_samples=200, n_seeds=2)
+    assert set(fallen.models) == set(two.models) - {dates[1]}
+    assert fallen.fallbacks == {dates[1]: "injected: validation NLL 30.64 at iteration 240; "
+                                          f"forecasts from the refit of {dates[0].date()} instead"}
+    assert fallen.refit_for(dates[1] + pd.Timedelta(days=7)) == dates[0]
 
 
 def test_each_target_reads_the_other_signal(vintages):

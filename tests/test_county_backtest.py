@@ -21,9 +21,10 @@ from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.writers import write_backtest
 from pipeline.combine.average import vincentize
 from pipeline.errors import FlowcastError
-from pipeline.members.nf.growth import NFGrowthMember
-from pipeline.members.nf.model import GrowthModelConfig, SyntheticWindows, train_growth_model
-from pipeline.members.nf.finetune import FineTuneConfig, fit_finetuned_member, refit_dates
+from pipeline.members.nf.flow import SyntheticWindows, train_flow
+from pipeline.members.nf.growth import GrowthModelConfig, NFGrowthMember
+from pipeline.members.nf.real import FineTuneConfig, fit_finetuned_member
+from pipeline.members.nf.refit import refit_dates
 from pipeline.members.growth_regression import PooledGrowthMember, growth_regression_quantiles
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.panels.california import select_counties
@@ -69,7 +70,7 @@ def _panel(vintage: CDPHVintage, altered: str | None = None,
 @pytest.fixture(scope="module")
 def tiny_flow() -> tuple[NFGrowthMember, SyntheticWindows]:
     synthetic = SyntheticWindows(TINY_FLOW)
-    return (NFGrowthMember(train_growth_model(TINY_FLOW, synthetic.dataset)[0], TINY_FLOW,
+    return (NFGrowthMember(train_flow(TINY_FLOW, synthetic.dataset)[0], TINY_FLOW,
                            n_samples=200), synthetic)
 
 

@@ -11,12 +11,11 @@ import pytest
 import torch
 
 from pipeline.members.nf import growth as nf_member
-from pipeline.members.nf import model as nf_model
-from pipeline.members.nf import finetune as nf_finetune
-from pipeline.members.nf.growth import NFGrowthMember
-from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
-                                       train_or_reuse_growth_model)
-from pipeline.members.nf.finetune import FineTuneConfig, StoredRefit, fit_finetuned_member
+from pipeline.members.nf import real as nf_finetune
+from pipeline.members.nf.flow import SyntheticWindows, stored_flow
+from pipeline.members.nf.growth import GrowthModelConfig, NFGrowthMember
+from pipeline.members.nf.real import FineTuneConfig, fit_finetuned_member
+from pipeline.members.nf.refit import StoredRefit
 from pipeline.training.digests import DIGESTS_DIR, DataDigests
 from pipeline.training.model_store import ModelStore
 from tests.forecasting_helpers import forecast_one, random_walk_history
@@ -57,7 +56,7 @@ def _histories() -> list:
 
 def _refits(store, dates) -> nf_finetune.FineTunedGrowthMember:
     synthetic = SyntheticWindows(TINY_FLOW, DataDigests(store))
-    stored = train_or_reuse_growth_model(TINY_FLOW, store, synthetic=synthetic)
+    stored = stored_flow(TINY_FLOW, store, synthetic=synthetic)
     base = NFGrowthMember(stored.estimator, TINY_FLOW, n_samples=100)
     return fit_finetuned_member(base, synthetic, _histories(), dates, FINETUNE, store)
 
@@ -74,7 +73,7 @@ def test_a_rerun_on_stored_models_cuts_no_windows_and_loads_refits_when_used(tmp
         raise AssertionError("windows were cut on a rerun")
 
     monkeypatch.setattr(nf_member.NFGrowthMember, "real_windows", no_windows)
-    monkeypatch.setattr(nf_model, "growth_dataset", no_windows)
+    monkeypatch.setattr(nf_member, "growth_dataset", no_windows)
     reused = _refits(tmp_path, dates)
     assert {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")} == entries
     refits = [reused.models[d] for d in dates]
@@ -95,7 +94,7 @@ def test_a_rerun_on_stored_models_cuts_no_windows_and_loads_refits_when_used(tmp
 def test_the_digests_give_the_keys_of_the_cut_windows(tmp_path):
     synthetic = SyntheticWindows(TINY_FLOW, DataDigests(tmp_path))
     assert synthetic.data_sha256 == SyntheticWindows(TINY_FLOW).dataset.meta.data_sha256
-    stored = train_or_reuse_growth_model(TINY_FLOW, tmp_path, synthetic=synthetic)
+    stored = stored_flow(TINY_FLOW, tmp_path, synthetic=synthetic)
     assert ModelStore(tmp_path).get(stored.key) is not None
 
 

@@ -24,7 +24,7 @@ from pipeline.hub_round.run import HUB_MEMBER_PRESETS
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
 from pipeline.members.nf.weekly import WeeklyFlowMember
-from pipeline.members.nf.model import train_growth_model
+from pipeline.members.nf.flow import train_flow
 from pipeline.nowcast.revisions import RevisionNowcastConfig, nowcast_weeks
 from pipeline.outputs.hubverse_round import (CDC_HUB_MODEL_ID, compound_sample_ids,
                                              load_model_metadata, write_hub_round)
@@ -80,7 +80,7 @@ def test_reference_dates_of_releases():
 
 @pytest.fixture(scope="module")
 def flow() -> WeeklyFlowMember:
-    estimator, _ = train_growth_model(TINY_FLOW)
+    estimator, _ = train_flow(TINY_FLOW)
     return WeeklyFlowMember(estimator, TINY_FLOW, n_samples=200)
 
 

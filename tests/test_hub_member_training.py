@@ -16,7 +16,8 @@ from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.hub_round.member_training import TargetInputs, hub_member_training
 from pipeline.hub_round.run import hub_members_preset
 from pipeline.members.nf.context import NF_CONTEXT, ContextFlowMember
-from pipeline.members.nf.finetune import NF_REAL, FineTunedGrowthMember
+from pipeline.members.nf.real import NF_REAL, FineTunedGrowthMember
+from pipeline.members.nf.refit import estimator_of
 from pipeline.members.published import HubMembers, build_hub_members
 from pipeline.panels.hub import ED_COVID, HOSP_COVID, panel_of
 from tests.test_hub_engine import NHSN
@@ -54,7 +55,7 @@ def _weights(members: HubMembers) -> dict[str, torch.Tensor]:
             for when, seeds in flows.items():
                 for k, flow in enumerate(seeds):
                     out |= {f"{NF_CONTEXT} {when} {k} {n}": w
-                            for n, w in flow.state_dict().items()}
+                            for n, w in estimator_of(flow).state_dict().items()}
         elif isinstance(member, FineTunedGrowthMember):
             for date in member.models:
                 out |= {f"{NF_REAL} {date.date()} {n}": w

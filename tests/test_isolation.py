@@ -179,7 +179,7 @@ def test_a_diverged_refit_falls_back_to_the_one_before(monkeypatch):
     """nf-real: a refit date whose fine-tuning diverges is left out, recorded, and its origins
     forecast by the previous refit (the base flow before the first)."""
     from pipeline.errors import TrainingDivergedError
-    from pipeline.members.nf import finetune as ft
+    from pipeline.members.nf import real as ft
 
     calls = []
 
@@ -189,8 +189,8 @@ def test_a_diverged_refit_falls_back_to_the_one_before(monkeypatch):
             raise TrainingDivergedError("validation NLL 30.64 at iteration 240 diverged")
         return f"model {len(calls)}"
 
-    monkeypatch.setattr(ft, "finetune", fake)
-    monkeypatch.setattr(ft, "_refit_windows", lambda *a: ("train", "val"))
+    monkeypatch.setattr(ft, "refit_copy", fake)
+    monkeypatch.setattr(ft, "refit_windows", lambda *a: ("train", "val"))
     dates = list(pd.date_range("2025-01-04", periods=3, freq="28D"))
     member = ft.fit_finetuned_member(_FakeFlow(), None, [], dates,  # type: ignore[arg-type]
                                      ft.FineTuneConfig(), None, known_at=lambda d: [])

@@ -43,10 +43,9 @@ from pipeline.members.base import LimitedReach, Member, forecast_within_reach, r
 from pipeline.members.growth_regression import GROWTH_QR, PooledGrowthMember
 from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline, HubBaselineConfig
 from pipeline.members.nf.context import NF_CONTEXT, TrainingPool, fit_context_member
-from pipeline.members.nf.finetune import NF_REAL, FineTuneConfig, fit_finetuned_member
-from pipeline.members.nf.growth import NFGrowthMember
-from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
-                                       train_or_reuse_growth_model)
+from pipeline.members.nf.real import NF_REAL, FineTuneConfig, fit_finetuned_member
+from pipeline.members.nf.flow import SyntheticWindows, stored_flow
+from pipeline.members.nf.growth import GrowthModelConfig, NFGrowthMember
 from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowMember
 from pipeline.members.published import context_channels, context_sources
 from pipeline.members.seasonal import SEASONAL, SeasonalGrowthMember
@@ -185,7 +184,7 @@ class Members:
     @functools.cached_property
     def flow(self) -> tuple[NFGrowthMember, SyntheticWindows]:
         synthetic = SyntheticWindows(TINY_FLOW, DataDigests(self.store))
-        stored = train_or_reuse_growth_model(TINY_FLOW, self.store, synthetic=synthetic)
+        stored = stored_flow(TINY_FLOW, self.store, synthetic=synthetic)
         return NFGrowthMember(stored.estimator, TINY_FLOW, n_samples=N_SAMPLES), synthetic
 
     def refits(self, pool: Sequence[History]) -> Member:
@@ -255,7 +254,7 @@ class Members:
             return self.weekly.case(seasonal(self.ed),
                                     lambda origin: seasonal(self.ed_altered(origin)))
         if name == NF_WEEKLY:
-            stored = train_or_reuse_growth_model(HUB.flow, self.store)
+            stored = stored_flow(HUB.flow, self.store)
             return self.weekly.case(WeeklyFlowMember(stored.estimator, HUB.flow,
                                                      n_samples=N_SAMPLES))
         if name == NF_CONTEXT:

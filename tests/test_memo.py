@@ -16,7 +16,8 @@ from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.fingerprint import fingerprint
 from pipeline.members.nf.growth import NFGrowthMember
-from pipeline.members.nf.model import GrowthModelConfig, train_or_reuse_growth_model
+from pipeline.members.nf.flow import stored_flow
+from pipeline.members.nf.growth import GrowthModelConfig
 from pipeline.members.growth_regression import PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalGrowthMember
@@ -105,7 +106,7 @@ def test_the_code_is_part_of_the_key(tmp_path: Path, monkeypatch) -> None:
 
 
 def test_model_weights_are_part_of_the_key(tmp_path: Path) -> None:
-    stored = train_or_reuse_growth_model(TINY_FLOW, tmp_path / "store")
+    stored = stored_flow(TINY_FLOW, tmp_path / "store")
     member = NFGrowthMember(stored.estimator, TINY_FLOW, n_samples=50)
     key = fingerprint(member)
     with np.errstate(all="ignore"):
@@ -165,7 +166,7 @@ def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) ->
     reference = {f"ref{s}": random_walk_history(26, seed=s) for s in (6, 7, 8)}
     data = OneVintage(Panel({"place": history}, reference))
     origins = weekly_origins(history.dates, scored_only=False)
-    stored = train_or_reuse_growth_model(TINY_FLOW, tmp_path / "store")
+    stored = stored_flow(TINY_FLOW, tmp_path / "store")
     members = [HubBaseline(HubBaselineConfig(n_samples=2000)), PooledGrowthMember(),
                NFGrowthMember(stored.estimator, TINY_FLOW, n_samples=100)]
     config = BacktestConfig(n_paths=50)

@@ -6,10 +6,9 @@ import pandas as pd
 import pytest
 
 from pipeline.outputs.hubverse import HUB_QUANTILE_LEVELS
-from pipeline.members.nf.growth import NFGrowthMember
-from pipeline.members.nf.model import (GrowthModelConfig, build_growth_dataset, decode_paths,
-                                       growth_targets, trailing_week_sums,
-                                       train_or_reuse_growth_model)
+from pipeline.members.nf.flow import decode_paths, stored_flow
+from pipeline.members.nf.growth import (GrowthModelConfig, NFGrowthMember, build_growth_dataset,
+                                        growth_targets, trailing_week_sums)
 from pipeline.panels.history import EpiHistory
 from tests.forecasting_helpers import forecast_one
 from pipeline.systems.waves import WavePrior, simulate_waves
@@ -73,7 +72,7 @@ def _history(cases: np.ndarray, population: int = 873_965) -> EpiHistory:
 
 @pytest.fixture(scope="module")
 def member(tmp_path_factory: pytest.TempPathFactory) -> NFGrowthMember:
-    stored = train_or_reuse_growth_model(TINY, tmp_path_factory.mktemp("store"))
+    stored = stored_flow(TINY, tmp_path_factory.mktemp("store"))
     return NFGrowthMember(stored.estimator, TINY, n_samples=400)
 
 
@@ -113,8 +112,8 @@ def test_forecast_sees_only_its_past(member: NFGrowthMember) -> None:
 
 
 def test_model_store_reuses_the_trained_member(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    first = train_or_reuse_growth_model(TINY, tmp_path)
-    second = train_or_reuse_growth_model(TINY, tmp_path)
+    first = stored_flow(TINY, tmp_path)
+    second = stored_flow(TINY, tmp_path)
     assert not first.reused and second.reused and first.key == second.key
 
 

@@ -84,7 +84,7 @@ def test_members_that_fail_and_a_refit_that_diverges_are_dropped_and_named(
     and the refits fall back to the base flow."""
     from pipeline.errors import TrainingDivergedError
     from pipeline.members.base import MemberForecast
-    from pipeline.members.nf import finetune
+    from pipeline.members.nf import real
     from pipeline.members.nf.weekly import WeeklyFlowMember
     from pipeline.members.seasonal import SeasonalGrowthMember
 
@@ -103,7 +103,7 @@ def test_members_that_fail_and_a_refit_that_diverges_are_dropped_and_named(
 
     monkeypatch.setattr(WeeklyFlowMember, "forecast", broken)
     monkeypatch.setattr(SeasonalGrowthMember, "forecast", nan)
-    monkeypatch.setattr(finetune, "train", diverge)
+    monkeypatch.setattr(real, "stored_refit", diverge)
     out, summary = _replay(tmp_path, releases)
     last = _last(summary)
     assert summary["rounds_failed"] == 0 and last["state"] == "Completed (degraded)"

@@ -20,7 +20,7 @@ from pipeline.data.california.cdph import read_cdph_csv
 from pipeline.combine.average import mix_quantiles
 from pipeline.combine.combiner import LOG_AVERAGE, Ensemble
 from pipeline.members.base import MemberForecast
-from pipeline.members.nf.finetune import REFIT_EPOCH, latest_refit_date, refit_dates
+from pipeline.members.nf.refit import REFIT_EPOCH, latest_refit_date, refit_dates
 from pipeline.members.growth_regression import PooledGrowthMember
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.nowcast.completions import Nowcast, complete_histories, week_sums

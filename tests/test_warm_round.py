@@ -19,9 +19,10 @@ from pipeline.backtest.memo import ForecastMemo
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.hub_round.run import hub_members_preset
-from pipeline.members.nf import context_training, finetune
 from pipeline.members.nf.context import NF_CONTEXT
-from pipeline.members.nf.finetune import NF_REAL, refit_dates
+from pipeline.members.nf.real import NF_REAL
+from pipeline.members.nf.refit import refit_dates
+from pipeline.training.model_store import ModelStore
 from pipeline.members.published import build_hub_members
 from pipeline.members.seasonal import SEASONAL
 from pipeline.panels.hub import ED_COVID, HOSP_COVID, hub_rounds, panel_of
@@ -45,18 +46,20 @@ def vintages(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Vintages]:
 
 
 def _trainings(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
-    """How many times nf-context and nf-real train (pre-training or a refit), the real
-    trainer called each time."""
+    """How many models of nf-context and nf-real are trained (a pre-training or a refit): the
+    builds the model store runs, by the member that asked for them (its store key's kind)."""
     calls = {NF_CONTEXT: 0, NF_REAL: 0}
+    put = ModelStore.put
 
-    def counting(name: str, trainer: Callable[..., Any]) -> Callable[..., Any]:
-        def train(*args: Any, **kwargs: Any) -> Any:
-            calls[name] += 1
-            return trainer(*args, **kwargs)
-        return train
+    def counting(store: ModelStore, key: str, build: Callable[..., Any],
+                 meta: Any = None) -> Any:
+        kinds = set((meta or {}).get("config", {}))
+        for name in calls:
+            if kinds & {name, f"{name} refit"}:
+                calls[name] += 1
+        return put(store, key, build, meta)
 
-    monkeypatch.setattr(context_training, "train", counting(NF_CONTEXT, context_training.train))
-    monkeypatch.setattr(finetune, "train", counting(NF_REAL, finetune.train))
+    monkeypatch.setattr(ModelStore, "put", counting)
     return calls
 
 

@@ -15,8 +15,8 @@ from typing import Literal
 
 from pipeline.data.california.counties import SAN_FRANCISCO, california_county
 from pipeline.backtest.track_record import TrackRecordConfig
-from pipeline.members.nf.model import GrowthModelConfig
-from pipeline.members.nf.finetune import FineTuneConfig
+from pipeline.members.nf.growth import GrowthModelConfig
+from pipeline.members.nf.real import FineTuneConfig
 from pipeline.members.published import MembersConfig
 from pipeline.errors import ConfigError
 from pipeline.forecast.settings import (EstimateSettings, NowcastSettings, OutputSettings,

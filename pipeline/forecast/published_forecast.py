@@ -19,7 +19,7 @@ from pipeline.data.core.cache import data_dir
 from pipeline.data.california.counties import county_slug
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.backtest.track_record import TrackRecord, track_record
-from pipeline.members.nf.model import single_thread
+from pipeline.members.nf.flow import single_thread
 from pipeline.members.smc import NFSeededSMCMember, PrecomputedMember, batched_smc_forecasts
 from pipeline.panels.california import place_panel
 from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS

@@ -29,7 +29,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from pipeline.members.nf.model import single_thread
+from pipeline.members.nf.flow import single_thread
 from pipeline.panels.history import EpiHistory
 from pipeline.evaluation.metrics import kde_log_prob, mean_nll
 from pipeline.forked import ChildBuild, start_in_child

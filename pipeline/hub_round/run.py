@@ -37,7 +37,7 @@ from pipeline.data.core.cache import data_dir
 from pipeline.data.hub.nhsn import NHSNConfig, NHSNProvenance, load_nhsn
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targets
 from pipeline.errors import ConfigError, OfflineError
-from pipeline.members.nf.finetune import FineTuneConfig
+from pipeline.members.nf.real import FineTuneConfig
 from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
 from pipeline.members.published import HubMembersConfig, build_hub_members, published_names
 from pipeline.members.nf.weekly import WeeklyFlowConfig

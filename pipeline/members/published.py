@@ -7,7 +7,7 @@
   California's other counties; the counties together; the hub's 53 locations);
 * ``nf-growth`` — the conditional flow trained on the multi-wave prior (model store);
 * ``nf-real`` — that flow fine-tuned, on the calendar of
-  :func:`~pipeline.members.nf.finetune.refit_dates`, on the real windows known by each refit
+  :func:`~pipeline.members.nf.refit.refit_dates`, on the real windows known by each refit
   date of :func:`finetune_pool`. Without such places there is no nf-real (one series alone is
   too few windows to fine-tune a flow on).
 
@@ -26,11 +26,11 @@ import pandas as pd
 
 from pipeline.members.base import Member
 from pipeline.members.isolation import Dropped
-from pipeline.members.nf.growth import NFGrowthMember
-from pipeline.members.nf.model import (GrowthModelConfig, SyntheticWindows,
-                                       train_or_reuse_growth_model)
-from pipeline.members.nf.finetune import (NF_REAL, FineTuneConfig, FineTunedGrowthMember,
-                                          fit_finetuned_member, refit_dates)
+from pipeline.members.nf.flow import SyntheticWindows, stored_flow
+from pipeline.members.nf.growth import GrowthModelConfig, NFGrowthMember
+from pipeline.members.nf.real import (NF_REAL, FineTuneConfig, FineTunedGrowthMember,
+                                      fit_finetuned_member)
+from pipeline.members.nf.refit import refit_dates
 from pipeline.members.seasonal import SEASONAL, SeasonalConfig, SeasonalGrowthMember
 from pipeline.members.nf.weekly import NF_WEEKLY, WeeklyFlowConfig, WeeklyFlowMember
 from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextFlowMember,
@@ -96,13 +96,13 @@ def build_members(config: MembersConfig, store_root: Path, panel: Panel,
     """The published members of ``panel`` forecast at ``origins`` (module docstring): the
     flows trained or reused from the model store, nf-real refitted at the refit dates among
     ``origins``. ``newest_refits_first``: see
-    :func:`~pipeline.members.nf.finetune.fit_finetuned_member`."""
+    :func:`~pipeline.members.nf.real.fit_finetuned_member`."""
     members: list[Member] = [HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
                              PooledGrowthMember(config.regression)]
     if not config.include_nf:
         return ChosenMembers(members, None, False)
     synthetic = SyntheticWindows(config.growth, DataDigests(store_root))
-    stored = train_or_reuse_growth_model(config.growth, store_root, progress=progress,
+    stored = stored_flow(config.growth, store_root, progress=progress,
                                          synthetic=synthetic)
     flow = NFGrowthMember(stored.estimator, config.growth, n_samples=config.flow_samples)
     members.append(flow)
@@ -125,11 +125,12 @@ def build_members(config: MembersConfig, store_root: Path, panel: Panel,
                          newest_refit_fallbacks(refits, target))
 
 
-def newest_refit_fallbacks(refits: FineTunedGrowthMember, target: str) -> tuple[Dropped, ...]:
-    """The refits that diverged and were replaced, where that matters to the newest forecast:
-    a refit date after the newest refit that trained."""
+def newest_refit_fallbacks(refits: FineTunedGrowthMember | ContextFlowMember, target: str
+                           ) -> tuple[Dropped, ...]:
+    """The refits of ``refits`` (nf-real, nf-context) that diverged and were replaced, where
+    that matters to the newest forecast: a refit date after the newest refit that trained."""
     newest = max(refits.models, default=None)
-    return tuple(Dropped("refit", target, f"{NF_REAL} {date.date()}", why)
+    return tuple(Dropped("refit", target, f"{refits.name} {date.date()}", why)
                  for date, why in refits.fallbacks.items() if newest is None or date > newest)
 
 
@@ -284,7 +285,7 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     member_training`); the same members either way."""
     started = time.perf_counter()
     synthetic = SyntheticWindows(config.flow, DataDigests(store_root))
-    stored = train_or_reuse_growth_model(config.flow, store_root, progress=progress,
+    stored = stored_flow(config.flow, store_root, progress=progress,
                                          synthetic=synthetic)
     flow = WeeklyFlowMember(stored.estimator, config.flow, n_samples=config.flow_samples)
     seconds = {NF_WEEKLY: time.perf_counter() - started}
@@ -306,15 +307,17 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     dropped: list[Dropped] = []
     started = time.perf_counter()
     try:
-        members.append(fit_hub_context(config, store_root, target, vintages, climatology,
-                                       other_signal, seasonal_own_seasons,
-                                       newest_first=newest_first))
+        context = fit_hub_context(config, store_root, target, vintages, climatology,
+                                  other_signal, seasonal_own_seasons, newest_first=newest_first)
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as error:  # noqa: BLE001 - isolation: the context flow alone is lost
         log.warning("nf-context could not be built and is left out: %s", error, exc_info=True)
         dropped.append(Dropped("member", target, NF_CONTEXT,
                                f"training failed: {type(error).__name__}: {error}"))
+    else:
+        members.append(context)
+        dropped += newest_refit_fallbacks(context, target)
     seconds[NF_CONTEXT] = time.perf_counter() - started
     refitted = False
     if dates:

@@ -226,7 +226,7 @@ class WindowedDataset:
         parts = {f: getattr(self, f)[index] for f in _TENSOR_FIELDS}
         draft = dataclasses.replace(self, **parts,
                                     meta=dataclasses.replace(self.meta, split=split))
-        return _with_hash(draft)
+        return with_data_hash(draft)
 
 
 def dataset_sha256(ds: WindowedDataset) -> str:
@@ -242,7 +242,7 @@ def dataset_sha256(ds: WindowedDataset) -> str:
     return digest.hexdigest()
 
 
-def _with_hash(ds: WindowedDataset) -> WindowedDataset:
+def with_data_hash(ds: WindowedDataset) -> WindowedDataset:
     meta = dataclasses.replace(ds.meta, data_sha256=dataset_sha256(ds))
     return dataclasses.replace(ds, meta=meta)
 
@@ -371,7 +371,7 @@ def _assemble(*, system: str, config_name: str,
         config=json.loads(json.dumps(system_config if isinstance(system_config, dict)
                                      else dataclasses.asdict(system_config))),
         package_version=pipeline.__version__, format_version=FORMAT_VERSION, data_sha256="")
-    return _with_hash(WindowedDataset(context, mask, target, trajectory, target_time, stats, meta))
+    return with_data_hash(WindowedDataset(context, mask, target, trajectory, target_time, stats, meta))
 
 
 def windows_from_sir(ensemble: sir_system.SIREnsemble, direction: str = "forward",

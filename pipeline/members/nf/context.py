@@ -9,7 +9,7 @@ multi-wave SIRS seen through an admissions layer), cut into windows with the rea
 channels at 0 ("not known") and the scale channel from each trajectory's population: the first
 rounds, with a few weeks of history and no other signal released, are served by the prior.
 
-**Refits.** On the refit calendar (:func:`~pipeline.members.nf.finetune.refit_dates`), the
+**Refits.** On the refit calendar (:func:`~pipeline.members.nf.real.refit_dates`), the
 pre-trained flow is trained further on every (place, week) window of the vintage of that date
 whose target weeks had ended ``revision_days`` before it, the other signal and climatology as
 released by the vintage's own date (never later), with windows of any extra pool (influenza
@@ -37,59 +37,34 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
 from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
 from pipeline.fingerprint import fingerprint
-from pipeline.members.base import MemberForecast, quantiles_of_samples
-from pipeline.members.nf.context_features import ContextChannels, ContextSources, WindowInputs, \
-    context_windows
+from pipeline.members.base import MemberForecast
+from pipeline.members.nf.context_features import (ContextChannels, ContextSources, WindowInputs,
+                                                  context_windows)
 from pipeline.members.nf.context_training import (NF_CONTEXT, TINY_CONTEXT_FLOW,
                                                   TINY_CONTEXT_REFIT, ContextFlowConfig,
                                                   ContextRefitConfig, TrainingPool,
-                                                  refit_inputs, refit_windows, stored_pretrained,
-                                                  stored_refit)
-from pipeline.members.nf.finetune import refit_dates
-from pipeline.members.nf.model import HALF_CASE, cell_noise, decode_paths, single_thread
-from pipeline.models.estimator import ConditionalEstimator
-from pipeline.panels.history import History, WeeklyHistory
+                                                  refit_inputs, refit_windows)
+from pipeline.members.nf.flow import (SyntheticWindows, check_horizons, decode_weekly,
+                                      last_weeks, path_forecast, sample_cells, StoredFlow,
+                                      stored_flow,
+                                      weekly_cells)
+from pipeline.members.nf.refit import (Refit, RefitJob, estimator_of, fallbacks_of,
+                                       mixed_windows, refit_dates, refit_each, refit_for,
+                                       stored_refit)
 from pipeline.panels.panel import Cells, Panel
-from pipeline.panels.targets import TargetError
+from pipeline.training.digests import DataDigests
 
 __all__ = ["NF_CONTEXT", "TINY_CONTEXT_FLOW", "TINY_CONTEXT_REFIT", "ContextFlowConfig",
-           "ContextRefitConfig", "ContextFlowMember", "TrainingPool", "decode_weekly",
-           "fit_context_member"]
+           "ContextRefitConfig", "ContextFlowMember", "TrainingPool", "fit_context_member"]
 
 # ------------------------------------------------------------------------------------ member
 
 
-def _window(cases: NDArray[np.float64], k_weeks: int) -> NDArray[np.float64]:
-    out = np.full(k_weeks, np.nan)
-    take = min(len(cases), k_weeks)
-    out[k_weeks - take:] = cases[len(cases) - take:]
-    return out
-
-
-def decode_weekly(z: NDArray[np.float64], histories: Sequence[WeeklyHistory]
-                  ) -> NDArray[np.float64]:
-    """Weekly S, I, R paths ``(B, n, H, 3)`` from the flow's ``z (B, n, H)`` (the weekly
-    flow's decoding: a count depletes S; a rate keeps S at 1, each week a share of N)."""
-    last = np.array([h.cases[-1] for h in histories])
-    population = np.array([h.population for h in histories], dtype=np.int64)[:, None]
-    s = np.array([h.susceptible_at_weeks()[-2:] if len(h) > 1
-                  else np.r_[1.0, h.susceptible_at_weeks()] for h in histories])
-    paths = decode_paths(z, last[:, None], s[:, :1], s[:, 1:], population)
-    rate = np.array([not h.depletes for h in histories])
-    if rate.any():
-        share0 = (last[rate, None] + HALF_CASE) / population[rate]
-        base = (np.log(share0) - np.log1p(-share0))[..., None]
-        share = 1.0 / (1.0 + np.exp(-(z[rate] + base)))
-        paths[rate] = np.stack([1.0 - share, share, np.zeros_like(share)], axis=-1)
-    return paths
-
-
-Seeds = tuple[ConditionalEstimator, ...]
+Seeds = tuple[Refit, ...]
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +80,8 @@ class ContextFlowMember:
     channels: ContextChannels = ContextChannels()
     name: str = NF_CONTEXT
     n_samples: int = 1000
+    # the refit dates whose refit diverged (in any seed), and what their forecasts use instead
+    fallbacks: Mapping[pd.Timestamp, str] = field(default_factory=dict)
     # fingerprints of the refits' flows and of the sources by release date (cell_identity)
     _keys: dict[tuple[str, pd.Timestamp | None], str] = field(
         default_factory=dict, init=False, repr=False, compare=False)
@@ -124,8 +101,7 @@ class ContextFlowMember:
 
     def refit_for(self, origin: pd.Timestamp) -> pd.Timestamp | None:
         """The latest refit date on or before ``origin`` (None: before the first refit)."""
-        dates = [r for r in self.models if r <= origin]
-        return max(dates) if dates else None
+        return refit_for(self.models, origin)
 
     def model_for(self, origin: pd.Timestamp) -> Seeds:
         refit = self.refit_for(origin)
@@ -138,7 +114,8 @@ class ContextFlowMember:
         refit = self.refit_for(origin)
         flows, sources = ("refit", refit), ("sources", panel.as_of)
         if flows not in self._keys:         # the weights hashed once per refit, not per cell
-            self._keys[flows] = fingerprint(self.model_for(origin))
+            self._keys[flows] = fingerprint(tuple(estimator_of(m)
+                                                  for m in self.model_for(origin)))
         if sources not in self._keys:
             self._keys[sources] = fingerprint(self.sources.released_by(panel.as_of))
         return (self.name, self.config, self.channels, self.n_samples, refit,
@@ -148,14 +125,14 @@ class ContextFlowMember:
         """The cells' context windows: the other signal and climatology as released by each
         cell's panel's release date."""
         k, h = self.config.context_weeks, self.config.horizon_weeks
-        histories = [_weekly(x, self.name) for x in cells.histories]
+        histories = weekly_cells(cells.histories, self.name)
         climate: dict[tuple[pd.Timestamp | None, pd.Timestamp], NDArray[np.float64]] = {}
         for panel, origin in zip(cells.panels, cells.origins):
             if (panel.as_of, origin) not in climate:
                 climate[(panel.as_of, origin)] = self.sources.climatology_at(
                     panel.as_of, [origin], h)[0]
         inputs = WindowInputs(
-            np.stack([_window(x.cases, k) for x in histories]),
+            np.stack([last_weeks(x.cases, k) for x in histories]),
             np.stack([self.sources.other_weeks(p.as_of, place, o, k)
                       for p, place, o in zip(cells.panels, cells.places, cells.origins)]),
             np.array(cells.origins, dtype="datetime64[ns]"),
@@ -165,46 +142,22 @@ class ContextFlowMember:
         return context_windows(inputs, self.channels)
 
     def sample_paths(self, cells: Cells, chunk: int = 16) -> NDArray[np.float64]:
-        """Weekly S, I, R paths ``(B, n, H, 3)``, each cell through its origin's refit."""
-        histories = [_weekly(x, self.name) for x in cells.histories]
-        missing = [x for x in histories if not np.isfinite(x.cases[-1])]
-        if missing:
-            raise TargetError(f"{self.name}: the week ending {missing[0].origin.date()} is "
-                              "missing (the origin's week must be reported or nowcast)")
+        """Weekly S, I, R paths ``(B, n, H, 3)``, each cell through its origin's refit, its
+        draws from the seeds' flows in equal shares (a mixture of their densities)."""
+        histories = weekly_cells(cells.histories, self.name)
         context, mask = self.cell_context(cells)
-        eps = cell_noise(cells.seeds, self.n_samples, self.config.horizon_weeks)
-        z = np.empty(eps.shape, dtype=np.float64)
-        # draw j of every cell comes from seed j mod K: the seeds' mixture in equal shares
-        share = [np.arange(k, self.n_samples, self.n_seeds) for k in range(self.n_seeds)]
-        models = [self.model_for(o) for o in cells.origins]
-        with torch.no_grad(), single_thread():
-            for seeds in {id(m): m for m in models}.values():
-                index = [i for i, m in enumerate(models) if m is seeds]
-                for start in range(0, len(index), chunk):
-                    part = index[start:start + chunk]
-                    c, m = torch.from_numpy(context[part]), torch.from_numpy(mask[part])
-                    rows = np.asarray(part)[:, None]
-                    for model, draws in zip(seeds, share):
-                        z[rows, draws[None, :]] = model.noise_to_data(
-                            eps[part][:, torch.from_numpy(draws)], c, m).double().numpy()
+        refits = [self.refit_for(o) for o in cells.origins]
+        flows = {r: tuple(estimator_of(m) for m in (self.base if r is None else self.models[r]))
+                 for r in set(refits)}
+        z = sample_cells([flows[r] for r in refits], context, mask,
+                         cells.seeds, self.n_samples, self.config.horizon_weeks, chunk)
         return decode_weekly(z, histories)
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
         """Count quantiles ``(B, H, Q)`` from the sampled paths (kept for the hub's samples)."""
-        if max(horizons) > self.max_horizon or min(horizons) < 1:
-            raise TargetError(f"{self.name} forecasts weeks 1 … {self.max_horizon}, "
-                              f"not {horizons}")
-        paths = self.sample_paths(cells)[:, :, [h - 1 for h in horizons]]
-        counts = paths[..., 1] * cells.populations[:, None, None] - HALF_CASE
-        return MemberForecast(np.maximum(quantiles_of_samples(counts, levels), 0.0),
-                              paths=paths)
-
-
-def _weekly(history: History, name: str) -> WeeklyHistory:
-    if not isinstance(history, WeeklyHistory):
-        raise TargetError(f"{name} reads weekly counts; a daily series needs the daily flow")
-    return history
+        check_horizons(self.name, horizons, self.max_horizon)
+        return path_forecast(self.sample_paths(cells), cells, horizons, levels)
 
 
 def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
@@ -223,24 +176,40 @@ def fit_context_member(config: ContextFlowConfig, refit: ContextRefitConfig,
         raise ConfigError(f"{name}: {n_seeds} seeds for {n_samples} draws")
     dates = refit_dates(sorted({p.last_date for _, p in pools[0].vintages}),
                         refit.refit_every_weeks)
-    # cut only where a refit is not stored (stored_refit), once for every seed
+    # the real windows cut only where a refit is not stored, once for every seed
     windows = {date: functools.cache(functools.partial(refit_windows, pools, date,
                                                        refit.revision_days, config, channels))
                for date in dates}
     inputs = {date: refit_inputs(pools, date) for date in dates}
-    bases: dict[int, ConditionalEstimator] = {}
-    refits: dict[tuple[pd.Timestamp, int], ConditionalEstimator] = {}
+    bases: dict[int, Refit] = {}
+    seeds: dict[int, dict[pd.Timestamp, Refit]] = {}
+    diverged: dict[pd.Timestamp, str] = {}
     for k in (reversed(range(n_seeds)) if newest_first else range(n_seeds)):
         flow = dataclasses.replace(config, seed=config.seed + k)
         again = dataclasses.replace(refit, seed=refit.seed + k)
-        base, synthetic, base_key = stored_pretrained(flow, store_root)
-        bases[k] = base
-        for date in (reversed(dates) if newest_first else dates):
-            model = stored_refit(base, base_key, windows[date], inputs[date], synthetic, date,
-                                 flow, again, channels, store_root)
-            if model is not None:       # too few windows: the same dates for every seed
-                refits[(date, k)] = model
-    by_date = {date: tuple(refits[(date, k)] for k in range(n_seeds))
-               for date in dates if all((date, k) in refits for k in range(n_seeds))}
+        synthetic = SyntheticWindows(flow, DataDigests(store_root))
+        base = stored_flow(flow, store_root, synthetic=synthetic)
+        bases[k] = base.estimator
+
+        def fit(date: pd.Timestamp, flow: ContextFlowConfig = flow,
+                again: ContextRefitConfig = again, synthetic: SyntheticWindows = synthetic,
+                base: StoredFlow = base) -> Refit | None:
+            job = RefitJob(f"{NF_CONTEXT} refit", date, (
+                "nf-context refit windows", again.identity(), flow.identity(),
+                synthetic.data_sha256, dataclasses.asdict(channels), date, *inputs[date]), {
+                f"{NF_CONTEXT} refit": again.identity(), "base": base.key,
+                "channels": dataclasses.asdict(channels), "date": str(date.date())})
+            cut = functools.cache(lambda: mixed_windows(windows[date](), synthetic.dataset,
+                                                        again))
+            return stored_refit(job, base.estimator, flow.estimator_config(), cut, again,
+                                store_root)
+
+        made = refit_each(dates, fit, name=name, newest_first=newest_first)
+        seeds[k] = made.models
+        diverged = made.diverged | diverged
+    # a date is refitted when every seed has its refit (too few windows: the same for all)
+    by_date = {date: tuple(seeds[k][date] for k in range(n_seeds))
+               for date in dates if all(date in seeds[k] for k in range(n_seeds))}
     return ContextFlowMember(tuple(bases[k] for k in range(n_seeds)), by_date, config,
-                             pools[0].sources, channels, name, n_samples)
+                             pools[0].sources, channels, name, n_samples,
+                             fallbacks_of(by_date, diverged))

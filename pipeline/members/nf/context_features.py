@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.members.nf.model import HALF_CASE, LEVEL_SCALE, RealWindows
+from pipeline.members.nf.flow import HALF_CASE, LEVEL_SCALE, RealWindows
 from pipeline.members.nf.weekly import context_rows, cut_windows
 from pipeline.members.seasonal import SeasonalConfig, seasonal_growth, week_of_year
 from pipeline.panels.history import WeeklyHistory

@@ -22,13 +22,11 @@ log(A_{t−k} + ½) − log(A_t + ½), the latest level log(A_t + ½)/10 and the
 share of the training windows keeps only the last 2…K rows (the rest masked), so the model
 serves the hub's first rounds, whose series are a few weeks long. Target:
 z_h = logit f_h − logit f_0 with f_h = (A_h + ½) / (N S_{h−1}), S the share not yet counted;
-decoding gives 0 < A_h < N S_{h−1} (:func:`~pipeline.members.nf.model.decode_paths`).
+decoding gives 0 < A_h < N S_{h−1} (:func:`~pipeline.members.nf.flow.decode_weekly`).
 """
 from __future__ import annotations
 
-import dataclasses
-import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -39,18 +37,18 @@ from numpy.typing import NDArray
 
 import pipeline
 from pipeline.errors import ConfigError
-from pipeline.members.base import MemberForecast, quantiles_of_samples
-from pipeline.members.nf.model import (HALF_CASE, LEVEL_SCALE, RealWindows, cell_noise,
-                                       decode_paths, single_thread)
-from pipeline.models.encoders import EncoderConfig, MLPEncoderConfig
-from pipeline.models.estimator import (ConditionalEstimator, EstimatorConfig,
-                                       make_estimator_config)
+from pipeline.members.base import MemberForecast
+from pipeline.members.nf.flow import (HALF_CASE, LEVEL_SCALE, FlowNetwork, RealWindows,
+                                      as_weekly, check_horizons, decode_weekly, last_weeks,
+                                      logit, path_forecast, sample_cells, weekly_cells)
+from pipeline.models.estimator import ConditionalEstimator, EstimatorConfig
 from pipeline.panels.history import History, WeeklyHistory
 from pipeline.panels.panel import Cells
-from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
+from pipeline.models.standardization import Standardization
+from pipeline.panels.targets import DAYS_PER_WEEK
 from pipeline.systems.waves import WavePrior, simulate_waves
 from pipeline.training.datasets import (FORMAT_VERSION, DatasetMeta, WindowedDataset,
-                                        compute_standardization, dataset_sha256)
+                                        compute_standardization, with_data_hash)
 
 NF_WEEKLY = "nf-weekly"
 DELAY_LAGS = 60                    # days of the infection → admission delay kernel
@@ -65,9 +63,9 @@ ADMISSIONS_PRIOR = WavePrior(days=400, burn_in_days=40, reproduction_start=(0.85
 
 
 @dataclass(frozen=True)
-class WeeklyFlowConfig:
-    """The weekly member's prior, admissions layer, coordinates, network and optimiser (the
-    model-store key is built from this)."""
+class WeeklyFlowConfig(FlowNetwork):
+    """The weekly member's prior, admissions layer and coordinates beside the flow's
+    (:class:`~pipeline.members.nf.flow.FlowNetwork`); the model-store key is built from this."""
 
     context_weeks: int = 8
     horizon_weeks: int = 5          # 1–4 and a fifth for a round whose data are two weeks behind
@@ -79,14 +77,7 @@ class WeeklyFlowConfig:
     dispersion: tuple[float, float] = (30.0, 2000.0)
     short_share: float = 0.3
     min_weeks: int = 2
-    hidden_features: int = 128
-    flow_layers: int = 5
-    flow_hidden: int = 64
     iterations: int = 2500
-    batch_size: int = 1024
-    lr: float = 3e-3
-    val_fraction: float = 0.1
-    seed: int = 0
 
     kind: ClassVar[str] = NF_WEEKLY
 
@@ -97,14 +88,8 @@ class WeeklyFlowConfig:
         if not 0 <= self.short_share < 1:
             raise ConfigError(f"WeeklyFlowConfig.short_share={self.short_share} not in [0, 1)")
 
-    def identity(self) -> dict[str, object]:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
-
     def estimator_config(self) -> EstimatorConfig:
-        encoder = EncoderConfig(kind="mlp", embedding_features=32,
-                                mlp=MLPEncoderConfig(hidden_features=self.hidden_features))
-        return make_estimator_config(self.horizon_weeks, 3, self.context_weeks, encoder,
-                                     layers=self.flow_layers, hidden_features=self.flow_hidden)
+        return self.network(self.horizon_weeks, 3, self.context_weeks)
 
     def build_dataset(self) -> WindowedDataset:
         return weekly_dataset(self)
@@ -156,10 +141,6 @@ def context_rows(series: NDArray[np.float64], k_weeks: int
     return np.stack([relative, level, time], axis=-1).astype(np.float32), mask
 
 
-def _logit(p: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.log(p) - np.log1p(-p)
-
-
 def weekly_targets(window: NDArray[np.float64], counted_before: NDArray[np.float64],
                    population: NDArray[np.float64], *, depletes: bool = True
                    ) -> NDArray[np.float32]:
@@ -170,51 +151,79 @@ def weekly_targets(window: NDArray[np.float64], counted_before: NDArray[np.float
                                   axis=1) / population[:, None]
     if not depletes:
         s_prev = np.ones_like(s_prev)
-    logits = _logit((window + HALF_CASE) / (population[:, None] * s_prev))
+    logits = logit((window + HALF_CASE) / (population[:, None] * s_prev))
     return (logits[:, 2:] - logits[:, 1:2]).astype(np.float32)
 
 
-def weekly_dataset(config: WeeklyFlowConfig) -> WindowedDataset:
-    """Windows at every week of every trajectory of the prior (a share shortened)."""
-    admissions, population = simulate_admissions(config)
+@dataclass(frozen=True)
+class PriorWindows:
+    """Windows of the prior at every week of every trajectory: ``series (W, K)`` the K weeks
+    to the origin (a seeded share shortened to 2 … K weeks, NaN before), ``target (W, H)``
+    (:func:`weekly_targets`), the ``trajectory`` and origin ``week`` of each, the
+    trajectories' ``population``, whether a window is whole (``ok``: finite targets), and the
+    size of the simulation."""
+
+    series: NDArray[np.float64]
+    target: NDArray[np.float32]
+    trajectory: NDArray[np.int64]
+    week: NDArray[np.int64]
+    population: NDArray[np.float64]
+    ok: NDArray[np.bool_]
+    n_trajectories: int
+    n_values: int
+
+
+def prior_windows(prior: WeeklyFlowConfig, k: int, h: int, seed: int) -> PriorWindows:
+    """The prior's windows of K context weeks and H target weeks; ``seed`` draws which are
+    shortened (the rounds whose series are a few weeks long)."""
+    admissions, population = simulate_admissions(prior)
     m, n_weeks = admissions.shape
-    k, h = config.context_weeks, config.horizon_weeks
     origins = np.arange(k, n_weeks - h)
     trajectory = np.repeat(np.arange(m), origins.size)
     t = np.tile(origins, m)
     series = admissions[trajectory[:, None], t[:, None] + np.arange(-k + 1, 1)[None, :]]
-    rng = np.random.default_rng(config.seed + 7)
-    short = rng.random(len(series)) < config.short_share
-    keep = rng.integers(config.min_weeks, k + 1, len(series))
+    rng = np.random.default_rng(seed + 7)
+    short = rng.random(len(series)) < prior.short_share
+    keep = rng.integers(prior.min_weeks, k + 1, len(series))
     series = np.where(short[:, None] & (np.arange(k)[None, :] < (k - keep)[:, None]), np.nan,
                       series)
-    context, mask = context_rows(series, k)
     counted = np.concatenate([np.zeros((m, 1)), np.cumsum(admissions, axis=1)], axis=1)
     window = admissions[trajectory[:, None], t[:, None] + np.arange(-1, h + 1)[None, :]]
     with np.errstate(invalid="ignore", divide="ignore"):
         target = weekly_targets(window, counted[trajectory, t - 1], population[trajectory])
-    ok = np.isfinite(target).all(axis=1)
+    return PriorWindows(series, target, trajectory, t, population,
+                        np.asarray(np.isfinite(target).all(axis=1)), m, int(admissions.size))
+
+
+def prior_dataset(windows: PriorWindows, context: NDArray[np.float32],
+                  mask: NDArray[np.bool_], meta: DatasetMeta,
+                  standardize: Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
+                                        Standardization] = compute_standardization
+                  ) -> WindowedDataset:
+    """The whole windows of ``windows`` with their ``context`` rows, standardized, hashed."""
+    ok = windows.ok
     context_t, mask_t = torch.from_numpy(context[ok]), torch.from_numpy(mask[ok])
-    target_t = torch.from_numpy(target[ok])
+    target_t = torch.from_numpy(windows.target[ok])
+    return with_data_hash(WindowedDataset(
+        context_t, mask_t, target_t, torch.from_numpy(windows.trajectory[ok]),
+        torch.from_numpy(windows.week[ok].astype(np.float64)),
+        standardize(context_t, mask_t, target_t), meta))
+
+
+def weekly_dataset(config: WeeklyFlowConfig) -> WindowedDataset:
+    """Windows at every week of every trajectory of the prior (a share shortened)."""
+    k, h = config.context_weeks, config.horizon_weeks
+    windows = prior_windows(config, k, h, config.seed)
+    context, mask = context_rows(windows.series, k)
     meta = DatasetMeta(
         system="waves", config_name="hub-weekly", direction="forward", target_kind="growth",
         context_features=("log_week_rel", "log_week_level", "t_week"),
         target_features=tuple(f"z_week{s}" for s in range(1, h + 1)), window=k,
-        seed=config.seed, val_fraction=config.val_fraction, split="all", n_trajectories=m,
-        n_observed_points=int(admissions.size), n_observed_values=int(admissions.size),
-        config=config.identity(), package_version=pipeline.__version__,
-        format_version=FORMAT_VERSION, data_sha256="")
-    draft = WindowedDataset(context_t, mask_t, target_t, torch.from_numpy(trajectory[ok]),
-                            torch.from_numpy(t[ok].astype(np.float64)),
-                            compute_standardization(context_t, mask_t, target_t), meta)
-    return dataclasses.replace(draft, meta=dataclasses.replace(
-        meta, data_sha256=dataset_sha256(draft)))
-
-
-def _weekly(history: History, name: str) -> WeeklyHistory:
-    if not isinstance(history, WeeklyHistory):
-        raise TargetError(f"{name} reads weekly counts; a daily series needs the daily flow")
-    return history
+        seed=config.seed, val_fraction=config.val_fraction, split="all",
+        n_trajectories=windows.n_trajectories, n_observed_points=windows.n_values,
+        n_observed_values=windows.n_values, config=config.identity(),
+        package_version=pipeline.__version__, format_version=FORMAT_VERSION, data_sha256="")
+    return prior_dataset(windows, context, mask, meta)
 
 
 @dataclass(frozen=True, eq=False)
@@ -235,48 +244,26 @@ class WeeklyFlowMember:
                      chunk: int = 16) -> NDArray[np.float64]:
         """Weekly S, I, R paths ``(B, n, H, 3)`` of B weekly histories, history b drawn from
         ``seeds[b]``; a missing last week is an error (nowcast it first)."""
-        weekly = [_weekly(h, self.name) for h in histories]
-        series = np.stack([_window(h.cases, self.config.context_weeks) for h in weekly])
-        last = series[:, -1]
-        if not np.isfinite(last).all():
-            bad = weekly[int(np.flatnonzero(~np.isfinite(last))[0])]
-            raise TargetError(f"{self.name}: the week ending {bad.origin.date()} is missing "
-                              "(the origin's week must be reported or nowcast)")
-        context, mask = context_rows(series, self.config.context_weeks)
-        eps = cell_noise(seeds, self.n_samples, self.estimator.features)
-        context_t, mask_t = torch.from_numpy(context), torch.from_numpy(mask)
-        with torch.no_grad(), single_thread():
-            z = torch.cat([self.estimator.noise_to_data(eps[i:i + chunk], context_t[i:i + chunk],
-                                                        mask_t[i:i + chunk])
-                           for i in range(0, len(weekly), chunk)]).double().numpy()
-        population = np.array([h.population for h in weekly], dtype=np.int64)[:, None]
-        s = np.array([h.susceptible_at_weeks()[-2:] if len(h) > 1
-                      else np.r_[1.0, h.susceptible_at_weeks()] for h in weekly])
-        paths = decode_paths(z, last[:, None], s[:, :1], s[:, 1:], population)
-        rate = np.array([not h.depletes for h in weekly])
-        if rate.any():          # a rate leaves S at 1: each week's share against all N
-            base = _logit((last[rate, None] + HALF_CASE) / population[rate])[..., None]
-            share = 1.0 / (1.0 + np.exp(-(z[rate] + base)))
-            paths[rate] = np.stack([1.0 - share, share, np.zeros_like(share)], axis=-1)
-        return paths
+        weekly = weekly_cells(histories, self.name)
+        k = self.config.context_weeks
+        context, mask = context_rows(np.stack([last_weeks(h.cases, k) for h in weekly]), k)
+        z = sample_cells([(self.estimator,)] * len(weekly), context, mask, seeds,
+                         self.n_samples, self.estimator.features, chunk)
+        return decode_weekly(z, weekly)
 
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
         """Count quantiles ``(B, H, Q)`` of every cell from its sampled paths (kept)."""
-        if max(horizons) > self.max_horizon or min(horizons) < 1:
-            raise TargetError(f"{self.name} forecasts weeks 1 … {self.max_horizon}, "
-                              f"not {horizons}")
-        paths = self.sample_paths(cells.histories, cells.seeds)[:, :, [h - 1 for h in horizons]]
-        counts = paths[..., 1] * cells.populations[:, None, None] - HALF_CASE
-        return MemberForecast(np.maximum(quantiles_of_samples(counts, levels), 0.0),
-                              paths=paths)
+        check_horizons(self.name, horizons, self.max_horizon)
+        return path_forecast(self.sample_paths(cells.histories, cells.seeds), cells, horizons,
+                             levels)
 
     def real_windows(self, histories: Sequence[History], cutoff: pd.Timestamp) -> RealWindows:
         """Every (place, week) window of ``histories`` whose target weeks end by ``cutoff``
         (the fine-tuned member's training windows), weeks before a series began masked."""
         k, h = self.config.context_weeks, self.config.horizon_weeks
         contexts, masks, targets, places = [], [], [], []
-        for index, history in enumerate(_weekly(x, self.name) for x in histories):
+        for index, history in enumerate(as_weekly(x, self.name) for x in histories):
             end = int(np.searchsorted(history.dates.to_numpy(np.int64), cutoff.value,
                                       side="right")) - 1
             origins = np.arange(1, end - h + 1)
@@ -314,11 +301,3 @@ def cut_windows(history: WeeklyHistory, origins: NDArray[np.int64], k_weeks: int
     whole = (np.isfinite(target).all(axis=1) & np.isfinite(window).all(axis=1)
              & np.isfinite(series[:, -1]))
     return series, target, whole
-
-
-def _window(cases: NDArray[np.float64], k_weeks: int) -> NDArray[np.float64]:
-    """The last ``k_weeks`` counts, NaN before the series began."""
-    out = np.full(k_weeks, np.nan)
-    take = min(len(cases), k_weeks)
-    out[k_weeks - take:] = cases[len(cases) - take:]
-    return out
