@@ -119,7 +119,7 @@ def _replay(out: Path, releases: list[Any], preset: str, start: str | None, end:
     config = rp.ReplayConfig(out, run, dt.date.fromisoformat(start) if start else None,
                              dt.date.fromisoformat(end) if end else None)
     rp.copy_hub_config(run.hub_config_dir(), out)
-    return rp.replay(config, releases, flow_step("tiny" if preset == "tiny" else "default"),
+    return rp.replay(config, releases, flow_step(),
                      on_round)
 
 

@@ -241,7 +241,7 @@ def run_rsv(args: argparse.Namespace, path: Path) -> None:
 
     with _prefect():
         summary = rp.replay(config, releases,
-                            flow_step("tiny" if args.preset == "tiny" else "default"), partial)
+                            flow_step(), partial)
     figures = {k: summary[k] for k in ("rounds_due", "rounds_published", "rounds_failed",
                                        "degraded", "failed", "no_round", "replaced",
                                        "calendar", "seconds")}

@@ -223,8 +223,7 @@ def replay_command(
 
     rp.copy_hub_config(run.hub_config_dir(), out)
     with local_api():
-        summary = rp.replay(config, releases,
-                            flow_step("tiny" if preset == "tiny" else "default"))
+        summary = rp.replay(config, releases, flow_step())
     degraded, no_round, replaced = summary["degraded"], summary["no_round"], summary["replaced"]
     assert isinstance(degraded, list) and isinstance(no_round, list)
     assert isinstance(replaced, list)

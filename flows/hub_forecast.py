@@ -31,6 +31,7 @@ from prefect.cache_policies import NO_CACHE
 from prefect.client.schemas.objects import State
 from prefect.states import Completed
 
+from pipeline.data.core.cache import data_dir
 from pipeline.hub_round.publish import PublishedRound, publish_hub_round, require_hub_config
 from pipeline.hub_round.replay import RoundOutcome, RoundStep
 from pipeline.hub_round.run import HubRun, HubRunConfig, hub_members_preset, run_hub_round
@@ -47,8 +48,8 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                  data_source: Literal["live", "cache"] = "live",
                  output_dir: str = "reports", hub_config: str | None = None,
                  seed: int = 0, preset: Literal["default", "tiny"] = "default",
-                 due: dt.date | None = None, deadline_only: bool = False
-                 ) -> dict[str, object] | State:
+                 due: dt.date | None = None, deadline_only: bool = False,
+                 config: HubRunConfig | None = None) -> dict[str, object] | State:
     """This week's round of the hub for ``disease`` (module docstring) into
     ``<output_dir>/hub-<disease>/<reference date>/``.
 
@@ -71,12 +72,13 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
             tasks.json, deadlines moved for holidays included): the deployments run on every
             day a deadline can fall on (Monday to Thursday) and all but that one end at once
             with "no round due today".
+        config: The round's whole configuration (a replay's week: its members, rounds,
+            model id and data folder), taken as it is; the arguments above then give only
+            ``deadline_only``.
     """
     logger = get_run_logger()
-    config = HubRunConfig(disease=disease, data_source=data_source, output_dir=output_dir,
-                          hub_config=hub_config, seed=seed,
-                          members=hub_members_preset(preset), due=due)
-    config = dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
+    config = config or run_config(disease, data_source, output_dir, hub_config, seed, preset,
+                                  due)
     require_hub_config(config)        # no hub config: refused by name before any work
     try:                              # off season, or not the deadline: known before any work
         if deadline_only:
@@ -114,6 +116,17 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
                              f"{run.degraded_message()}")
 
 
+def run_config(disease: Literal["covid", "flu", "rsv"], data_source: Literal["live", "cache"],
+               output_dir: str, hub_config: str | None, seed: int,
+               preset: Literal["default", "tiny"], due: dt.date | None) -> HubRunConfig:
+    """The round's configuration from the deployment's parameters; the data folder read from
+    the environment here, once ($FLOWCAST_DATA_DIR or ./data)."""
+    config = HubRunConfig(disease=disease, data_source=data_source, output_dir=output_dir,
+                          hub_config=hub_config, seed=seed, members=hub_members_preset(preset),
+                          due=due, data_dir=str(data_dir()))
+    return dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
+
+
 def due_today(config: HubRunConfig, now: dt.datetime | None = None) -> dt.date:
     """Today (``now``, else the clock) in the hub's timezone (US Eastern), when a round is due
     only on its deadline: a day the calendar has no deadline on is :class:`NoHubRoundError`
@@ -148,15 +161,13 @@ def round_outcome(run: HubRun, published: PublishedRound) -> dict[str, object]:
             "dropped": [dataclasses.asdict(d) for d in run.dropped]}
 
 
-def flow_step(preset: Literal["default", "tiny"]) -> RoundStep:
+def flow_step() -> RoundStep:
     """One Wednesday of a replay (:mod:`pipeline.hub_round.replay`) as the deployment runs it:
-    this flow, its state kept (Completed, Completed (degraded) or Failed)."""
+    this flow on the week's whole configuration (members, rounds, model id, data folder), its
+    state kept (Completed, Completed (degraded) or Failed)."""
     def step(config: HubRunConfig) -> RoundOutcome:
         started = time.perf_counter()
-        state = hub_forecast(disease=config.disease, data_source=config.data_source,
-                             output_dir=config.output_dir, hub_config=config.hub_config,
-                             seed=config.seed, preset=preset, due=config.due,
-                             return_state=True)
+        state = hub_forecast(config=config, return_state=True)
         due = str(config.due)
         if not state.is_completed():
             try:

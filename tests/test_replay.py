@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +50,7 @@ def _replay(tmp_path: Path, releases, start: str = DUE,  # noqa: ANN001
     config = rp.ReplayConfig(tmp_path / "replay", run, dt.date.fromisoformat(start),
                              dt.date.fromisoformat(end))
     rp.copy_hub_config(run.hub_config_dir(), config.out)
-    summary = rp.replay(config, releases, flow_step("tiny"))
+    summary = rp.replay(config, releases, flow_step())
     return config.out, summary
 
 
@@ -173,6 +174,10 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
     revised = _revised(releases, DUE)
     out, first = _replay(tmp_path, revised, start="2025-09-17", end="2025-09-17")
     assert [r["reference_date"] for r in first["rounds"]] == ["2025-09-20"]
+    # the week's data folder travels on the round's config, through the flow whole: the
+    # process's own folder ($FLOWCAST_DATA_DIR) is never read or written
+    assert not Path(os.environ["FLOWCAST_DATA_DIR"]).exists()
+    assert (out / "data" / "models").is_dir() and (out / "data" / "forecast-memo").is_dir()
     # 2025-09-24's releases are not in the cache of 2025-09-17's round
     assert not list((out / "releases").glob("2025-09-24-*"))
     _, again = _replay(tmp_path, revised, start="2025-09-17", end=DUE)

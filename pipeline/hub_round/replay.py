@@ -37,7 +37,6 @@ from typing import Literal
 
 import pandas as pd
 
-from pipeline.data.core.cache import data_folder
 from pipeline.data.hub.nhsn_vintages import (canonical_csv, cached_weekly_vintages,
                                              disease_targets, target_spec)
 from pipeline.data.hub.target_import import VintageImport, import_target_csv
@@ -217,17 +216,17 @@ def replay(config: ReplayConfig, releases: Sequence[Release],
         if str(due) in done:
             continue
         started = time.perf_counter()
-        with data_folder(data_dir):
-            imported = _import_due(releases, due, out, data_dir)
-            run_config = dataclasses.replace(config.run, data_source="cache", due=due,
-                                             output_dir=str(out / "rounds"))
-            try:
-                outcome = step(run_config)
-            except (KeyboardInterrupt, SystemExit):
-                raise
-            except Exception as error:  # noqa: BLE001 - a failed round is recorded, not fatal
-                log.error("the round due %s failed: %s", due, error, exc_info=True)
-                outcome = RoundOutcome(str(due), "Failed", f"{type(error).__name__}: {error}")
+        imported = _import_due(releases, due, out, data_dir)
+        run_config = dataclasses.replace(config.run, data_source="cache", due=due,
+                                         output_dir=str(out / "rounds"),
+                                         data_dir=str(data_dir))
+        try:
+            outcome = step(run_config)
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception as error:  # noqa: BLE001 - a failed round is recorded, not fatal
+            log.error("the round due %s failed: %s", due, error, exc_info=True)
+            outcome = RoundOutcome(str(due), "Failed", f"{type(error).__name__}: {error}")
         if outcome.model_output is not None:
             model_dir.mkdir(parents=True, exist_ok=True)
             copied = model_dir / Path(outcome.model_output).name

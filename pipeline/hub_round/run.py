@@ -50,7 +50,7 @@ from pipeline.members.isolation import Dropped
 from pipeline.panels.hub import hub_rounds, panel_of, reference_date_for
 from pipeline.panels.panel import Panel
 from pipeline.progress import ProgressReporter, SilentProgress
-from pipeline.training.model_store import default_store_root
+from pipeline.training.model_store import MODELS_FOLDER
 
 log = logging.getLogger(__name__)
 HUB_CONFIG_ENV = "FLOWCAST_HUB_CONFIG"
@@ -105,12 +105,20 @@ class HubRunConfig:
     # the Wednesday the round is due (a replay's week): a target whose newest release serves
     # an older round is not current; None: the newest round any target serves
     due: dt.date | None = None
+    # the flowcast data folder (cache, model store, memo), set at the edge (the CLI, the
+    # flow, a replay's week); None: $FLOWCAST_DATA_DIR or ./data, read when the round runs
+    data_dir: str | None = None
 
     def __post_init__(self) -> None:
         if self.disease not in ("covid", "flu", "rsv"):
             raise ConfigError(f"disease {self.disease!r}: use covid, flu or rsv")
         if self.data_source not in ("live", "cache"):
             raise ConfigError(f"data source {self.data_source!r}: use live or cache")
+
+    @property
+    def data_folder(self) -> Path:
+        """The data folder the round reads and writes (:attr:`data_dir`)."""
+        return data_dir(self.data_dir)
 
     @property
     def seasonal_own_seasons(self) -> bool:
@@ -240,7 +248,7 @@ def memo_path(config: HubRunConfig, target: str) -> Path:
     """The memo of the target's member forecasts: a round's cells are forecast once (each round
     from its own vintage, so next week's run forecasts only the new round)."""
     slug = target.replace(" ", "-")
-    return data_dir() / "forecast-memo" / f"hub-{config.disease}-{slug}.npz"
+    return config.data_folder / "forecast-memo" / f"hub-{config.disease}-{slug}.npz"
 
 
 def _save(memo: ForecastMemo) -> None:
@@ -250,9 +258,10 @@ def _save(memo: ForecastMemo) -> None:
         log.warning("could not write the forecast memo %s: %s", memo.path, error)
 
 
-def load_vintages(target: str) -> list[tuple[pd.Timestamp, Panel]]:
-    """Every cached vintage of ``target`` as (release date, panel), oldest first."""
-    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(target)]
+def load_vintages(target: str, folder: Path | None = None) -> list[tuple[pd.Timestamp, Panel]]:
+    """Every cached vintage of ``target`` in the data ``folder`` as (release date, panel),
+    oldest first."""
+    return [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(target, folder)]
 
 
 def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None) -> HubRun:
@@ -269,7 +278,8 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         if loaded.skipped:
             log.warning("%s: locations left out: %s", loaded.target,
                         "; ".join(f"{p} ({why})" for p, why in loaded.skipped.items()))
-    vintages = {t: load_vintages(t) if t in provenance else [] for t in targets}
+    vintages = {t: load_vintages(t, config.data_folder) if t in provenance else []
+                for t in targets}
     seconds["data"] = time.perf_counter() - started
     # the ED share's vintages are COVID-19's seasonal climatology (none released yet: no
     # seasonal forecast); influenza's seasonal member reads the admissions' own earlier seasons
@@ -279,7 +289,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     results: dict[str, HubRoundsResult] = {}
     model_key, reused = "", True
     per_target: dict[str, dict[str, float]] = {}
-    store_root = default_store_root()
+    store_root = config.data_folder / MODELS_FOLDER
     cold = any(not memo_path(config, t.target).is_file() for t in inputs)
     with hub_member_training(config.members, store_root, inputs, config.seasonal_own_seasons,
                              needed=cold):
@@ -331,15 +341,16 @@ def _load(config: HubRunConfig) -> tuple[dict[str, NHSNProvenance], dict[str, st
     with no release at all and why; with none of them: the error naming the import."""
     offline = config.data_source == "cache"
     try:
-        return dict(load_nhsn(NHSNConfig(disease=config.disease), offline=offline).provenance), {}
+        return dict(load_nhsn(NHSNConfig(disease=config.disease, data_dir=config.data_folder),
+                              offline=offline).provenance), {}
     except OfflineError as error:
         first = error
     provenance: dict[str, NHSNProvenance] = {}
     missing: dict[str, str] = {}
     for target in disease_targets(config.disease):     # each alone: which one has none?
         try:
-            loaded = load_nhsn(NHSNConfig(disease=config.disease, targets=(target,)),
-                               offline=offline)
+            loaded = load_nhsn(NHSNConfig(disease=config.disease, targets=(target,),
+                                          data_dir=config.data_folder), offline=offline)
             provenance |= loaded.provenance
         except OfflineError as error:
             missing[target] = str(error).split(" in ")[0]

@@ -251,11 +251,14 @@ def _verified(key: str, path: Path) -> tuple[StoreEntry | None, str]:
         return None, str(exc)
 
 
+MODELS_FOLDER = "models"            # the model store's folder in the flowcast data folder
+
+
 def default_store_root() -> Path:
     """The model store under the flowcast data folder ($FLOWCAST_DATA_DIR)."""
     from pipeline.data.core.cache import data_dir
 
-    return data_dir() / "models"
+    return data_dir() / MODELS_FOLDER
 
 
 @contextlib.contextmanager
