@@ -325,11 +325,12 @@ def _round_of(frame: pd.DataFrame, tasks: Mapping[str, Any],
 
 def _canonical_text(cells: pd.Series) -> np.ndarray:
     """An integer task id's text as the config's values print: ``1.0`` reads ``1``."""
-    text = cells.astype(str).to_numpy(dtype=object)
+    # a column holds a few distinct values (the horizons): each is read once
+    codes, uniques = pd.factorize(cells.astype(str))
+    text = np.asarray(uniques, dtype=object)
     looks_numeric = pd.Series(text).str.fullmatch(r"[+-]?\d+(\.0*)?").to_numpy(dtype=bool)
-    if looks_numeric.any():
-        text[looks_numeric] = [str(int(float(v))) for v in text[looks_numeric]]
-    return text
+    text[looks_numeric] = [str(int(float(v))) for v in text[looks_numeric]]
+    return text[codes]
 
 
 def _model_task_of_rows(frame: pd.DataFrame, model_tasks: list[Mapping[str, Any]],
@@ -341,14 +342,16 @@ def _model_task_of_rows(frame: pd.DataFrame, model_tasks: list[Mapping[str, Any]
     integer: set[str] = set().union(*(_int_task_ids(t) for t in model_tasks))
     text = {c: _canonical_text(frame[c]) if c in integer else frame[c].astype(str).to_numpy()
             for c in columns}
+    # pandas' hashed isin: numpy's on object arrays sorts them (a second per 100,000 rows)
+    cells = {c: pd.Series(v) for c, v in text.items()}
+    kinds = frame["output_type"].astype(object)
     fits = np.zeros((len(model_tasks), len(frame)), dtype=np.int64)
     for k, task in enumerate(model_tasks):
         for column in columns:
             allowed = [str(v) for v in _task_values(task["task_ids"].get(column))] or \
                 list(NA_TEXT)
-            fits[k] += np.isin(text[column], allowed)
-        fits[k] += np.isin(frame["output_type"].to_numpy(dtype=object),
-                           list(task["output_type"]))
+            fits[k] += cells[column].isin(allowed).to_numpy()
+        fits[k] += kinds.isin(list(task["output_type"])).to_numpy()
     full = fits == len(columns) + 1
     owner = np.where(full.any(axis=0), np.argmax(full, axis=0), -1)
     unmatched = np.flatnonzero(owner < 0)
