@@ -503,7 +503,7 @@ def traced_path(datasf: Path, cdph: Path | None) -> dict[str, Any]:
         from pipeline.forecast.publish import weekly_tables, write_submission
         from pipeline.forecast.sources import load_series, series_to_sir
 
-        memo = steps.forecast_memo_path(config.data.place)
+        memo = steps.forecast_memo_path(config.data.place, config.data.folder)
         memo.unlink(missing_ok=True)          # every member forecasts every cell again
 
         def in_place(build: Callable[[], Any], timeout_s: float = forked.CHILD_TIMEOUT_S

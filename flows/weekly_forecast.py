@@ -48,6 +48,7 @@ from prefect.states import Completed
 
 from pipeline import forecast as fc
 from pipeline.data.california.counties import california_county, county_slug
+from pipeline.data.core.cache import data_dir
 from pipeline.errors import ConfigError
 from pipeline.forecast.config import DataSourceKind
 from pipeline.forecast.publish import PublishedRun, publish
@@ -249,11 +250,13 @@ def flow_config(preset: str, *, encoder: str | None, data_source: DataSourceKind
                 import_from: list[str] | None, output_dir: str, seed: int,
                 datasf_base_url: str | None, county: str | None = None) -> fc.ForecastConfig:
     """The flow's parameters as a :class:`~pipeline.forecast.ForecastConfig` (``county`` as
-    CDPH spells it, whatever its case; an unknown name fails here, before any work)."""
+    CDPH spells it, whatever its case; an unknown name fails here, before any work); the data
+    folder read from the environment here, once ($FLOWCAST_DATA_DIR or ./data)."""
     base = fc.resolve_config(preset)
     data = dataclasses.replace(base.data, kind=data_source, import_paths=tuple(import_from or ()),
                                base_url=datasf_base_url or None,
-                               county=california_county(county) if county else None)
+                               county=california_county(county) if county else None,
+                               data_dir=str(data_dir()))
     return fc.resolve_config(preset, encoder=encoder, seed=seed, data=data,
                              output_dir=output_dir)
 

@@ -275,7 +275,13 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     # the same models, so the same tables
     config = dataclasses.replace(flow_run_config, training=dataclasses.replace(
         flow_run_config.training, background_members=True))
+    # the data folder travels on the config (read from the environment by flow_config, once):
+    # the run, its background process included, never reads the variable again
+    assert config.data.data_dir == str(tmp_path / "data")
+    monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "elsewhere"))
     results = run_forecast(config)
+    assert not (tmp_path / "elsewhere").exists()
+    assert (tmp_path / "data" / "models").is_dir() and (tmp_path / "data" / "forecast-memo").is_dir()
 
     assert isinstance(results, ForecastResults) and results.config == config
     assert isinstance(results.models.forward, ConditionalEstimator)
@@ -306,7 +312,7 @@ def test_run_forecast_without_prefect_equals_the_flow(good_run, datasf_dir, tmp_
     # tables.
     from pipeline.forecast.published_forecast import forecast_memo_path
 
-    forecast_memo_path(config.data.place).unlink()
+    forecast_memo_path(config.data.place, config.data.folder).unlink()
     again = run_forecast(config)
     assert again.models.reused and again.weekly.memo_reads is not None
     assert again.weekly.memo_reads[0] < again.weekly.memo_reads[1] / 2   # made anew, not read

@@ -11,9 +11,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 from typing import Literal
 
 from pipeline.data.california.counties import SAN_FRANCISCO, california_county
+from pipeline.data.core.cache import data_dir
+from pipeline.training.model_store import MODELS_FOLDER
 from pipeline.backtest.track_record import TrackRecordConfig
 from pipeline.members.nf.growth import GrowthModelConfig
 from pipeline.members.nf.real import FineTuneConfig
@@ -58,6 +61,14 @@ class DataSourceConfig:
     # ones still being reported (NowcastSettings); without a nowcast it falls back to 14
     trailing_days: int = 0
     county: str | None = None      # a California county from CDPH; None: San Francisco, DataSF
+    # the flowcast data folder (cache, model store, memo, delay models), set where the run's
+    # config is built (the flow, the CLI); None: $FLOWCAST_DATA_DIR or ./data, read at use
+    data_dir: str | None = None
+
+    @property
+    def folder(self) -> Path:
+        """The data folder the run reads and writes (:attr:`data_dir`)."""
+        return data_dir(self.data_dir)
 
     @property
     def place(self) -> str:
@@ -122,6 +133,11 @@ class ForecastConfig:
     track_record: TrackRecordConfig = field(default_factory=TrackRecordConfig)
     nowcast: NowcastSettings = field(default_factory=NowcastSettings)
     outputs: OutputSettings = field(default_factory=OutputSettings)
+
+    @property
+    def store_root(self) -> Path:
+        """The model store in the run's data folder (:attr:`DataSourceConfig.folder`)."""
+        return self.data.folder / MODELS_FOLDER
 
     def __post_init__(self) -> None:
         _ = self.resolved  # an unknown preset, encoder or recipe fails here, early

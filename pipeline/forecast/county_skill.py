@@ -22,9 +22,8 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.data.core.cache import data_dir
 from pipeline.data.california.cdph import CDPHVintage
-from pipeline.data.california.cdph_source import load_cdph_vintage
+from pipeline.data.california.cdph_source import CDPHConfig, load_cdph_vintage
 from pipeline.backtest.config import BacktestConfig, Variant
 from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.result import BacktestResult
@@ -38,7 +37,6 @@ from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.results import CountySkill
 from pipeline.io import atomic_write_json
 from pipeline.progress import ProgressReporter, start_phase
-from pipeline.training.model_store import default_store_root
 
 log = logging.getLogger(__name__)
 FOLDER = "county_skill"
@@ -102,7 +100,7 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
     """The published method's cross-county skill on the cached CDPH vintage (module docstring);
     None without CDPH data."""
     try:
-        vintage = load_cdph_vintage(offline=True)
+        vintage = load_cdph_vintage(CDPHConfig(data_dir=config.data.folder), offline=True)
     except OfflineError as exc:
         log.warning("no county skill: %s", exc)
         return None
@@ -115,7 +113,7 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("recomputing the county skill: %s is unreadable (%s)", path, exc)
     started = time.perf_counter()
-    result, _ = county_backtest(vintage, config, default_store_root(), progress=progress)
+    result, _ = county_backtest(vintage, config, config.store_root, progress=progress)
     summary = result.summary()
     atomic_write_json(path, summary | {"vintage": as_of,
                                        "seconds": time.perf_counter() - started})
@@ -124,7 +122,7 @@ def county_skill(config: ForecastConfig, progress: ProgressReporter | None = Non
 
 def skill_path(vintage: CDPHVintage, config: ForecastConfig) -> Path:
     """Where the county skill of this vintage and these settings is kept."""
-    return data_dir() / FOLDER / f"{skill_key(vintage, county_backtest_config(config), config)[:24]}.json"
+    return config.data.folder / FOLDER / f"{skill_key(vintage, county_backtest_config(config), config)[:24]}.json"
 
 
 def panel_and_origins(vintage: CDPHVintage, counties: Sequence[str] | None = None
@@ -142,7 +140,7 @@ def train_county_members(config: ForecastConfig, store_root: Path,
     vintage's skill is kept already or there is no CDPH data (then it needs none); the latest
     refits first (:mod:`pipeline.forecast.member_training`)."""
     try:
-        vintage = load_cdph_vintage(offline=True)
+        vintage = load_cdph_vintage(CDPHConfig(data_dir=config.data.folder), offline=True)
     except OfflineError:
         return
     if skill_path(vintage, config).is_file():

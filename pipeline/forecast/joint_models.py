@@ -22,7 +22,7 @@ from pipeline.training.checkpoints import LoadedCheckpoint, load_checkpoint
 from pipeline.training.datasets import (WindowedDataset, train_validation_split,
                                         windows_from_waves)
 from pipeline.training.fit import fit_preset
-from pipeline.training.model_store import ModelStore, StoreEntry, default_store_root, model_key
+from pipeline.training.model_store import ModelStore, StoreEntry, model_key
 from pipeline.training.presets import ENCODER_CHOICES
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,7 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
                           store_root: Path | None = None,
                           progress: ProgressReporter | None = None) -> TrainedModels:
     """Forward + backward joint estimators, from the store unless config or data changed."""
-    store = ModelStore(store_root or default_store_root())
+    store = ModelStore(store_root or config.store_root)
 
     def build(out_dir: Path) -> dict[str, object]:
         return {"best_val_nll": {d: _train_direction(config, data, d, out_dir / d, progress)
@@ -76,7 +76,7 @@ def train_or_reuse_models(config: ForecastConfig, data: TrainingData, *, retrain
 def models_stored(config: ForecastConfig, data: TrainingData,
                   store_root: Path | None = None) -> bool:
     """Whether the store holds a valid pair for ``config`` and ``data`` (nothing to train)."""
-    store = ModelStore(store_root or default_store_root())
+    store = ModelStore(store_root or config.store_root)
     return store.get(model_key(config.training_identity(), data.data_sha256)) is not None
 
 
@@ -128,7 +128,7 @@ def cached_variant_models(config: ForecastConfig, data: TrainingData, *,
                           store_root: Path | None = None) -> dict[str, TrainedModels]:
     """The other encoder variants (paper Table 5 columns) already in the model store for the
     same preset, recipe and training data — e.g. trained by ``flows.scale_out``. Never trains."""
-    store = ModelStore(store_root or default_store_root())
+    store = ModelStore(store_root or config.store_root)
     out = {}
     for encoder in ENCODER_CHOICES:
         if encoder == config.training.encoder:

@@ -55,12 +55,12 @@ def archive_folders(settings: NowcastSettings) -> tuple[str, ...]:
     return tuple(p for p in os.environ.get(ARCHIVE_ENV, "").split(os.pathsep) if p)
 
 
-def delay_vintages(settings: NowcastSettings) -> list[CDPHVintage]:
-    """Every CDPH vintage the cache holds, plus the validated downloads in the archive folders
-    (one per date; the cache's copy first)."""
-    chosen: dict[pd.Timestamp, CDPHVintage] = {v.as_of: v for v in cached_vintages()}
-    for folder in archive_folders(settings):
-        files = find_vintage_files(folder) if Path(folder).is_dir() else []
+def delay_vintages(settings: NowcastSettings, folder: Path | None = None) -> list[CDPHVintage]:
+    """Every CDPH vintage the cache (in the data ``folder``) holds, plus the validated
+    downloads in the archive folders (one per date; the cache's copy first)."""
+    chosen: dict[pd.Timestamp, CDPHVintage] = {v.as_of: v for v in cached_vintages(folder)}
+    for archive in archive_folders(settings):
+        files = find_vintage_files(archive) if Path(archive).is_dir() else []
         for checked in validate_cdph_exports(files):
             chosen.setdefault(checked.vintage.as_of, checked.vintage)
     return [chosen[d] for d in sorted(chosen)]
@@ -73,16 +73,17 @@ def _model_key(vintages: Sequence[CDPHVintage], settings: NowcastSettings) -> st
     return sha256_bytes(json.dumps(identity, sort_keys=True, default=str).encode())[:16]
 
 
-def delay_model_for_run(settings: NowcastSettings) -> DelayModel | None:
+def delay_model_for_run(settings: NowcastSettings, folder: Path | None = None
+                        ) -> DelayModel | None:
     """The delay model of the CDPH vintages at hand (fitted once per set, then read from
     ``<data dir>/delay-models/``); None with fewer than two vintages."""
-    vintages = delay_vintages(settings)
+    vintages = delay_vintages(settings, folder)
     if len(vintages) < 2:
         log.warning("nowcast: %d CDPH vintage(s) in the cache and archive, two are needed for "
                     "the delay model; import CDPH downloads with `flowcast data import` or set "
                     "%s", len(vintages), ARCHIVE_ENV)
         return None
-    path = data_dir() / MODELS_DIR / f"delay-{_model_key(vintages, settings)}.npz"
+    path = data_dir(folder) / MODELS_DIR / f"delay-{_model_key(vintages, settings)}.npz"
     if path.is_file():
         try:
             return load_delay_model(path, settings.delay)
@@ -105,12 +106,14 @@ def data_date(vintage: DataVintage, history: EpiHistory) -> pd.Timestamp:
 
 
 def run_nowcast(history: EpiHistory, vintage: DataVintage, settings: NowcastSettings,
-                seed: int, county: str | None = None) -> tuple[EpiHistory, RunNowcast | None]:
+                seed: int, county: str | None = None, folder: Path | None = None
+                ) -> tuple[EpiHistory, RunNowcast | None]:
     """(the history the weekly step forecasts from, the nowcast): with a delay model, every day
     with its last ones nowcast (the history is their per-day median; the completions are in
     the nowcast); without one, the history less ``fallback_trailing_days``. ``county``: the
-    CDPH county the history is (None: San Francisco from DataSF, a new county to the model)."""
-    model = delay_model_for_run(settings) if settings.enabled else None
+    CDPH county the history is (None: San Francisco from DataSF, a new county to the model);
+    ``folder``: the data folder (its CDPH vintages and delay models)."""
+    model = delay_model_for_run(settings, folder) if settings.enabled else None
     if model is None:
         cut = history.origin - pd.Timedelta(days=settings.fallback_trailing_days)
         return history.up_to(cut), None
@@ -145,11 +148,12 @@ class RecentDays:
 
 
 def nowcast_recent_days(series: SFSeries, sir: SIRSeries, settings: NowcastSettings,
-                        seed: int, county: str | None = None) -> RecentDays:
+                        seed: int, county: str | None = None, folder: Path | None = None
+                        ) -> RecentDays:
     """The series' last days nowcast (:func:`run_nowcast`; ``county``: the CDPH county it is,
     None for San Francisco from DataSF), as the run's later steps use it."""
     history, nowcast = run_nowcast(sf_history(series, sir), series.vintage, settings, seed,
-                                   county)
+                                   county, folder)
     frame = sir.frame.iloc[:len(history)].copy()
     for name in ("S", "I", "R"):
         frame[name] = getattr(history, name)

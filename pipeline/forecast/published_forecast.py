@@ -30,7 +30,7 @@ from pipeline.forecast.nowcasting import RecentDays, mixture_start
 from pipeline.forecast.sources import load_reference_places
 from pipeline.forecast.results import TrainedModels
 from pipeline.progress import ProgressReporter
-from pipeline.training.model_store import default_store_root, stored_models_only
+from pipeline.training.model_store import stored_models_only
 
 log = logging.getLogger(__name__)
 
@@ -70,11 +70,11 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
         return (scored,) if scored.forecasts else ()
 
     start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
-    memo = ForecastMemo.load(forecast_memo_path(place))
-    reference_places = load_reference_places()
+    memo = ForecastMemo.load(forecast_memo_path(place, config.data.folder))
+    reference_places = load_reference_places(folder=config.data.folder)
     panel = place_panel(place, history, reference_places.histories,
                         reference_places.skipped)
-    result = track_record(panel, place, record, default_store_root(), progress,
+    result = track_record(panel, place, record, config.store_root, progress,
                           references=references, nowcast=nowcast, mixture_from=start,
                           mixed_completions=config.nowcast.completions, memo=memo)
     try:
@@ -119,9 +119,10 @@ def weekly_forecast_step(recent: RecentDays, models: TrainedModels, config: Fore
     return weekly_forecast(recent, models, config, progress)
 
 
-def forecast_memo_path(place: str) -> Path:
-    """The place's memo of member forecasts, under the data folder ($FLOWCAST_DATA_DIR)."""
-    return data_dir() / "forecast-memo" / f"{county_slug(place)}.npz"
+def forecast_memo_path(place: str, folder: Path | None = None) -> Path:
+    """The place's memo of member forecasts, under the data ``folder`` (None:
+    $FLOWCAST_DATA_DIR or ./data)."""
+    return data_dir(folder) / "forecast-memo" / f"{county_slug(place)}.npz"
 
 
 def published_skill(weekly: TrackRecord) -> dict[str, dict[str, float | None]]:

@@ -30,7 +30,6 @@ from pipeline.forecast.published_forecast import (published_skill, start_weekly_
 from pipeline.forecast.steps import (future_paths, latest_estimates, nll_table_variants,
                                      rollouts, seeded_smc, start_parameter_track)
 from pipeline.progress import ProgressReporter, SilentProgress
-from pipeline.training.model_store import default_store_root
 
 Step = Literal["fetch-datasf", "fetch-cdph", "convert-to-sir", "nowcast-recent-days", "simulate-training-data",
                "train-or-reuse-models", "latest-estimates", "rollouts", "future-paths",
@@ -88,7 +87,7 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
         (run.logger.warning if stale else run.logger.info)("%s", note)
     sir = run("convert-to-sir", series_to_sir, series)
     recent = run("nowcast-recent-days", nowcast_recent_days, series, sir, config.nowcast,
-                 config.step_seed("nowcast"), source.county)
+                 config.step_seed("nowcast"), source.county, source.folder)
     run.logger.info("%s", recent.nowcast.delay_model if recent.nowcast else
                     f"no nowcast: last {config.nowcast.fallback_trailing_days} days dropped")
     arrays = sir_arrays(recent.sir_frame)
@@ -96,7 +95,7 @@ def run_forecast(config: ForecastConfig, progress: ProgressFactory = _silent, *,
     # From scratch, the forecast's members train in a background process beside the joint pair,
     # sharing the work through the model store (pipeline.forecast.member_training).
     needed = config.training.background_members and (retrain or not models_stored(config, data))
-    with member_training(config, recent.history, default_store_root(), needed,
+    with member_training(config, recent.history, config.store_root, needed,
                          run.logger) as background:
         models = run("train-or-reuse-models", train_or_reuse_models, config, data,
                      retrain=retrain, progress=progress("train-or-reuse-models"))

@@ -39,9 +39,11 @@ SF_COUNTY = SAN_FRANCISCO
 REFERENCE_MIN_POPULATION = 100_000
 
 
-def import_exports(paths: Sequence[str], *, if_empty: bool = False) -> list[ImportSummary]:
-    """``flowcast data import`` as a function: validate and cache DataSF CSV exports."""
-    return import_csv_exports(_expand_import_paths(paths), if_empty=if_empty)
+def import_exports(paths: Sequence[str], *, if_empty: bool = False,
+                   folder: Path | None = None) -> list[ImportSummary]:
+    """``flowcast data import`` as a function: validate and cache DataSF CSV exports (into the
+    data ``folder``; None: $FLOWCAST_DATA_DIR or ./data)."""
+    return import_csv_exports(_expand_import_paths(paths), folder, if_empty=if_empty)
 
 
 def _expand_import_paths(paths: Sequence[str]) -> list[Path]:
@@ -83,9 +85,10 @@ def load_series(source: DataSourceConfig, *,
                           fetch_deadline_s=source.fetch_deadline_s)
     if source.base_url:
         client = dataclasses.replace(client, base_url=source.base_url)
-    data_config = SFDataConfig(trailing_days=source.trailing_days, client=client)
+    data_config = SFDataConfig(trailing_days=source.trailing_days, client=client,
+                               data_dir=source.folder)
     if source.kind == "import":
-        summaries = import_exports(source.import_paths)
+        summaries = import_exports(source.import_paths, folder=source.folder)
         log.info("imported %s", ", ".join(f"{s.dataset_key} ({s.row_count} rows)"
                                           for s in summaries))
     try:
@@ -112,9 +115,9 @@ def require_offline_data(source: DataSourceConfig) -> None:
         return
     try:
         if source.county is None:
-            require_sf_cached()
+            require_sf_cached(SFDataConfig(data_dir=source.folder))
         else:
-            require_cdph_cached()
+            require_cdph_cached(CDPHConfig(data_dir=source.folder))
     except OfflineError as exc:
         raise no_usable_data(exc, source) from exc
 
@@ -128,14 +131,15 @@ def load_county_series(source: DataSourceConfig, *,
     if source.county is None:
         raise ConfigError("a county series needs DataSourceConfig.county")
     if source.kind == "import":
-        summaries = import_cdph_exports(_cdph_files(source.import_paths))
+        summaries = import_cdph_exports(_cdph_files(source.import_paths), source.folder)
         log.info("imported %s", ", ".join(f"{s.path.name} ({s.action}, CDPH vintage of "
                                           f"{s.as_of})" for s in summaries))
     client = CHHSClientConfig(max_retries=source.http_retries,
                               backoff_base_s=source.http_backoff_s,
                               fetch_deadline_s=source.fetch_deadline_s)
     try:
-        loaded = load_cdph(CDPHConfig(client=client), offline=source.kind != "live",
+        loaded = load_cdph(CDPHConfig(client=client, data_dir=source.folder),
+                           offline=source.kind != "live",
                            session=session)
     except OfflineError as exc:
         raise no_usable_data(exc, source) from exc
@@ -217,15 +221,17 @@ class ReferencePlaces:
 
 
 def load_reference_places(min_population: int = REFERENCE_MIN_POPULATION,
-                          drop_days: int = SETTLED_DAYS) -> ReferencePlaces:
+                          drop_days: int = SETTLED_DAYS, *,
+                          folder: Path | None = None) -> ReferencePlaces:
     """California's counties with at least ``min_population`` people, by name, from the latest
     cached CDPH vintage without its last ``drop_days`` days, still being reported (the
     cross-county backtest cuts the same days): the places the published forecast's pooled
     members learn from. Empty, with a warning, when the cache holds no CDPH data (the members
     then learn from the forecast's own series alone). A county the gate skipped is left out and
-    named (the run's log and report say so)."""
+    named (the run's log and report say so). ``folder``: the data folder (None:
+    $FLOWCAST_DATA_DIR or ./data)."""
     try:
-        vintage = load_cdph_vintage(offline=True)
+        vintage = load_cdph_vintage(CDPHConfig(data_dir=folder), offline=True)
     except OfflineError as exc:
         log.warning("no CDPH county data in the cache (%s): the pooled members learn from the "
                     "San Francisco series alone; `flowcast data import` the CDPH files", exc)
