@@ -55,6 +55,7 @@ from pipeline.members.nf.flow import (SyntheticWindows, check_horizons, decode_w
 from pipeline.members.nf.refit import (Refit, RefitJob, estimator_of, fallbacks_of,
                                        mixed_windows, refit_dates, refit_each, refit_for,
                                        stored_refit)
+from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.panel import Cells, Panel
 from pipeline.training.digests import DataDigests
 
@@ -121,11 +122,11 @@ class ContextFlowMember:
         return (self.name, self.config, self.channels, self.n_samples, refit,
                 self._keys[flows], self._keys[sources])
 
-    def cell_context(self, cells: Cells) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    def cell_context(self, cells: Cells, histories: Sequence[WeeklyHistory]
+                     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """The cells' context windows: the other signal and climatology as released by each
-        cell's panel's release date."""
+        cell's panel's release date (``histories``: the cells' weekly histories, checked)."""
         k, h = self.config.context_weeks, self.config.horizon_weeks
-        histories = weekly_cells(cells.histories, self.name)
         climate: dict[tuple[pd.Timestamp | None, pd.Timestamp], NDArray[np.float64]] = {}
         for panel, origin in zip(cells.panels, cells.origins):
             if (panel.as_of, origin) not in climate:
@@ -145,7 +146,7 @@ class ContextFlowMember:
         """Weekly S, I, R paths ``(B, n, H, 3)``, each cell through its origin's refit, its
         draws from the seeds' flows in equal shares (a mixture of their densities)."""
         histories = weekly_cells(cells.histories, self.name)
-        context, mask = self.cell_context(cells)
+        context, mask = self.cell_context(cells, histories)
         refits = [self.refit_for(o) for o in cells.origins]
         flows = {r: tuple(estimator_of(m) for m in (self.base if r is None else self.models[r]))
                  for r in set(refits)}
