@@ -53,8 +53,9 @@ def design_variants() -> tuple[Any, ...]:
     weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
     from pipeline.backtest.config import Variant, tracking_rate_variants
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
+    from pipeline.combine.plausibility import PlausibilityConfig
 
-    members = ("hub-baseline", "growth-qr", "nf-growth", "nf-real")
+    members = ("hub-baseline", "gbqr", "nf-growth", "nf-real")
     return (
         Variant("log average (published until 2026-11)", LOG_AVERAGE),
         Variant("log-mixture, no recalibration", CombineConfig(calibration="none")),
@@ -73,6 +74,12 @@ def design_variants() -> tuple[Any, ...]:
                               calibration_window_origins=52), members=("autoets", "nf-growth")),
         *(Variant(f"without {m}", members=tuple(n for n in members if n != m))
           for m in members),
+        # growth-qr, the pooled member published until 2026-11-29: in gbqr's place, and beside
+        Variant("growth-qr for gbqr (published until 2026-11-29)",
+                members=tuple("growth-qr" if n == "gbqr" else n for n in members)),
+        Variant("with growth-qr", members=(*members, "growth-qr")),
+        # the published rule held within the changes the data have shown (issue 51)
+        Variant("published, bounded", CombineConfig(bounded=PlausibilityConfig())),
     )
 
 
@@ -116,6 +123,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     from pipeline import forecast as fc
     from pipeline.backtest.track_record import track_record
+    from pipeline.members.growth_regression import PooledGrowthMember
     from pipeline.data.california.cdph import find_vintage_files
     from pipeline.data.california.cdph_source import import_cdph_exports
     from pipeline.forecast.sources import (SF_COUNTY, import_exports,
@@ -140,6 +148,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     references, t_smc = [], 0.0
     if not args.no_smc:
         references, t_smc = smc_reference(history, reported, args.seed)
+    if not args.quick:
+        references = [*references, PooledGrowthMember()]
     t0 = time.perf_counter()
     made = track_record(place_panel(SF_COUNTY, history, reference), SF_COUNTY, record,
                         default_store_root(), references=references, scored_only=True,

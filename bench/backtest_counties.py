@@ -43,10 +43,14 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+MEMBERS = ("hub-baseline", "gbqr", "nf-growth", "nf-real")     # the published average's
+
+
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
     from pipeline.backtest.config import Variant, tracking_rate_variants
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
+    from pipeline.combine.plausibility import PlausibilityConfig
 
     long = 1_000                       # every past scored origin
     uncalibrated = CombineConfig(calibration="none")
@@ -70,10 +74,14 @@ def design_variants() -> tuple[Any, ...]:
             scale="log", calibration="scale", calibration_window_origins=long)),
         Variant("v-recal-bias-scale-regime", CombineConfig(scale="log",
                                                            calibration="bias-scale-regime")),
-        Variant("v-without-hub-baseline", members=("growth-qr", "nf-growth", "nf-real")),
-        Variant("v-without-nf-real", members=("hub-baseline", "growth-qr", "nf-growth")),
-        Variant("v-without-growth-qr", members=("hub-baseline", "nf-growth", "nf-real")),
-        Variant("v-without-nf-growth", members=("hub-baseline", "growth-qr", "nf-real")),
+        *(Variant(f"v-without-{m}", members=tuple(n for n in MEMBERS if n != m))
+          for m in MEMBERS),
+        # growth-qr, the pooled member published until 2026-11-29: in gbqr's place, and beside
+        Variant("v-growth-qr for gbqr (published until 2026-11-29)",
+                members=tuple("growth-qr" if n == "gbqr" else n for n in MEMBERS)),
+        Variant("v-with-growth-qr", members=(*MEMBERS, "growth-qr")),
+        # the published rule held within the changes the counties have shown (issue 51)
+        Variant("v-published, bounded", CombineConfig(bounded=PlausibilityConfig())),
     )
 
 
@@ -101,6 +109,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.forecast.county_skill import county_backtest
     from pipeline.io import atomic_write_json
     from pipeline.members.autoets import AutoETSMember
+    from pipeline.members.growth_regression import PooledGrowthMember
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
@@ -113,13 +122,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     with rich_progress("cross-county backtest") as progress:
         result, chosen = county_backtest(vintage, config, default_store_root(),
                                          variants=design_variants(),
-                                         references=(AutoETSMember(),), progress=progress)
+                                         references=(AutoETSMember(), PooledGrowthMember()),
+                                         progress=progress)
     t_all = time.perf_counter() - started
     t_members = t_all - sum(result.seconds.values())
     counties, origins = result.places, result.origins
     t_backtest = t_all - t_members
     summary = result.summary()
-    reference_forecasters = ["published", *result.members, "autoets"]
+    reference_forecasters = ["published", *result.members, "autoets", "growth-qr"]
     out = {
         **summary,
         "by_year": by_year(result, reference_forecasters),
@@ -129,6 +139,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     "backtest": round(sum(result.seconds[n] for n in (*result.members,
                                                                       "combine")), 2),
                     "references_and_variants": round(result.seconds["autoets"]
+                                                     + result.seconds["growth-qr"]
                                                      + result.seconds["variants"], 2),
                     "wall": round(t_backtest, 2), "parts": summary["seconds"]},
         "flow_model": {"key": chosen.model_key, "reused": chosen.reused},

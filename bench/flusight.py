@@ -211,7 +211,9 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     forecast."""
     import dataclasses
 
-    from pipeline.backtest.config import Variant, tracking_rate_variants
+    from pipeline.combine.plausibility import PlausibilityConfig
+    from pipeline.backtest.config import (Variant, skill_weighted_variants,
+                                          tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
     from pipeline.members.published import HubMembersConfig, build_hub_members
@@ -237,6 +239,19 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                 Variant("v-nf-context+growth-qr", reach, ("nf-context", "growth-qr")),
                 Variant("v-nf-context+nf-weekly+seasonal", reach,
                         ("nf-context", "nf-weekly", "seasonal")),
+                # the pooled gradient-boosted member (issue 51) beside the flows, equally
+                # weighted, and the members weighted by their skill on the rounds already scored
+                Variant("v-nf-context+gbqr", reach, ("nf-context", "gbqr")),
+                Variant("v-nf-context+nf-weekly+gbqr", reach,
+                        ("nf-context", "nf-weekly", "gbqr")),
+                Variant("v-nf-context+nf-weekly+gbqr+growth-qr", reach,
+                        ("nf-context", "nf-weekly", "gbqr", "growth-qr")),
+                *skill_weighted_variants(reach, ("nf-context", "nf-weekly", "gbqr")),
+                *skill_weighted_variants(reach, ("nf-context", "nf-weekly", "gbqr", "growth-qr",
+                                                 "seasonal"), ("inverse-wis",)),
+                # the published rule held within the changes the data have shown (issue 51)
+                Variant("v-published, bounded", dataclasses.replace(
+                    reach, bounded=PlausibilityConfig())),
                 *tracking_rate_variants(reach),
                 Variant("v-log-mixture, no online calibration",
                         dataclasses.replace(reach, calibration="none")))

@@ -151,8 +151,8 @@ def test_backtest_cli_on_the_real_data_writes_hub_forecasts_scores_and_summary(
     i_prop = q[q["target"] == "I"]["value"].to_numpy()
     np.testing.assert_allclose(i_prop * 873_965, cases, rtol=1e-9)      # I = cases / N
     scores = pd.read_csv(out / "scores.csv")
-    # --no-nf: the flat baseline and growth-qr (no CDPH counties in this cache: SF alone)
-    assert set(scores["forecaster"]) == {"hub-baseline", "growth-qr", "autoets", UNCALIBRATED,
+    # --no-nf: the flat baseline and gbqr (no CDPH counties in this cache: SF alone)
+    assert set(scores["forecaster"]) == {"hub-baseline", "gbqr", "autoets", UNCALIBRATED,
                                          PUBLISHED}
     assert len(scores) == 5 * 2 * 4 * 4       # forecasters × targets × horizons × origins
     assert {"covered_95", "regime"} <= set(scores.columns)

@@ -88,8 +88,8 @@ def test_outputs_exist_with_real_numbers(good_run):
     np.testing.assert_allclose(by_target["cases"], by_target["I"] * SF_POPULATION_2020_CENSUS, rtol=1e-9)
     members = pd.read_csv(out / "member_forecasts.csv")
     # nf-smc: the NF-seeded SMC on the same model, scored beside the members, not averaged
-    # no CDPH counties in this data dir: growth-qr learns from SF alone and nf-real is left out
-    assert set(members["forecaster"]) == {"autoets", "growth-qr", "nf-growth", "hub-baseline",
+    # no CDPH counties in this data dir: gbqr learns from SF alone and nf-real is left out
+    assert set(members["forecaster"]) == {"autoets", "gbqr", "nf-growth", "hub-baseline",
                                           "nf-smc", "ensemble-uncalibrated"}
 
     # the hubverse file of the same forecast, valid under hub-config/tasks.json
@@ -111,7 +111,7 @@ def test_outputs_exist_with_real_numbers(good_run):
     assert set(skill["cases"]) == {"h1", "h2", "h3", "h4", "all"}
     assert all(v is not None and np.isfinite(v) and v > 0 for v in skill["cases"].values())
     scores = pd.read_csv(out / "backtest_scores.csv")
-    assert set(scores["forecaster"]) == {"autoets", "growth-qr", "nf-growth", "hub-baseline",
+    assert set(scores["forecaster"]) == {"autoets", "gbqr", "nf-growth", "hub-baseline",
                                          "nf-smc", "ensemble-uncalibrated", "published"}
     assert scores["origin_date"].max() < ORIGIN     # the latest origin has no truth yet
     np.testing.assert_allclose(scores["wis"], scores[["dispersion", "overprediction",
@@ -216,7 +216,7 @@ def test_a_member_that_fails_leaves_the_run_degraded_and_named(good_run, tmp_pat
     import shutil
 
     from flows.weekly_forecast import DEGRADED_STATE_NAME, weekly_forecast
-    from pipeline.members.growth_regression import PooledGrowthMember
+    from pipeline.members.boosting import PooledBoostingMember
 
     root, first = good_run
     # the good run's cache and models, without its memo of member forecasts (read back, a
@@ -228,19 +228,19 @@ def test_a_member_that_fails_leaves_the_run_degraded_and_named(good_run, tmp_pat
     def broken(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
         raise RuntimeError("injected failure")
 
-    monkeypatch.setattr(PooledGrowthMember, "forecast", broken)
+    monkeypatch.setattr(PooledBoostingMember, "forecast", broken)
     state = weekly_forecast(preset="tiny", data_source="cache",
                             output_dir=str(tmp_path / "reports"), seed=0, return_state=True)
     assert state.is_completed() and state.name == DEGRADED_STATE_NAME
-    assert "growth-qr" in state.message and "injected failure" in state.message
+    assert "gbqr" in state.message and "injected failure" in state.message
     result = state.result()
     assert result["model_reused"] and result["degraded"]
-    assert result["dropped"] == [{"what": "member", "target": "cases", "name": "growth-qr",
+    assert result["dropped"] == [{"what": "member", "target": "cases", "name": "gbqr",
                                   "why": "raised RuntimeError: injected failure"}]
     out = Path(result["output_dir"])
     assert json.loads((out / "results.json").read_text())["dropped"] == result["dropped"]
     report = (out / "report.html").read_text()
-    assert "Member growth-qr left out of the published forecast" in report
+    assert "Member gbqr left out of the published forecast" in report
     # the forecast still stands on the other members: finite, and not the good run's
     good = pd.read_csv(Path(first["output_dir"]) / "hub_forecast.csv")
     degraded = pd.read_csv(out / "hub_forecast.csv")

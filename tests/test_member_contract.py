@@ -1,10 +1,10 @@
 """One contract, every forecasting member (as zuko and statsforecast test every model alike).
 
-The nine members of the engine — the hub baseline, growth-qr, the seasonal member, AutoETS, the
-NF-seeded SMC, the daily flow (nf-growth), the weekly flow (nf-weekly), the context flow
-(nf-context) and the fine-tuned flow (nf-real) — plus the hub baseline and growth-qr on the hub's
-weekly panel as well as the daily one, each built once with tiny settings (model store in a
-temporary folder), each held to the :class:`~pipeline.members.base.Member` contract:
+The ten members of the engine — the hub baseline, growth-qr, gbqr, the seasonal member,
+AutoETS, the NF-seeded SMC, the daily flow (nf-growth), the weekly flow (nf-weekly), the context
+flow (nf-context) and the fine-tuned flow (nf-real) — plus the hub baseline, growth-qr and gbqr
+on the hub's weekly panel as well as the daily one, each built once with tiny settings (model
+store in a temporary folder), each held to the :class:`~pipeline.members.base.Member` contract:
 
 1. quantiles ``(B, H, Q)`` finite, ordered along the levels, non-negative;
 2. data after the origin change nothing: the world altered after an origin — the cell's own
@@ -39,6 +39,7 @@ from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.hub_round.run import hub_members_preset
 from pipeline.members.autoets import AUTOETS, AutoETSMember
+from pipeline.members.boosting import GBQR, BoostingConfig, PooledBoostingMember
 from pipeline.members.base import LimitedReach, Member, forecast_within_reach, reach
 from pipeline.members.growth_regression import GROWTH_QR, PooledGrowthMember
 from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline, HubBaselineConfig
@@ -69,6 +70,7 @@ TINY_FLOW = GrowthModelConfig(n_trajectories=120, iterations=30, batch_size=256,
 FINETUNE = FineTuneConfig(iterations=5, batch_size=128, min_windows=50)
 HUB = hub_members_preset("tiny")            # the hub round's smoke preset
 N_SAMPLES = 200
+TINY_BOOSTING = BoostingConfig(n_estimators=10, min_rows=50)
 # the ED share's first four releases (2025-06-18 … 07-09, weeks to 2025-06-14 … 07-05): the
 # refit date 2025-06-14 is among their weeks, so nf-context has one refit and its pre-trained
 # flow (importing only these takes a second, all 59 vintages of both targets seven)
@@ -234,6 +236,10 @@ class Members:
             return daily.case(PooledGrowthMember())
         if name == f"{GROWTH_QR}@weekly":
             return self.weekly.case(PooledGrowthMember())
+        if name == GBQR:
+            return daily.case(PooledBoostingMember(TINY_BOOSTING))
+        if name == f"{GBQR}@weekly":
+            return self.weekly.case(PooledBoostingMember(TINY_BOOSTING))
         if name == AUTOETS:
             return daily.case(AutoETSMember())
         if name == SMC_MEMBER:
@@ -269,7 +275,8 @@ def members(tmp_path_factory: pytest.TempPathFactory) -> Members:
                    tmp_path_factory.mktemp("contract-data"))
 
 
-NAMES = (HUB_BASELINE, f"{HUB_BASELINE}@weekly", GROWTH_QR, f"{GROWTH_QR}@weekly", SEASONAL,
+NAMES = (HUB_BASELINE, f"{HUB_BASELINE}@weekly", GROWTH_QR, f"{GROWTH_QR}@weekly", GBQR,
+         f"{GBQR}@weekly", SEASONAL,
          AUTOETS, SMC_MEMBER, NF_GROWTH, NF_WEEKLY, NF_CONTEXT, NF_REAL)
 
 

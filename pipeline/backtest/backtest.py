@@ -15,6 +15,8 @@ are all this function on different panels.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,6 +33,7 @@ from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import (PUBLISHED, RESERVED_NAMES, UNCALIBRATED, CombineConfig,
                                        KnownTruth, combine)
 from pipeline.combine.paths import sample_paths
+from pipeline.combine.plausibility import PlausibilityConfig, bounded, plausible_bands
 from pipeline.evaluation.regimes import growth_regimes
 from pipeline.members.base import Member, MemberForecast
 from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline
@@ -144,14 +147,26 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
 
     dropped = {n: f.cells for n, f in failures.items()}
 
+    bands: dict[PlausibilityConfig, NDArray[np.float64]] = {}
+
+    def held(values: NDArray[np.float64], combiner: CombineConfig) -> NDArray[np.float64]:
+        """``values`` within the changes the panel has shown, where ``combiner`` says so."""
+        if combiner.bounded is None:
+            return values
+        if combiner.bounded not in bands:
+            bands[combiner.bounded] = plausible_bands(cells, horizons, combiner.bounded
+                                                      ).reshape(*shape, len(horizons), 2)
+        return bounded(values, bands[combiner.bounded])
+
     def published_by(chosen: Sequence[str], combiner: CombineConfig) -> NDArray[np.float64]:
-        return combine({n: forecasts[count][n] for n in chosen}, baseline, truth[count], regimes,
-                       levels, horizons, origins, combiner, truth_at=truth_at,
-                       dropped=dropped).published
+        return held(combine({n: forecasts[count][n] for n in chosen}, baseline, truth[count],
+                            regimes, levels, horizons, origins, combiner, truth_at=truth_at,
+                            dropped=dropped).published, combiner)
 
     combined = combine({n: forecasts[count][n] for n in names}, baseline, truth[count], regimes,
                        levels, horizons, origins, config.combine, truth_at=truth_at,
                        dropped=dropped)
+    combined = dataclasses.replace(combined, published=held(combined.published, config.combine))
     _add(forecasts, PUBLISHED, combined.published, latest)
     _add(forecasts, UNCALIBRATED, combined.uncalibrated, latest)
     seconds["combine"] = time.perf_counter() - started

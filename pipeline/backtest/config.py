@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from pipeline.combine.average import EnsembleError
+from pipeline.combine.average import EnsembleError, WeightMethod
 from pipeline.combine.combiner import CombineConfig
 from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
 
@@ -31,6 +31,22 @@ def tracking_rate_variants(published: CombineConfig, prefix: str = "v-") -> tupl
     return tuple(Variant(f"{prefix}regime-aci eta={rate}", dataclasses.replace(
         published, calibration="regime-aci", tracking_rate=rate, tracking_standardized=False))
                  for rate in TRACKING_RATE_VARIANTS)
+
+
+def skill_weighted_variants(published: CombineConfig, members: tuple[str, ...],
+                            methods: tuple[WeightMethod, ...] = ("inverse-wis", "stacking"),
+                            prefix: str = "v-") -> tuple[Variant, ...]:
+    """The published combiner over ``members`` weighted by their skill on the rounds already
+    scored: by inverse WIS, and by stacking (weights minimising the past rounds' WIS: a simplex
+    grid, for a few members only), each over its window of origins
+    (:class:`~pipeline.combine.combiner.CombineConfig`)."""
+    joined = "+".join(members)
+    # a grid of tenths: 66 weightings of three members (twentieths: 231, each a mixture to
+    # score at every origin and horizon)
+    return tuple(Variant(f"{prefix}{weights} {joined}",
+                         dataclasses.replace(published, weights=weights, stacking_step=0.1),
+                         members)
+                 for weights in methods)
 
 
 @dataclass(frozen=True)

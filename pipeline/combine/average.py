@@ -81,8 +81,10 @@ def simplex_grid(members: int, step: float) -> NDArray[np.float64]:
 
 def log_relative_wis_by_place(wis: NDArray[np.float64], baseline_wis: NDArray[np.float64]
                               ) -> NDArray[np.float64]:
-    """Mean over places of log(Σ WIS / Σ baseline WIS); ``wis (..., C, n)``, NaN cells ignored."""
-    seen = np.isfinite(baseline_wis)
+    """Mean over places of log(Σ WIS / Σ baseline WIS); ``wis (..., C, n)``, NaN cells ignored
+    (a member without a forecast there, the seasonal one before its climatology: compared on
+    the cells it forecast)."""
+    seen = np.isfinite(baseline_wis) & np.isfinite(wis)
     num = np.where(seen, wis, 0.0).sum(axis=-1) + _EPS_WIS
     den = np.where(seen, baseline_wis, 0.0).sum(axis=-1) + _EPS_WIS
     places = seen.any(axis=-1)
@@ -107,6 +109,10 @@ def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
         skill = 1.0 / np.maximum(loss, 1e-12)
         return lam * skill / skill.sum() + (1.0 - lam) * equal
     grid = simplex_grid(m, stacking_step)                                  # (K, M)
+    # scored on the cells every member forecast (a stand-in elsewhere, its truth unseen)
+    every = np.isfinite(past_values).all(axis=(0, -1))                     # (C, n)
+    past_values = np.where(every[None, ..., None], past_values, 1.0)
+    past_truth = np.where(every, past_truth, np.nan)
     combined = np.stack([vincentize(past_values, w, scale) for w in grid])  # (K, C, n, Q)
     wis = scored_wis(levels, combined, np.broadcast_to(past_truth, combined.shape[:-1]))
     loss = log_relative_wis_by_place(wis, past_baseline_wis)               # (K,)

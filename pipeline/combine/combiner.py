@@ -42,6 +42,7 @@ from pipeline.combine.recalibration import (ONLINE_METHODS, RECALIBRATION_METHOD
                                             TRACKING_STEPS, AggregatedTracker, IntervalTracker,
                                             RecalibrationMethod, TrackingStep,
                                             calibrated_levels, fit_recalibration)
+from pipeline.combine.plausibility import PlausibilityConfig
 from pipeline.evaluation.regimes import N_REGIMES
 from pipeline.members.base import Member, MemberForecast, forecast_within_reach
 from pipeline.panels.panel import Cells
@@ -76,6 +77,9 @@ class CombineConfig:
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
     beyond_reach: BeyondReach = "missing"
+    # quantiles held within the changes the panel's history has shown (None: not held;
+    # pipeline.combine.plausibility)
+    bounded: PlausibilityConfig | None = None
 
     def __post_init__(self) -> None:
         if self.beyond_reach not in ("missing", "reachable-members"):

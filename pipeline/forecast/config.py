@@ -20,6 +20,7 @@ from pipeline.training.model_store import MODELS_FOLDER
 from pipeline.backtest.track_record import TrackRecordConfig
 from pipeline.members.nf.growth import GrowthModelConfig
 from pipeline.members.nf.real import FineTuneConfig
+from pipeline.members.boosting import BoostingConfig
 from pipeline.members.published import MembersConfig
 from pipeline.errors import ConfigError
 from pipeline.forecast.settings import (EstimateSettings, NowcastSettings, OutputSettings,
@@ -203,7 +204,8 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
             members=MembersConfig(growth=GrowthModelConfig(n_trajectories=120, iterations=30,
                                                            batch_size=256,
                                                            prior=WavePrior(days=140)),
-                                  finetune=FineTuneConfig(iterations=10, refit_every_weeks=26)),
+                                  finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),
+                                  boosting=BoostingConfig(n_estimators=10)),
             n_paths=100),
         nowcast=NowcastSettings(completions=8, nowcast_samples=100),
         data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,

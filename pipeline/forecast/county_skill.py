@@ -40,7 +40,7 @@ from pipeline.progress import ProgressReporter, start_phase
 
 log = logging.getLogger(__name__)
 FOLDER = "county_skill"
-SCORED = ("published", "hub-baseline", "growth-qr", "nf-growth", "nf-real")
+SCORED = ("published", "hub-baseline", "gbqr", "growth-qr", "nf-growth", "nf-real")
 
 
 MIN_HISTORY_WEEKS = 8

@@ -140,6 +140,12 @@ class Panel:
         rows += list(self.histories.values())
         return np.stack([weeks_ending(h, origin, n_weeks) for h in rows])
 
+    def pool_populations(self, place: str) -> NDArray[np.float64]:
+        """``(P,)`` the populations of :meth:`pool`'s rows, in its order."""
+        rows = [h for p, h in self.references.items() if p != place]
+        rows += list(self.histories.values())
+        return np.array([h.population for h in rows], dtype=np.float64)
+
     def own_row(self, place: str) -> int:
         """The row of ``place`` in :meth:`pool`'s matrix."""
         return sum(1 for p in self.references if p != place) + self.places.index(place)

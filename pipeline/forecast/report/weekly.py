@@ -54,6 +54,7 @@ _VERSIONED = ("torch", "numpy", "pandas", "scipy", "nflows", "zuko", "pyro-ppl",
 HISTORY_WEEKS = 12          # weeks of observations before the forecast fan
 FORECASTERS = {  # the published forecast first, the references last
     PUBLISHED: "published (log-scale ensemble)",
+    "gbqr": "gradient-boosted quantile regression pooled over counties (gbqr)",
     "growth-qr": "growth regression pooled over counties (growth-qr)",
     "nf-growth": "conditional-flow member (nf-growth)",
     "nf-real": "flow fine-tuned on real counties (nf-real)",

@@ -1,0 +1,111 @@
+"""The changes a forecast may imply: no faster than the data's own history has shown.
+
+A quantile q at h weeks from a cell whose last week counted x₀ implies the change
+log(1 + q) − log(1 + x₀) over h weeks. The bound of a cell at horizon h is the ``tail`` and
+1 − ``tail`` quantiles of the h-week changes of log(1 + x) its panel had shown by the cell's
+origin, over every place and every week that started within a factor ``level_ratio`` of x₀
+(small counts swing more than large ones, so a cell is held only to weeks at its own level);
+with fewer than ``min_rows`` such weeks, every week of the panel. Quantiles beyond the bound are
+moved onto it (:func:`bounded`), which keeps them ordered.
+
+Why: the weekly SF forecast of 2022-03-12 (589 cases) put its 5 % quantile at 10 cases four
+weeks on, a fall of 98 % in a month that no place of California had shown at that level.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.combine.average import EnsembleError
+from pipeline.members.growth_regression import masked_quantiles
+from pipeline.panels.panel import Cells, Panel
+
+
+@dataclass(frozen=True)
+class PlausibilityConfig:
+    """``tail``: the share of the panel's changes at a cell's level left beyond the bound on
+    each side; ``level_ratio``: how far a past week's count may be from the cell's (a factor);
+    ``min_rows``: fewer past weeks at the level than this and the whole panel's count."""
+
+    tail: float = 0.001
+    level_ratio: float = 2.0
+    min_rows: int = 50
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.tail < 0.5 or self.level_ratio <= 1 or self.min_rows < 1:
+            raise EnsembleError(f"invalid PlausibilityConfig {self}")
+
+
+def _changes(pool: NDArray[np.float64], h: int) -> tuple[NDArray[np.float64],
+                                                          NDArray[np.float64]]:
+    """The start level log(1 + x_t) and the h-week change of every (place, week) held."""
+    logs = np.log1p(np.maximum(pool, 0.0))
+    if logs.shape[1] <= h:
+        return np.empty(0), np.empty(0)
+    start, change = logs[:, :-h].reshape(-1), (logs[:, h:] - logs[:, :-h]).reshape(-1)
+    held = np.isfinite(start) & np.isfinite(change)
+    return start[held], change[held]
+
+
+def _group_bands(panel: Panel, place: str, origin: pd.Timestamp, n_weeks: int,
+                 last: NDArray[np.float64], horizons: Sequence[int],
+                 config: PlausibilityConfig) -> NDArray[np.float64]:
+    """``(B, H, 2)`` bounds on log(1 + q) − log(1 + x₀) of cells at one origin of one panel."""
+    pool = panel.pool(place, origin, n_weeks)
+    level = np.log1p(np.maximum(last, 0.0))
+    levels = np.array([config.tail, 1.0 - config.tail])
+    out = np.full((len(last), len(horizons), 2), np.nan)
+    for k, h in enumerate(horizons):
+        start, change = _changes(pool, h)
+        if change.size < config.min_rows:
+            continue                      # too little history to say what is implausible
+        near = np.abs(start[None, :] - level[:, None]) <= np.log(config.level_ratio)
+        enough = near.sum(axis=1) >= config.min_rows
+        rows = np.where(enough[:, None], near, True)
+        values = np.broadcast_to(change, rows.shape)
+        out[:, k] = masked_quantiles(values, rows, levels)
+    return out
+
+
+def plausible_bands(cells: Cells, horizons: Sequence[int], config: PlausibilityConfig
+                    ) -> NDArray[np.float64]:
+    """``(B, H, 2)`` the lowest and highest count each cell may forecast at each horizon
+    (module docstring); NaN where the panel's history is too short to bound it."""
+    last = np.array([_last_held(h.weekly_cases()) for h in cells.histories])
+    out = np.full((len(cells), len(horizons), 2), np.nan)
+    groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
+    for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
+                                                    cells.histories)):
+        key = (id(panel), history.origin, len(history.weekly_cases()),
+               place if place in panel.references else None)
+        groups.setdefault(key, []).append(b)
+    for (_, origin, n, _), index in groups.items():
+        b0 = index[0]
+        log_change = _group_bands(cells.panels[b0], cells.places[b0], origin, n,
+                                  last[index], horizons, config)
+        out[index] = np.expm1(np.log1p(np.maximum(last[index], 0.0))[:, None, None]
+                              + log_change)
+    return out
+
+
+def _last_held(weekly: NDArray[np.float64]) -> float:
+    held = weekly[np.isfinite(weekly)]
+    return float(held[-1]) if held.size else np.nan
+
+
+def bounded(quantiles: NDArray[np.float64], bands: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``quantiles (..., Q)`` moved into ``bands (..., 2)`` (NaN bands: left alone)."""
+    low = np.nan_to_num(bands[..., :1], nan=-np.inf)
+    high = np.nan_to_num(bands[..., 1:], nan=np.inf)
+    return np.clip(quantiles, low, high)
+
+
+def share_beyond(quantiles: NDArray[np.float64], bands: NDArray[np.float64]) -> float:
+    """The share of finite quantiles beyond their bands (of those with a band)."""
+    held = np.isfinite(quantiles) & np.isfinite(bands[..., :1]) & np.isfinite(bands[..., 1:])
+    beyond = (quantiles < bands[..., :1]) | (quantiles > bands[..., 1:])
+    return float((beyond & held).sum() / max(held.sum(), 1))

@@ -1,0 +1,285 @@
+"""A gradient-boosted quantile member pooled over every place of a panel (``gbqr``).
+
+The leading hub teams' recipe (UMass's ``gbqr`` and Flusion, Ray et al., *Epidemics* 2024): one
+model over all locations, on a variance-stabilised scale, trained afresh at each origin on what
+its vintage held then, with the quantile loss.
+
+* **Scale.** A place's weekly count becomes a rate per 100,000 of its population, then its
+  fourth root z (counts of any size vary alike on it; Flusion's transform), then u = z / s with
+  s the place's ``scale_quantile`` of z over its history known at the origin: the US and a small
+  state, a quiet season and a busy one, on one scale.
+* **Features** at week t: u_t; z_t (how high the rate is in absolute terms); the changes of u
+  over 1, 2 and 4 weeks; the slope and curvature of a quadratic through the last
+  ``local_weeks`` weeks; the week of the year (as a sine and cosine); log population; the
+  horizon h.
+* **Target**: u_{t+h} − u_t, one LightGBM model per fitted level (``fitted_levels``) with the
+  quantile (pinball) loss, fitted on every (place, week, horizon) whose target week had ended
+  by the origin. Its predictions are sorted across levels (no quantile crossing), added to the
+  place's u at the origin and mapped back to counts; the levels asked are read from the
+  continuous quantile function through the fitted ones (log-normal-like tails).
+
+The places' own histories at the origin (the nowcast's median where the engine nowcasts) give
+the rows predicted; the pool's rows train. Nothing after the origin enters, in any place.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError
+from pipeline.evaluation.quantile_function import quantiles_at
+from pipeline.members.base import MemberForecast
+from pipeline.panels.panel import Cells, Panel
+from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
+
+GBQR = "gbqr"
+PER_100K = 1e5
+WEEKS_PER_YEAR = 365.25 / 7
+
+
+@dataclass(frozen=True)
+class BoostingConfig:
+    """The scale (``rate_offset`` per 100,000 before the fourth root; ``scale_quantile``), the
+    local fit's ``local_weeks``, LightGBM's settings, and ``min_rows`` training rows below which
+    the member forecasts no change with the spread of the changes seen so far."""
+
+    rate_offset: float = 0.01
+    scale_quantile: float = 0.95
+    local_weeks: int = 6
+    n_estimators: int = 100
+    learning_rate: float = 0.05
+    num_leaves: int = 15
+    min_child_samples: int = 40
+    subsample: float = 0.7
+    colsample: float = 0.8
+    min_rows: int = 200
+    # training rows weighted by population ** weight_power (0: every place alike)
+    weight_power: float = 0.5
+    # the levels a model is fitted at; the others asked are read from the continuous quantile
+    # function through them (pipeline.evaluation.quantile_function): a model per level is the
+    # member's cost, and the hub's 23 cost 3.3 times these 7
+    fitted_levels: tuple[float, ...] = (0.025, 0.1, 0.25, 0.5, 0.75, 0.9, 0.975)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if (self.rate_offset <= 0 or not 0 < self.scale_quantile <= 1 or self.local_weeks < 3
+                or self.n_estimators < 1 or self.learning_rate <= 0 or self.num_leaves < 2
+                or self.min_child_samples < 1 or not 0 < self.subsample <= 1
+                or not 0 < self.colsample <= 1 or self.min_rows < 1
+                or len(self.fitted_levels) < 2 or list(self.fitted_levels) != sorted(
+                    set(self.fitted_levels)) or not 0 < self.fitted_levels[0]
+                or not self.fitted_levels[-1] < 1):
+            raise ConfigError(f"invalid BoostingConfig {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class Scaled:
+    """A block of series on the member's scale: ``z`` (P, W) the fourth root of the rate,
+    ``u`` = z / ``scale`` (P, 1)."""
+
+    z: NDArray[np.float64]
+    scale: NDArray[np.float64]
+    population: NDArray[np.float64]
+
+    @property
+    def u(self) -> NDArray[np.float64]:
+        return self.z / self.scale
+
+
+def scaled(weekly: NDArray[np.float64], population: NDArray[np.float64],
+           config: BoostingConfig) -> Scaled:
+    """``weekly (P, W)`` counts on the member's scale (module docstring)."""
+    rate = np.maximum(weekly, 0.0) / population[:, None] * PER_100K
+    z = (rate + config.rate_offset) ** 0.25
+    with np.errstate(all="ignore"):                  # a place with no week observed: NaN scale
+        scale = np.nanquantile(np.where(np.isfinite(z), z, np.nan), config.scale_quantile,
+                               axis=1, keepdims=True)
+    floor = config.rate_offset ** 0.25               # a place never above the offset
+    return Scaled(z, np.maximum(np.nan_to_num(scale, nan=1.0), 2 * floor), population)
+
+
+def counts_of(u: NDArray[np.float64], block: Scaled, config: BoostingConfig
+              ) -> NDArray[np.float64]:
+    """Counts of ``u (P, ...)`` on ``block``'s scale: the inverse of :func:`scaled`."""
+    shape = (-1,) + (1,) * (u.ndim - 1)
+    z = np.maximum(u * block.scale.reshape(shape), 0.0)
+    rate = np.maximum(z ** 4 - config.rate_offset, 0.0)
+    return rate * block.population.reshape(shape) / PER_100K
+
+
+def _change(u: NDArray[np.float64], lag: int) -> NDArray[np.float64]:
+    out = np.full_like(u, np.nan)
+    out[:, lag:] = u[:, lag:] - u[:, :-lag]
+    return out
+
+
+def _local_fit(u: NDArray[np.float64], weeks: int) -> NDArray[np.float64]:
+    """``(P, W, 2)``: slope and curvature of the least-squares quadratic through each week's
+    last ``weeks`` weeks (x = 0 at the week itself)."""
+    x = np.arange(-weeks + 1, 1, dtype=np.float64)
+    design = np.stack([np.ones_like(x), x, x ** 2], axis=1)
+    solve = np.linalg.pinv(design)[1:]                                     # (2, weeks)
+    out = np.full(u.shape + (2,), np.nan)
+    if u.shape[1] >= weeks:
+        windows = np.lib.stride_tricks.sliding_window_view(u, weeks, axis=1)  # (P, W-k+1, k)
+        out[:, weeks - 1:] = windows @ solve.T
+    return out
+
+
+FEATURES = ("u", "z", "change_1", "change_2", "change_4", "slope", "curvature", "season_sin",
+            "season_cos", "log_population", "horizon")
+
+
+def features(block: Scaled, week_ends: pd.DatetimeIndex, config: BoostingConfig
+             ) -> NDArray[np.float64]:
+    """``(P, W, F-1)``: :data:`FEATURES` but the horizon, at every week."""
+    u = block.u
+    n_p, n_w = u.shape
+    phase = 2 * np.pi * np.asarray(week_ends.dayofyear, dtype=np.float64) / 365.25
+    columns = [u, block.z, _change(u, 1), _change(u, 2), _change(u, 4)]
+    local = _local_fit(u, config.local_weeks)
+    columns += [local[..., 0], local[..., 1],
+                np.broadcast_to(np.sin(phase), (n_p, n_w)),
+                np.broadcast_to(np.cos(phase), (n_p, n_w)),
+                np.broadcast_to(np.log(block.population)[:, None], (n_p, n_w))]
+    return np.stack(columns, axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class TrainingRows:
+    """Features ``x (N, F)``, changes ``y (N,)`` and weights ``weight (N,)``."""
+
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    weight: NDArray[np.float64]
+
+
+def training_rows(block: Scaled, x: NDArray[np.float64], horizons: Sequence[int],
+                  config: BoostingConfig) -> TrainingRows:
+    """Every (place, week t, horizon h) whose week t + h is held: features with h, and the
+    change u_{t+h} − u_t."""
+    u = block.u
+    n_p, n_w = u.shape
+    place_weight = block.population ** config.weight_power
+    xs, ys, ws = [], [], []
+    for h in horizons:
+        if n_w <= h:
+            continue
+        y = (u[:, h:] - u[:, :n_w - h]).reshape(-1)
+        rows = x[:, :n_w - h].reshape(-1, x.shape[-1])
+        keep = np.isfinite(y) & np.isfinite(rows[:, 0])
+        xs.append(np.column_stack([rows[keep], np.full(keep.sum(), float(h))]))
+        ys.append(y[keep])
+        ws.append(np.repeat(place_weight, n_w - h)[keep])
+    if not xs:
+        return TrainingRows(np.empty((0, x.shape[-1] + 1)), np.empty(0), np.empty(0))
+    weight = np.concatenate(ws)
+    return TrainingRows(np.concatenate(xs), np.concatenate(ys), weight / weight.mean())
+
+
+def fit_predict(rows: TrainingRows, x_now: NDArray[np.float64], levels: NDArray[np.float64],
+                config: BoostingConfig, seed: int) -> NDArray[np.float64]:
+    """``(N, Q)`` predicted quantiles of the change at the rows ``x_now``, sorted across
+    levels: one quantile-loss model per level on one binned dataset."""
+    import lightgbm as lgb
+
+    if len(rows.y) < config.min_rows:
+        spread = np.quantile(rows.y, levels) if len(rows.y) else np.zeros(len(levels))
+        return np.broadcast_to(spread, (len(x_now), len(levels))).copy()
+    data = lgb.Dataset(rows.x, rows.y, weight=rows.weight, params={"verbose": -1, "max_bin": 63},
+                       free_raw_data=False)
+    out = np.empty((len(x_now), len(levels)))
+    for k, level in enumerate(levels):
+        params = {"objective": "quantile", "alpha": float(level),
+                  "learning_rate": config.learning_rate, "num_leaves": config.num_leaves,
+                  "min_child_samples": config.min_child_samples,
+                  "bagging_fraction": config.subsample, "bagging_freq": 1,
+                  "feature_fraction": config.colsample, "seed": seed, "deterministic": True,
+                  "num_threads": 1, "verbose": -1, "max_bin": 63}
+        booster = lgb.train(params, data, num_boost_round=config.n_estimators)
+        out[:, k] = np.asarray(booster.predict(x_now), dtype=np.float64)
+    return np.sort(out, axis=1)
+
+
+def last_finite(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(P,)`` each row's last finite value (0 for a row with none)."""
+    finite = np.isfinite(values)
+    last = values.shape[1] - 1 - np.argmax(finite[:, ::-1], axis=1)
+    return np.where(finite.any(axis=1), values[np.arange(len(values)), last], 0.0)
+
+
+def boosting_seed(config: BoostingConfig, origin: pd.Timestamp) -> int:
+    """The models' seed at ``origin``: the same whichever cells are forecast with it."""
+    return int(np.random.SeedSequence([config.seed, origin.toordinal()])
+               .generate_state(1)[0] % (2 ** 31))
+
+
+def _week_ends(origin: pd.Timestamp, n_weeks: int) -> pd.DatetimeIndex:
+    return pd.DatetimeIndex([origin - pd.Timedelta(days=DAYS_PER_WEEK * (n_weeks - 1 - i))
+                             for i in range(n_weeks)])
+
+
+def _groups(cells: Cells, n_weeks: list[int]
+            ) -> dict[tuple[int, pd.Timestamp, int, str | None], list[int]]:
+    """Cells that share a pool: panel, origin, length (and the place, where it is also one of
+    the panel's references: its pool leaves its own reference series out)."""
+    groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
+    for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
+                                                    cells.histories)):
+        key = (id(panel), history.origin, n_weeks[b],
+               place if place in panel.references else None)
+        groups.setdefault(key, []).append(b)
+    return groups
+
+
+@dataclass(frozen=True, eq=False)
+class PooledBoostingMember:
+    """``gbqr`` (module docstring): one set of quantile models per panel and origin, trained
+    on the panel's pool as known at the origin, predicting every cell from its own history."""
+
+    config: BoostingConfig = BoostingConfig()
+    name: str = GBQR
+    pools: ClassVar[bool] = True          # learns from the cell's panel (the memo keys on it)
+
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        levels = np.asarray(levels, dtype=np.float64)
+        own = [h.weekly_cases() for h in cells.histories]
+        short = [h for h, w in zip(cells.histories, own) if w.size < 2]
+        if short:
+            raise TargetError(f"{self.name} at {short[0].origin.date()}: needs two weeks, got "
+                              f"{short[0].weekly_cases().size}")
+        out = np.empty((len(cells), len(horizons), len(levels)))
+        for (_, origin, n, _), index in _groups(cells, [w.size for w in own]).items():
+            panel, place = cells.panels[index[0]], cells.places[index[0]]
+            out[index] = self._group_forecast(panel, place, origin, n, [own[b] for b in index],
+                                              cells.populations[index], horizons, levels)
+        return MemberForecast(out)
+
+    def _group_forecast(self, panel: Panel, place: str, origin: pd.Timestamp, n_weeks: int,
+                        own: list[NDArray[np.float64]], population: NDArray[np.float64],
+                        horizons: tuple[int, ...], levels: NDArray[np.float64]
+                        ) -> NDArray[np.float64]:
+        """``(B, H, Q)`` counts of the group's cells."""
+        week_ends = _week_ends(origin, n_weeks)
+        pool = scaled(panel.pool(place, origin, n_weeks), panel.pool_populations(place),
+                      self.config)
+        rows = training_rows(pool, features(pool, week_ends, self.config), horizons,
+                             self.config)
+        mine = scaled(np.stack(own), population, self.config)
+        now = features(mine, week_ends, self.config)[:, -1]                # (B, F-1)
+        n_b, n_h = len(own), len(horizons)
+        x_now = np.column_stack([np.repeat(now, n_h, axis=0),
+                                 np.tile(np.asarray(horizons, dtype=np.float64), n_b)])
+        fitted = np.asarray(self.config.fitted_levels, dtype=np.float64)
+        change = fit_predict(rows, x_now, fitted, self.config,
+                             boosting_seed(self.config, origin))
+        u_now = last_finite(mine.u)
+        u = u_now[:, None, None] + change.reshape(n_b, n_h, len(fitted))
+        return np.maximum.accumulate(quantiles_at(fitted, counts_of(u, mine, self.config),
+                                                  levels), axis=-1)

@@ -1,0 +1,139 @@
+"""The bound on the changes a forecast may imply (pipeline.combine.plausibility): the panel's
+own h-week changes at the cell's level, by its origin; and the backtest's bounded variant."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.backtest.backtest import run_backtest
+from pipeline.backtest.config import BacktestConfig, Variant
+from pipeline.combine.average import EnsembleError
+from pipeline.combine.combiner import PUBLISHED, CombineConfig
+from pipeline.combine.plausibility import (PlausibilityConfig, bounded, plausible_bands,
+                                           share_beyond)
+from pipeline.members.base import MemberForecast
+from pipeline.panels.history import WeeklyHistory
+from pipeline.panels.panel import Cells, Panel, panel_cells
+
+TARGET = "wk inc flu hosp"
+
+
+def _panel(counts: np.ndarray) -> Panel:
+    dates = pd.date_range("2023-01-07", periods=counts.shape[1], freq="7D")
+    return Panel({f"p{i}": WeeklyHistory(dates, c, 1_000_000, TARGET)
+                  for i, c in enumerate(counts)}, name="synthetic")
+
+
+def test_a_panel_of_steady_growth_bounds_every_horizon_to_that_growth() -> None:
+    """Ten places each growing by 10 % a week on log(1 + x): every h-week change at every
+    level is h·log(1.1), so the bound is that change exactly, whatever the tail."""
+    weeks = np.arange(60)
+    counts = np.expm1(np.log(50.0 + 10 * np.arange(10))[:, None] + np.log(1.1) * weeks)
+    panel = _panel(counts)
+    origin = panel.dates[40]
+    cells = panel_cells(panel, [origin], seed=0)
+    bands = plausible_bands(cells, (1, 2, 4), PlausibilityConfig(min_rows=5))
+    last = counts[:, 40]
+    for k, h in enumerate((1, 2, 4)):
+        expected = np.expm1(np.log1p(last) + h * np.log(1.1))
+        np.testing.assert_allclose(bands[:, k, 0], expected, rtol=1e-9)
+        np.testing.assert_allclose(bands[:, k, 1], expected, rtol=1e-9)
+
+
+def test_the_bound_reads_only_the_past_and_weeks_at_the_cells_level() -> None:
+    """Places near 20 swing by e^±1 a week, places near 10,000 by 2 % at most: a cell at
+    10,000 is held to the small changes, one near 20 may swing as far as its level did; what
+    comes after the origin is unseen."""
+    rng = np.random.default_rng(0)
+    low = np.log(20.0) + 0.5 * np.tile([1.0, -1.0], 40)[None, :] + rng.normal(0, 1e-3, (6, 80))
+    high = np.log(10_000.0) + rng.uniform(-0.01, 0.01, (6, 80))
+    counts = np.expm1(np.concatenate([low, high]))
+    panel = _panel(counts)
+    origin = panel.dates[59]
+    config = PlausibilityConfig(tail=0.0, level_ratio=3.0, min_rows=20)
+    bands = plausible_bands(panel_cells(panel, [origin], seed=0), (1,), config)
+    x0 = counts[:, 59]
+    change = np.log1p(bands[:, 0]) - np.log1p(x0)[:, None]                  # (12, 2)
+    assert (change[:6, 0] < -0.95).all() and (change[:6, 1] > 0.95).all()
+    assert (np.abs(change[6:]) <= 0.021).all()
+    # the same data up to the origin, anything after it: the same bands
+    later = counts.copy()
+    later[:, 60:] *= 50.0
+    again = plausible_bands(panel_cells(_panel(later), [origin], seed=0), (1,), config)
+    np.testing.assert_array_equal(again, bands)
+
+
+def test_bounded_quantiles_stay_ordered_and_within() -> None:
+    q = np.array([[1.0, 5.0, 9.0, 30.0], [2.0, 3.0, 4.0, 5.0]])
+    bands = np.array([[4.0, 20.0], [np.nan, np.nan]])
+    held = bounded(q, bands)
+    np.testing.assert_array_equal(held, [[4.0, 5.0, 9.0, 20.0], [2.0, 3.0, 4.0, 5.0]])
+    assert share_beyond(q, bands) == 0.5 and share_beyond(held, bands) == 0.0
+    with pytest.raises(EnsembleError, match="PlausibilityConfig"):
+        PlausibilityConfig(tail=0.6)
+
+
+@dataclasses.dataclass(frozen=True)
+class Collapsing:
+    """A member that forecasts a fall to zero at every horizon."""
+
+    name: str = "collapsing"
+
+    def forecast(self, cells: Cells, horizons: tuple[int, ...], levels: np.ndarray
+                 ) -> MemberForecast:
+        last = np.array([h.weekly_cases()[-1] for h in cells.histories])
+        spread = np.linspace(0.0, 1.0, len(levels))
+        return MemberForecast(last[:, None, None] * spread[None, None, :]
+                              * np.ones((1, len(horizons), 1)))
+
+
+def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so() -> None:
+    from pipeline.backtest.backtest import DataAtOrigins  # noqa: F401 - the protocol it takes
+
+    rng = np.random.default_rng(1)
+    counts = np.exp(np.log(500.0) + np.cumsum(rng.normal(0, 0.1, (8, 70)), axis=1))
+    panel = _panel(np.round(counts))
+    origins = list(panel.dates[30:60:3])
+
+    class Whole:
+        latest = panel
+
+        def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
+            return panel
+
+    bound = CombineConfig(scale="log", calibration="none", bounded=PlausibilityConfig(min_rows=20))
+    config = BacktestConfig(horizons=(1, 2), levels=(0.05, 0.5, 0.95), seed=0,
+                            combine=CombineConfig(scale="log", calibration="none"),
+                            variants=(Variant("bounded", bound),))
+    result = run_backtest(Whole(), [Collapsing()], origins, config)
+    free, held = result.forecasts[TARGET][PUBLISHED], result.forecasts[TARGET]["bounded"]
+    bands = plausible_bands(panel_cells(panel, origins, 0), (1, 2), bound.bounded
+                            ).reshape(*free.shape[:3], 2)
+    # the member's 5 % quantile falls by 95 %, far beyond a walk of σ = 0.1 a week
+    assert share_beyond(free, bands) > 0.3
+    assert share_beyond(held, bands) == 0.0
+    np.testing.assert_array_equal(held, bounded(free, bands))
+
+
+def test_skill_weights_pass_over_a_member_without_past_forecasts() -> None:
+    """A member with no forecast at some past cells (NaN there) is weighted on the cells it
+    forecast: finite weights that sum to one, the better member weighted more."""
+    from pipeline.combine.average import fit_weights
+    from pipeline.panels.targets import HUB_QUANTILE_LEVELS
+
+    levels = np.asarray(HUB_QUANTILE_LEVELS)
+    rng = np.random.default_rng(2)
+    truth = rng.uniform(50, 150, size=(4, 6))
+    spread = np.linspace(-1, 1, len(levels))
+    good = truth[..., None] + 10 * spread                        # centred on the truth
+    poor = truth[..., None] + 40 + 10 * spread                   # 40 too high
+    poor[:, :3] = np.nan                                         # no forecast at half the cells
+    baseline = np.full((4, 6), 30.0)
+    for method in ("inverse-wis", "stacking"):
+        w = fit_weights(method, np.stack([good, poor]), truth, baseline, levels, 6,
+                        scale="log-mixture", shrinkage_origins=0.0, stacking_step=0.1)
+        assert np.isfinite(w).all() and w.sum() == pytest.approx(1.0)
+        assert w[0] > w[1]
