@@ -77,13 +77,7 @@ def plausible_bands(cells: Cells, horizons: Sequence[int], config: PlausibilityC
     (module docstring); NaN where the panel's history is too short to bound it."""
     last = np.array([_last_held(h.weekly_cases()) for h in cells.histories])
     out = np.full((len(cells), len(horizons), 2), np.nan)
-    groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
-    for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
-                                                    cells.histories)):
-        key = (id(panel), history.origin, len(history.weekly_cases()),
-               place if place in panel.references else None)
-        groups.setdefault(key, []).append(b)
-    for (_, origin, n, _), index in groups.items():
+    for (_, origin, n, _), index in cells.pool_groups().items():
         b0 = index[0]
         log_change = _group_bands(cells.panels[b0], cells.places[b0], origin, n,
                                   last[index], horizons, config)

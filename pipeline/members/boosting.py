@@ -224,19 +224,6 @@ def _week_ends(origin: pd.Timestamp, n_weeks: int) -> pd.DatetimeIndex:
                              for i in range(n_weeks)])
 
 
-def _groups(cells: Cells, n_weeks: list[int]
-            ) -> dict[tuple[int, pd.Timestamp, int, str | None], list[int]]:
-    """Cells that share a pool: panel, origin, length (and the place, where it is also one of
-    the panel's references: its pool leaves its own reference series out)."""
-    groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
-    for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
-                                                    cells.histories)):
-        key = (id(panel), history.origin, n_weeks[b],
-               place if place in panel.references else None)
-        groups.setdefault(key, []).append(b)
-    return groups
-
-
 @dataclass(frozen=True, eq=False)
 class PooledBoostingMember:
     """``gbqr`` (module docstring): one set of quantile models per panel and origin, trained
@@ -255,7 +242,7 @@ class PooledBoostingMember:
             raise TargetError(f"{self.name} at {short[0].origin.date()}: needs two weeks, got "
                               f"{short[0].weekly_cases().size}")
         out = np.empty((len(cells), len(horizons), len(levels)))
-        for (_, origin, n, _), index in _groups(cells, [w.size for w in own]).items():
+        for (_, origin, n, _), index in cells.pool_groups().items():
             panel, place = cells.panels[index[0]], cells.places[index[0]]
             out[index] = self._group_forecast(panel, place, origin, n, [own[b] for b in index],
                                               cells.populations[index], horizons, levels)

@@ -26,12 +26,10 @@ growth seen so far (zero growth).
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
@@ -256,20 +254,6 @@ def _fitted_log_quantiles(x: NDArray[np.float64], y: NDArray[np.float64],
         spread[np.arange(x.shape[0]), group_now]
 
 
-def _pools(cells: Cells, n_weeks: list[int]
-           ) -> dict[tuple[int, pd.Timestamp, int, str | None], list[int]]:
-    """Cells that share a pool: the same panel, origin and length (and the same place where
-    the place is also a reference: its pool leaves its own reference series out; a reference
-    of another name changes no place's pool)."""
-    groups: dict[tuple[int, pd.Timestamp, int, str | None], list[int]] = {}
-    for b, (panel, place, history) in enumerate(zip(cells.panels, cells.places,
-                                                    cells.histories)):
-        key = (id(panel), history.origin, n_weeks[b],
-               place if place in panel.references else None)
-        groups.setdefault(key, []).append(b)
-    return groups
-
-
 @dataclass(frozen=True, eq=False)
 class PooledGrowthMember:
     """``growth-qr`` (module docstring). A cell's pool is its panel as known at its origin
@@ -292,7 +276,7 @@ class PooledGrowthMember:
             raise TargetError(f"{self.name} at {short[0].origin.date()}: needs two complete "
                               f"weeks, got {len(short[0])} {'days' if isinstance(short[0], EpiHistory) else 'weeks'}")
         out = np.empty((len(cells), len(horizons), len(levels)))
-        for (_, origin, n, _), index in _pools(cells, [w.size for w in own]).items():
+        for (_, origin, n, _), index in cells.pool_groups().items():
             panel, place = cells.panels[index[0]], cells.places[index[0]]
             pool = panel.pool(place, origin, n)
             rows = np.array([panel.own_row(cells.places[b]) for b in index])

@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -151,6 +152,15 @@ class Panel:
         return sum(1 for p in self.references if p != place) + self.places.index(place)
 
 
+class PoolKey(NamedTuple):
+    """What a pooled member's pool depends on (:meth:`Cells.pool_groups`)."""
+
+    panel: int
+    origin: pd.Timestamp
+    n_weeks: int
+    own_reference: str | None
+
+
 @dataclass(frozen=True, eq=False)
 class Cells:
     """B forecast cells: history b is ``places[b]``'s data up to its origin, from ``panels[b]``
@@ -177,6 +187,19 @@ class Cells:
     @property
     def populations(self) -> NDArray[np.float64]:
         return np.array([h.population for h in self.histories], dtype=np.float64)
+
+    def pool_groups(self) -> dict[PoolKey, list[int]]:
+        """The cells that share a pool (:meth:`Panel.pool`), by (panel, origin, weeks, place):
+        the same panel, origin and number of weeks, and the same place where the place is also
+        one of the panel's references (its pool leaves its own reference series out; a
+        reference of another name changes no place's pool)."""
+        groups: dict[PoolKey, list[int]] = {}
+        for b, (panel, place, history) in enumerate(zip(self.panels, self.places,
+                                                        self.histories)):
+            key = PoolKey(id(panel), history.origin, len(history.weekly_cases()),
+                          place if place in panel.references else None)
+            groups.setdefault(key, []).append(b)
+        return groups
 
     def subset(self, index: Sequence[int]) -> Cells:
         return Cells(tuple(self.histories[i] for i in index), tuple(self.places[i] for i in index),
