@@ -216,13 +216,15 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                                           tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
+    from pipeline.members.boosting import BoostingConfig
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.training.model_store import default_store_root
 
     started = time.perf_counter()
     # no ED-share vintage of influenza in the shared data: the seasonal member reads the
     # admissions' own earlier seasons (its climatology left empty)
-    members = build_hub_members(HubMembersConfig(), default_store_root(), vintages, (),
+    members = build_hub_members(HubMembersConfig(boosting=BoostingConfig()),
+                                default_store_root(), vintages, (),
                                 target=HOSP_FLU, seasonal_own_seasons=True)
     t_members = time.perf_counter() - started
     reach = HubBacktestConfig().combine      # the published rule (the hub's 95 % outer interval)

@@ -299,6 +299,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                                               summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
+    from pipeline.members.boosting import BoostingConfig
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
     from pipeline.panels.hub import HOSP_COVID, hub_rounds, is_share
@@ -309,7 +310,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     rounds = hub_rounds(vintages)
     latest = vintages[-1][1]
     other = load_vintages(HOSP_COVID) if is_share(target) else climatology
-    members = build_hub_members(HubMembersConfig(), default_store_root(), vintages,
+    members = build_hub_members(HubMembersConfig(boosting=BoostingConfig()),
+                                default_store_root(), vintages,
                                 climatology, target=target, other_signal=other)
     t_members = time.perf_counter() - started
     ablated = [] if args.no_ablations else ablation_members(target, vintages, climatology,

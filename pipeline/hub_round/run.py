@@ -78,7 +78,7 @@ HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
         finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
                                 batch_size=128),
         context=TINY_CONTEXT_FLOW, context_refit=TINY_CONTEXT_REFIT, context_seeds=1,
-        flow_samples=200, baseline_samples=2000, background_training=False, boosting=None),
+        flow_samples=200, baseline_samples=2000, background_training=False),
 }
 
 

@@ -188,8 +188,10 @@ class HubMembersConfig:
         revision_days=14, min_windows=200, lr=1e-3))
     seasonal: SeasonalConfig = field(default_factory=SeasonalConfig)
     regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
-    # the pooled gradient-boosted quantile member (None: not built; the tiny preset's rounds)
-    boosting: BoostingConfig | None = field(default_factory=BoostingConfig)
+    # the pooled gradient-boosted quantile member, scored beside the others where given (the
+    # benches); None: not built (a live round, until it joins an average: its first round from
+    # an empty store would forecast the burn-in's 52 weeks with it, about 3.5 s an origin)
+    boosting: BoostingConfig | None = None
     # Admissions: the context flow (its seeds mixed), the weekly flow and the seasonal member.
     # Over COVID-19's 44 design rounds the three scored 0.783 against 0.795 for the pair
     # without the context flow (published until 2026-11), 0.540 against 0.576 on the 15
@@ -302,8 +304,8 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     the windows of the vintage of each (``nf-real``), the context flow refitted globally on
     the same calendar (``nf-context``, :mod:`pipeline.members.nf.context`: its other signal is
     ``other_signal``, by default the ``climatology`` for admissions and none for the share),
-    the seasonal member on the ``climatology`` vintages (the ED-visit share), the hub baseline,
-    growth-qr and gbqr pooled over the 53 locations; :func:`published_names` chooses the average's
+    the seasonal member on the ``climatology`` vintages (the ED-visit share), the hub baseline
+    and growth-qr pooled over the 53 locations (and gbqr where ``config.boosting`` is given); :func:`published_names` chooses the average's
     members for ``target``. ``seasonal_own_seasons``: the seasonal member reads the target's own
     earlier seasons instead of the ``climatology`` (influenza: no ED vintage in FluSight's
     data). ``newest_first``: the refits latest first (:mod:`pipeline.hub_round.
