@@ -87,8 +87,9 @@ def log_relative_wis_by_place(wis: NDArray[np.float64], baseline_wis: NDArray[np
     seen = np.isfinite(baseline_wis) & np.isfinite(wis)
     num = np.where(seen, wis, 0.0).sum(axis=-1) + _EPS_WIS
     den = np.where(seen, baseline_wis, 0.0).sum(axis=-1) + _EPS_WIS
-    places = seen.any(axis=-1)
-    return np.where(places, np.log(num / den), 0.0).sum(axis=-1) / max(int(places.sum()), 1)
+    places = seen.any(axis=-1)                              # (..., C): each forecaster's own
+    return (np.where(places, np.log(num / den), 0.0).sum(axis=-1)
+            / np.maximum(places.sum(axis=-1), 1))
 
 
 def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
@@ -110,7 +111,7 @@ def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
         return lam * skill / skill.sum() + (1.0 - lam) * equal
     grid = simplex_grid(m, stacking_step)                                  # (K, M)
     # scored on the cells every member forecast (a stand-in elsewhere, its truth unseen)
-    every = np.isfinite(past_values).all(axis=(0, -1))                     # (C, n)
+    every = np.asarray(np.isfinite(past_values).all(axis=(0, -1)), dtype=bool)  # (C, n)
     past_values = np.where(every[None, ..., None], past_values, 1.0)
     past_truth = np.where(every, past_truth, np.nan)
     combined = np.stack([vincentize(past_values, w, scale) for w in grid])  # (K, C, n, Q)
