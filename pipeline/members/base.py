@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.panels.history import History
+from pipeline.panels.history import History, WeeklyHistory
 from pipeline.panels.panel import Cells, Panel
 from pipeline.panels.targets import SHARE, TargetError
 
@@ -125,6 +125,17 @@ def forecast_within_reach(member: Member, cells: Cells, horizons: tuple[int, ...
         made = member.forecast(cells, steps, levels)
         count[:, [horizons.index(h) for h in steps]] = made.count
     return MemberForecast(count)
+
+
+def weekly_series(cells: Cells, member: str) -> list[NDArray[np.float64]]:
+    """Each cell's weekly counts, for a member that needs two complete weeks of every cell."""
+    own = [h.weekly_cases() for h in cells.histories]
+    short = [h for h, w in zip(cells.histories, own) if w.size < 2]
+    if short:
+        unit = "weeks" if isinstance(short[0], WeeklyHistory) else "days"
+        raise TargetError(f"{member} at {short[0].origin.date()}: needs two complete weeks, got "
+                          f"{len(short[0])} {unit}")
+    return own
 
 
 def quantiles_of_samples(samples: NDArray[np.float64], levels: NDArray[np.float64]

@@ -33,9 +33,9 @@ from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
 from pipeline.evaluation.quantile_function import quantiles_at
-from pipeline.members.base import MemberForecast
+from pipeline.members.base import MemberForecast, weekly_series
 from pipeline.panels.panel import Cells, Panel
-from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
+from pipeline.panels.targets import DAYS_PER_WEEK
 
 GBQR = "gbqr"
 PER_100K = 1e5
@@ -236,11 +236,7 @@ class PooledBoostingMember:
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
         levels = np.asarray(levels, dtype=np.float64)
-        own = [h.weekly_cases() for h in cells.histories]
-        short = [h for h, w in zip(cells.histories, own) if w.size < 2]
-        if short:
-            raise TargetError(f"{self.name} at {short[0].origin.date()}: needs two weeks, got "
-                              f"{short[0].weekly_cases().size}")
+        own = weekly_series(cells, self.name)
         out = np.empty((len(cells), len(horizons), len(levels)))
         for (_, origin, n, _), index in cells.pool_groups().items():
             panel, place = cells.panels[index[0]], cells.places[index[0]]

@@ -33,11 +33,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
-from pipeline.members.base import MemberForecast
+from pipeline.members.base import MemberForecast, weekly_series
 from pipeline.members.hub_baseline import row_quantiles
-from pipeline.panels.history import EpiHistory
 from pipeline.panels.panel import Cells
-from pipeline.panels.targets import TargetError
 
 GROWTH_QR = "growth-qr"
 LEVEL_SCALE = 10.0            # log counts / 10: features of comparable size for the ridge
@@ -270,11 +268,7 @@ class PooledGrowthMember:
     def forecast(self, cells: Cells, horizons: tuple[int, ...],
                  levels: NDArray[np.float64]) -> MemberForecast:
         levels = np.asarray(levels, dtype=np.float64)
-        own = [h.weekly_cases() for h in cells.histories]
-        short = [h for h, w in zip(cells.histories, own) if w.size < 2]
-        if short:
-            raise TargetError(f"{self.name} at {short[0].origin.date()}: needs two complete "
-                              f"weeks, got {len(short[0])} {'days' if isinstance(short[0], EpiHistory) else 'weeks'}")
+        own = weekly_series(cells, self.name)
         out = np.empty((len(cells), len(horizons), len(levels)))
         for (_, origin, n, _), index in cells.pool_groups().items():
             panel, place = cells.panels[index[0]], cells.places[index[0]]
