@@ -51,6 +51,7 @@ from pipeline.data.california.counties import california_county, county_slug
 from pipeline.data.core.cache import data_dir
 from pipeline.errors import ConfigError
 from pipeline.forecast.config import DataSourceKind
+from pipeline.forecast.nowcasting import archive_from_environment
 from pipeline.forecast.publish import PublishedRun, publish
 from pipeline.forecast.run import FETCH_STEPS, Step, StepRunner
 from pipeline.forecast.steps import REPORT_LEVELS
@@ -251,14 +252,19 @@ def flow_config(preset: str, *, encoder: str | None, data_source: DataSourceKind
                 datasf_base_url: str | None, county: str | None = None) -> fc.ForecastConfig:
     """The flow's parameters as a :class:`~pipeline.forecast.ForecastConfig` (``county`` as
     CDPH spells it, whatever its case; an unknown name fails here, before any work); the data
-    folder read from the environment here, once ($FLOWCAST_DATA_DIR or ./data)."""
+    folder and the CDPH archive read from the environment here, once ($FLOWCAST_DATA_DIR or
+    ./data; $FLOWCAST_CDPH_ARCHIVE where the preset names no archive)."""
     base = fc.resolve_config(preset)
     data = dataclasses.replace(base.data, kind=data_source, import_paths=tuple(import_from or ()),
                                base_url=datasf_base_url or None,
                                county=california_county(county) if county else None,
                                data_dir=str(data_dir()))
-    return fc.resolve_config(preset, encoder=encoder, seed=seed, data=data,
-                             output_dir=output_dir)
+    config = fc.resolve_config(preset, encoder=encoder, seed=seed, data=data,
+                               output_dir=output_dir)
+    if config.nowcast.archive:
+        return config
+    return dataclasses.replace(config, nowcast=dataclasses.replace(
+        config.nowcast, archive=archive_from_environment()))
 
 
 def _mark_stale(reference_date: str, notes: tuple[str, ...], place: str) -> None:

@@ -183,10 +183,12 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
              if config.n_paths else None)
     keep = (np.ones(len(origins), dtype=bool) if reported is None
             else np.isin(pd.DatetimeIndex(origins), pd.DatetimeIndex(list(reported))))
-    return BacktestResult(latest, tuple(origins), horizons, levels, names,
-                          tuple(r.name for r in references), forecasts, truth, regimes,
-                          combined.weights, paths, keep, seconds, config,
-                          failures).reported_only()
+    return BacktestResult(panel=latest, origins=tuple(origins), horizons=horizons,
+                          levels=levels, members=names,
+                          references=tuple(r.name for r in references), forecasts=forecasts,
+                          truth=truth, regimes=regimes, weights=combined.weights, paths=paths,
+                          reported=keep, seconds=seconds, config=config,
+                          failures=failures).reported_only()
 
 
 def _add(forecasts: dict[str, dict[str, NDArray[np.float64]]], name: str,

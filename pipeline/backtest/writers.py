@@ -18,6 +18,7 @@ import pandas as pd
 from pipeline.backtest.result import BacktestResult, QuantileForecast
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.io import atomic_write_json, atomic_write_text
+from pipeline.panels.quantiles import long_frame
 from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, format_level
 
 HUB_COLUMNS = ("origin_date", "target", "horizon", "target_end_date", "output_type",
@@ -28,25 +29,17 @@ def hub_frame(forecast: QuantileForecast, population: int) -> pd.DataFrame:
     """Hub-format rows (:data:`HUB_COLUMNS`) of a forecast: quantiles of each target, and the
     sample paths' I and weekly counts (N·I, ``population`` N) when it has paths."""
     origin = forecast.origin
-    frames = []
-    for target in forecast.values:
-        values = forecast.values[target]
-        n_h, n_q = values.shape
-        h = np.repeat(np.asarray(forecast.horizons), n_q)
-        frames.append(pd.DataFrame({
-            "target": target, "horizon": h, "output_type": "quantile",
-            "output_type_id": np.tile([format_level(lv) for lv in forecast.levels], n_h),
-            "value": values.reshape(-1)}))
+    level_ids = [format_level(lv) for lv in forecast.levels]
+    frames = [long_frame(values, {"horizon": forecast.horizons, "output_type_id": level_ids}
+                         ).assign(target=target, output_type="quantile")
+              for target, values in forecast.values.items()]
     if forecast.paths is not None:
         i_paths = forecast.paths[:, :, 1].T                                  # (H, n)
-        n_h, n_s = i_paths.shape
-        for target in forecast.values:
-            vals = i_paths if target == SHARE else i_paths * population
-            frames.append(pd.DataFrame({
-                "target": target, "horizon": np.repeat(np.asarray(forecast.horizons), n_s),
-                "output_type": "sample", "output_type_id": np.tile(np.arange(n_s).astype(str),
-                                                                   n_h),
-                "value": vals.reshape(-1)}))
+        sample_ids = np.arange(i_paths.shape[1]).astype(str)
+        frames += [long_frame(i_paths if target == SHARE else i_paths * population,
+                              {"horizon": forecast.horizons, "output_type_id": sample_ids}
+                              ).assign(target=target, output_type="sample")
+                   for target in forecast.values]
     frame = pd.concat(frames, ignore_index=True)
     frame["origin_date"] = str(origin.date())
     frame["target_end_date"] = [str((origin + pd.Timedelta(days=DAYS_PER_WEEK * int(h))).date())
@@ -64,12 +57,14 @@ def write_backtest(result: BacktestResult, out_dir: str | Path,
     (module docstring)."""
     root = Path(out_dir)
     written = []
+    published = result.quantiles(result.panel.count_target, PUBLISHED)
     for origin in result.origins:
+        made = np.asarray(np.isfinite(published.at(origin=origin)).all(axis=(1, 2)),
+                          dtype=bool)                                            # (C,)
         frames = [hub_frame(result.forecast_at(place, origin, PUBLISHED), int(population))
                   .assign(place=place)
-                  for place, population in zip(result.places, result.populations)
-                  if np.isfinite(result.forecasts[result.panel.count_target][PUBLISHED]
-                                 [result.places.index(place), result.origins.index(origin)]).all()]
+                  for place, population, ok in zip(result.places, result.populations, made)
+                  if ok]
         if not frames:
             continue
         frame = pd.concat(frames, ignore_index=True)

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.combine.average import EnsembleError
+from pipeline.evaluation.quantile_function import median_index
 
 
 def reconcilable(places: Sequence[str], total: str, parts: Iterable[str]) -> bool:
@@ -30,7 +31,7 @@ def median_gap(quantiles: NDArray[np.float64], places: Sequence[str], total: str
                levels: NDArray[np.float64]) -> NDArray[np.float64]:
     """log(total's median / Σ parts' medians) per cell ``(O, H)`` of quantiles
     ``(C, O, H, Q)``: 0 where they agree."""
-    mid = int(np.argmin(np.abs(np.asarray(levels) - 0.5)))
+    mid = median_index(levels)
     whole, parts = _split(quantiles[..., mid], places, total)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.log(whole / parts)
@@ -40,7 +41,7 @@ def top_down(quantiles: NDArray[np.float64], places: Sequence[str], total: str,
              levels: NDArray[np.float64]) -> NDArray[np.float64]:
     """The parts' quantiles scaled so their medians sum to the total's median (module
     docstring); cells without a total or parts are left as they are."""
-    mid = int(np.argmin(np.abs(np.asarray(levels) - 0.5)))
+    mid = median_index(levels)
     whole, parts = _split(quantiles[..., mid], places, total)
     with np.errstate(divide="ignore", invalid="ignore"):
         factor = np.where((parts > 0) & np.isfinite(whole), whole / parts, 1.0)     # (O, H)

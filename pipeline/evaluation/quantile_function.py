@@ -24,6 +24,25 @@ class CalibrationError(FlowcastError):
     """Levels, quantiles or PIT values that do not fit together."""
 
 
+LEVEL_TOLERANCE = 1e-6
+MEDIAN = 0.5
+
+
+def level_index(levels: ArrayLike, level: float) -> int:
+    """The position of ``level`` among ``levels`` (the one way every module finds a level, the
+    median's included); a level not among them is an error, never the nearest one."""
+    lv = np.asarray(levels, dtype=np.float64)
+    at = int(np.argmin(np.abs(lv - level))) if lv.size else -1
+    if at < 0 or abs(lv[at] - level) > LEVEL_TOLERANCE:
+        raise CalibrationError(f"level {level} is not among the levels {lv.tolist()}")
+    return at
+
+
+def median_index(levels: ArrayLike) -> int:
+    """The position of the median (level 0.5) among ``levels``."""
+    return level_index(levels, MEDIAN)
+
+
 def _transform(values: NDArray[np.float64], unit: float) -> NDArray[np.float64]:
     return np.log1p(np.maximum(values, 0.0) * unit)
 

@@ -48,10 +48,10 @@ MODELS_DIR = "delay-models"
 log = logging.getLogger(__name__)
 
 
-def archive_folders(settings: NowcastSettings) -> tuple[str, ...]:
-    """``settings.archive``, else ``$FLOWCAST_CDPH_ARCHIVE`` (colon-separated)."""
-    if settings.archive:
-        return settings.archive
+def archive_from_environment() -> tuple[str, ...]:
+    """The CDPH archive folders ``$FLOWCAST_CDPH_ARCHIVE`` names (colon-separated): read once,
+    at the edge (the flow's config), onto :attr:`NowcastSettings.archive`; the nowcast itself
+    reads only its settings."""
     return tuple(p for p in os.environ.get(ARCHIVE_ENV, "").split(os.pathsep) if p)
 
 
@@ -59,7 +59,7 @@ def delay_vintages(settings: NowcastSettings, folder: Path | None = None) -> lis
     """Every CDPH vintage the cache (in the data ``folder``) holds, plus the validated
     downloads in the archive folders (one per date; the cache's copy first)."""
     chosen: dict[pd.Timestamp, CDPHVintage] = {v.as_of: v for v in cached_vintages(folder)}
-    for archive in archive_folders(settings):
+    for archive in settings.archive:
         files = find_vintage_files(archive) if Path(archive).is_dir() else []
         for checked in validate_cdph_exports(files):
             chosen.setdefault(checked.vintage.as_of, checked.vintage)

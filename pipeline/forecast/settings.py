@@ -27,7 +27,7 @@ class NowcastSettings:
     ``completions``: K nowcast samples of the recent days, each forecast, mixed (the nowcast
     itself draws ``nowcast_samples``, for its own quantiles and the hub file); the delay model
     is fitted (and cached) from every CDPH vintage in the data cache plus the CDPH downloads in
-    ``archive`` folders (default ``$FLOWCAST_CDPH_ARCHIVE``, colon-separated). With fewer than
+    ``archive`` folders (the flow fills them from ``$FLOWCAST_CDPH_ARCHIVE``, colon-separated). With fewer than
     two vintages there is no delay model: the run drops ``fallback_trailing_days`` instead, as
     it did before, and says so."""
 

@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from pipeline.evaluation.quantile_function import median_index
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.hub import US
 from pipeline.panels.panel import Panel, weeks_ending
@@ -87,7 +88,7 @@ def nowcast_weeks(panel: Panel, earlier: Sequence[Panel], levels: NDArray[np.flo
     levels = np.asarray(levels, dtype=np.float64)
     ends = tuple(panel.last_date - pd.Timedelta(days=DAYS_PER_WEEK * k)
                  for k in range(config.lags))
-    mid = int(np.argmin(np.abs(levels - 0.5)))
+    mid = median_index(levels)
     out: dict[str, NDArray[np.float64]] = {}
     corrected: dict[str, WeeklyHistory] = {}
     pairs: dict[int, int] = {}

@@ -26,7 +26,11 @@ from pipeline.outputs.derived_targets import (PER, RATE_CHANGE_CATEGORIES, SEASO
                                               rate_change_rule, season_tails, season_weeks)
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.panel import Panel
+from pipeline.panels.quantiles import long_frame
 from pipeline.panels.targets import format_level
+
+DERIVED_COLUMNS = ("reference_date", "target", "horizon", "location", "target_end_date",
+                   "output_type", "output_type_id", "value")
 
 RATE_HORIZONS: tuple[int, ...] = (0, 1, 2, 3)
 RATE_CHANGE = "wk flu hosp rate change"
@@ -139,9 +143,12 @@ def derive_targets(result: HubRoundsResult, latest: Panel, population: Mapping[s
             if place in truth_series and truth_series[place].index[-1] >= days[-1]:
                 peak_obs[c, r], week_obs[c, r] = observed_peak(
                     truth_series[place].reindex(days).to_numpy(dtype=np.float64))
-    return DerivedTargets(places, result.references, levels, rate, rate_clim,
-                          rate_obs.astype(np.int64), peak, peak_clim, peak_obs, week, week_clim,
-                          week_obs.astype(np.int64), tuple(seasons))
+    return DerivedTargets(places=places, references=result.references, levels=levels,
+                          rate=rate, rate_climatology=rate_clim,
+                          rate_observed=rate_obs.astype(np.int64), peak=peak,
+                          peak_climatology=peak_clim, peak_observed=peak_obs, peak_week=week,
+                          peak_week_climatology=week_clim,
+                          peak_week_observed=week_obs.astype(np.int64), seasons=tuple(seasons))
 
 
 def derived_round_frame(targets: DerivedTargets, index: int, peak_weeks: Sequence[str] | None
@@ -150,27 +157,23 @@ def derived_round_frame(targets: DerivedTargets, index: int, peak_weeks: Sequenc
     round's season weeks as the peak week's categories (``peak_weeks``), its peak quantiles
     and peak-week pmf, in the hubverse format (horizon and target end date NA for the peak)."""
     reference = targets.references[index]
-    places = np.asarray(targets.places, dtype=object)
-    n_c, n_h, n_k = targets.rate.shape[0], len(RATE_HORIZONS), len(RATE_CHANGE_CATEGORIES)
-    ends = [str((reference + pd.Timedelta(weeks=h)).date()) for h in RATE_HORIZONS]
-    frames = [pd.DataFrame({
-        "target": RATE_CHANGE, "horizon": np.tile(np.repeat(RATE_HORIZONS, n_k), n_c),
-        "location": np.repeat(places, n_h * n_k),
-        "target_end_date": np.tile(np.repeat(ends, n_k), n_c), "output_type": "pmf",
-        "output_type_id": np.tile(RATE_CHANGE_CATEGORIES, n_c * n_h),
-        "value": targets.rate[:, index].reshape(-1)})]
+    ends = {h: str((reference + pd.Timedelta(weeks=h)).date()) for h in RATE_HORIZONS}
+    rate = long_frame(targets.rate[:, index], {"location": targets.places,
+                                               "horizon": RATE_HORIZONS,
+                                               "output_type_id": RATE_CHANGE_CATEGORIES})
+    frames = [rate.assign(target=RATE_CHANGE, target_end_date=rate["horizon"].map(ends),
+                          output_type="pmf")]
     days = [str(d.date()) for d in targets.seasons[index]]
     if peak_weeks is not None and list(peak_weeks) == days:
-        n_q, n_w = len(targets.levels), len(days)
-        frames += [pd.DataFrame({
-            "target": PEAK, "horizon": None, "location": np.repeat(places, n_q),
-            "target_end_date": None, "output_type": "quantile",
-            "output_type_id": np.tile([format_level(q) for q in targets.levels], n_c),
-            "value": targets.peak[:, index].reshape(-1)}), pd.DataFrame({
-            "target": PEAK_WEEK, "horizon": None, "location": np.repeat(places, n_w),
-            "target_end_date": None, "output_type": "pmf",
-            "output_type_id": np.tile(days, n_c),
-            "value": targets.peak_week[:, index].reshape(-1)})]
+        season_wide = {"horizon": None, "target_end_date": None}
+        frames += [
+            long_frame(targets.peak[:, index], {
+                "location": targets.places,
+                "output_type_id": [format_level(q) for q in targets.levels]}
+            ).assign(target=PEAK, output_type="quantile", **season_wide),
+            long_frame(targets.peak_week[:, index], {"location": targets.places,
+                                                     "output_type_id": days}
+                       ).assign(target=PEAK_WEEK, output_type="pmf", **season_wide)]
     frame = pd.concat(frames, ignore_index=True)
     frame.insert(0, "reference_date", str(reference.date()))
-    return frame
+    return frame[list(DERIVED_COLUMNS)]

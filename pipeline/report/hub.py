@@ -31,6 +31,7 @@ from pipeline.backtest.hub_rounds import HubRoundsResult
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.hub.locations import BY_LOCATION, US
 from pipeline.data.hub.nhsn_vintages import TARGETS
+from pipeline.evaluation.quantile_function import level_index, median_index
 from pipeline.evaluation.summary import score_cells
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.hub import is_share, target_scale
@@ -55,18 +56,18 @@ def disease_of(target: str) -> str:
     return spec.disease if spec is not None else "covid"
 
 
-def _at(levels: NDArray[np.float64], level: float) -> int:
-    return int(np.argmin(np.abs(levels - level)))
-
-
 def rising_probability(result: HubRoundsResult, index: int = -1) -> NDArray[np.float64]:
     """P(horizon 1's week > horizon −1's) per location at a round, from the published sample
     trajectories (NaN without samples)."""
     if result.samples is None:
         return np.full(len(result.places), np.nan)
-    h = list(result.horizons)
-    draws = result.samples[:, index]                                          # (C, n, H)
-    return np.mean(draws[:, :, h.index(1)] > draws[:, :, h.index(-1)], axis=1)
+    ahead, now = (result.draws(horizon, index) for horizon in (1, -1))          # (C, n)
+    return np.mean(ahead > now, axis=1)
+
+
+def _band_positions(levels: NDArray[np.float64]) -> list[int]:
+    """Where the fans' bands (:data:`BAND_LEVELS`) are among ``levels``."""
+    return [level_index(levels, lv) for lv in BAND_LEVELS]
 
 
 def _fmt(value: float, share: bool) -> str:
@@ -75,8 +76,8 @@ def _fmt(value: float, share: bool) -> str:
 
 def _interval(q: NDArray[np.float64], levels: NDArray[np.float64], coverage: float,
               share: bool) -> str:
-    lo, hi = (1 - coverage) / 2, 1 - (1 - coverage) / 2
-    return f"{_fmt(q[_at(levels, lo)], share)}–{_fmt(q[_at(levels, hi)], share)}"
+    lo, hi = level_index(levels, (1 - coverage) / 2), level_index(levels, (1 + coverage) / 2)
+    return f"{_fmt(q[lo], share)}–{_fmt(q[hi], share)}"
 
 
 def _horizon_label(h: int) -> str:
@@ -86,12 +87,11 @@ def _horizon_label(h: int) -> str:
 def forecast_table(result: HubRoundsResult, place: str) -> pd.DataFrame:
     """One location's published forecast: a row per hub horizon."""
     levels, share = result.levels, is_share(result.target)
-    c = result.places.index(place)
     rnd = result.rounds[-1]
-    values = result.forecasts[PUBLISHED][c, -1]
+    values = result.quantiles().at(place=place, origin=rnd.reference)         # (H, Q)
     return pd.DataFrame(
         {"week ending": [str(rnd.target_end(h).date()) for h in result.horizons],
-         "median": [_fmt(q[_at(levels, 0.5)], share) for q in values],
+         "median": [_fmt(q[median_index(levels)], share) for q in values],
          "50% interval": [_interval(q, levels, 0.5, share) for q in values],
          "95% interval": [_interval(q, levels, 0.95, share) for q in values]},
         index=pd.Index([_horizon_label(h) + (" nowcast" if step <= 0 else "")
@@ -103,13 +103,14 @@ def locations_table(result: HubRoundsResult) -> pd.DataFrame:
     """Every location: the week just past (nowcast), the median and 95 % interval two weeks
     ahead, and P(rising)."""
     levels, share = result.levels, is_share(result.target)
-    h = list(result.horizons)
-    values = result.forecasts[PUBLISHED][:, -1]
+    published, newest = result.quantiles(), result.references[-1]
+    now, ahead = (published.at(origin=newest, horizon=h) for h in (-1, 1))      # (C, Q)
+    mid = median_index(levels)
     p = rising_probability(result)
     rows = {BY_LOCATION[place].name if place in BY_LOCATION else place: {
-        "nowcast, last week": _fmt(values[c, h.index(-1), _at(levels, 0.5)], share),
-        "median in 2 weeks": _fmt(values[c, h.index(1), _at(levels, 0.5)], share),
-        "95% interval": _interval(values[c, h.index(1)], levels, 0.95, share),
+        "nowcast, last week": _fmt(now[c, mid], share),
+        "median in 2 weeks": _fmt(ahead[c, mid], share),
+        "95% interval": _interval(ahead[c], levels, 0.95, share),
         "P(rising)": "—" if not np.isfinite(p[c]) else f"{p[c]:.0%}"}
         for c, place in enumerate(result.places)}
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("location")
@@ -132,8 +133,7 @@ def fan_figure(result: HubRoundsResult) -> bytes:
     ends = list(pd.date_range(end=rnd.origin, periods=HISTORY_WEEKS, freq="7D"))
     observed = np.stack([weeks_ending(rnd.panel.histories[p], rnd.origin, HISTORY_WEEKS)
                          for p in result.places]) / scale
-    levels = result.levels
-    bands = result.forecasts[PUBLISHED][:, -1][..., [_at(levels, lv) for lv in BAND_LEVELS]]
+    bands = result.quantiles().at(origin=rnd.reference)[..., _band_positions(result.levels)]
     names = [BY_LOCATION[p].name if p in BY_LOCATION else p for p in result.places]
     unit = "share of ED visits" if is_share(result.target) else "weekly admissions"
     return small_multiples_figure(names, [e.date() for e in ends], observed,
@@ -156,7 +156,7 @@ def hub_baseline_as_scored(result: HubRoundsResult) -> NDArray[np.float64]:
     value reported (every quantile that value)."""
     baseline = result.forecasts[HUB_BASELINE].copy()
     if -1 in result.horizons:
-        baseline[:, :, result.horizons.index(-1), :] = last_reported(result)[..., None]
+        baseline[:, :, result.horizon_index(-1), :] = last_reported(result)[..., None]
     return baseline
 
 
@@ -223,10 +223,10 @@ def track_record_figure(result: HubRoundsResult) -> bytes:
     """The published forecast's relative WIS by round: horizon −1 (against the last reported
     value) and horizons 0 … 3 together."""
     scored = like_with_like(result)
-    h = list(result.horizons)
-    ahead = [k for k, x in enumerate(h) if x >= 0]
+    ahead = [k for k, x in enumerate(result.horizons) if x >= 0]
+    nowcast = [result.horizon_index(-1)]
     series = {"horizon −1 (nowcast) vs last reported value":
-              LikeWithLike(*(a[:, :, [h.index(-1)]] for a in _parts(scored))).relative((0, 2)),
+              LikeWithLike(*(a[:, :, nowcast] for a in _parts(scored))).relative((0, 2)),
               "horizons 0 … 3 vs hub baseline":
               LikeWithLike(*(a[:, :, ahead] for a in _parts(scored))).relative((0, 2))}
     return relative_wis_by_round_figure([r.reference.date() for r in result.rounds], series)
@@ -242,13 +242,13 @@ def us_fan_figure(result: HubRoundsResult, *, width_in: float = 3.7) -> bytes:
     """The US forecast over its last observed weeks, the weeks still being reported as a
     nowcast."""
     rnd = result.rounds[-1]
-    c = result.places.index(US)
     scale = target_scale(result.target)
     ends = [e.date() for e in pd.date_range(end=rnd.origin, periods=HISTORY_WEEKS, freq="7D")]
     observed = weeks_ending(rnd.panel.histories[US], rnd.origin, HISTORY_WEEKS) / scale
     steps = np.array(rnd.steps(result.horizons))
     targets = [rnd.target_end(h).date() for h in result.horizons]
-    bands = result.forecasts[PUBLISHED][c, -1][:, [_at(result.levels, lv) for lv in BAND_LEVELS]]
+    bands = result.quantiles().at(place=US, origin=rnd.reference)[:, _band_positions(
+        result.levels)]
     nowcast_ends = {t for t, s in zip(targets, steps) if s <= 0}
     unit = "share of ED visits" if is_share(result.target) else "weekly admissions"
     if is_share(result.target):
@@ -261,16 +261,16 @@ def us_fan_figure(result: HubRoundsResult, *, width_in: float = 3.7) -> bytes:
 
 def _headline(result: HubRoundsResult, disease: str) -> str:
     up, down = movers(result)
-    c, h = result.places.index(US), list(result.horizons)
-    values, levels = result.forecasts[PUBLISHED][c, -1], result.levels
-    rnd = result.rounds[-1]
+    levels, rnd = result.levels, result.rounds[-1]
+    us = result.quantiles().at(place=US, origin=rnd.reference)                # (H, Q)
     share = is_share(result.target)
     what = "ED-visit share" if share else f"{DISEASE_NAMES[disease]} hospital admissions"
-    ahead, now = values[h.index(1)], values[h.index(-1)]
-    return (f"US weekly {what} are forecast at {_fmt(ahead[_at(levels, 0.5)], share)} "
+    ahead, now = (us[result.horizon_index(h)] for h in (1, -1))
+    mid = median_index(levels)
+    return (f"US weekly {what} are forecast at {_fmt(ahead[mid], share)} "
             f"(95%: {_interval(ahead, levels, 0.95, share)}) in the week ending "
             f"{rnd.target_end(1).date()}, against a nowcast of "
-            f"{_fmt(now[_at(levels, 0.5)], share)} for the week ending "
+            f"{_fmt(now[mid], share)} for the week ending "
             f"{rnd.target_end(-1).date()}. {len(up)} of {len(result.places) - 1} states and "
             f"territories are likely rising (P ≥ {RISING:.0%}), {len(down)} likely falling.")
 

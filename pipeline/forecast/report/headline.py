@@ -21,6 +21,7 @@ import pandas as pd
 from numpy.typing import NDArray
 from torch import Tensor
 
+from pipeline.evaluation.quantile_function import CalibrationError, level_index
 from pipeline.panels.history import EpiHistory
 from pipeline.report.content import ReportError
 
@@ -76,11 +77,11 @@ class Interval:
                        ) -> Interval:
         """The published quantiles at 0.5, 0.25/0.75, 0.05/0.95, exactly (no interpolation)."""
         def at(level: float) -> float:
-            hits = np.flatnonzero(np.isclose(levels, level, rtol=0, atol=1e-9))
-            if hits.size != 1:
+            try:
+                return float(values[level_index(levels, level)])
+            except CalibrationError as exc:
                 raise ReportError(f"the published forecast has no quantile at level {level} "
-                                  f"(levels {levels.tolist()})")
-            return float(values[hits[0]])
+                                  f"(levels {levels.tolist()})") from exc
         return cls(at(0.5), at(0.25), at(0.75), at(0.05), at(0.95))
 
     @classmethod
