@@ -51,7 +51,8 @@ def design_variants() -> tuple[Any, ...]:
     """The published forecast's design choices against their alternatives, scored on the same
     origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
     weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
-    from pipeline.backtest.config import Variant, tracking_rate_variants
+    from pipeline.backtest.config import (Variant, letting_go_variants,
+                                          tracking_rate_variants)
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
     from pipeline.combine.plausibility import PlausibilityConfig
 
@@ -60,6 +61,7 @@ def design_variants() -> tuple[Any, ...]:
         Variant("log average (published until 2026-11)", LOG_AVERAGE),
         Variant("log-mixture, no recalibration", CombineConfig(calibration="none")),
         *tracking_rate_variants(CombineConfig(), prefix=""),
+        *letting_go_variants(CombineConfig(), prefix=""),
         Variant("linear average", CombineConfig(scale="linear", calibration="none")),
         Variant("skill weights (inverse WIS, last 12 origins)",
                 CombineConfig(scale="log", calibration="none", weights="inverse-wis")),

@@ -48,7 +48,8 @@ MEMBERS = ("hub-baseline", "gbqr", "nf-growth", "nf-real")     # the published a
 
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
-    from pipeline.backtest.config import Variant, tracking_rate_variants
+    from pipeline.backtest.config import (Variant, letting_go_variants,
+                                          tracking_rate_variants)
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
     from pipeline.combine.plausibility import PlausibilityConfig
 
@@ -61,6 +62,7 @@ def design_variants() -> tuple[Any, ...]:
             scale="mixture", calibration="none")),
         Variant("v-log-average + the online calibration", CombineConfig(scale="log")),
         *tracking_rate_variants(CombineConfig()),
+        *letting_go_variants(CombineConfig()),
         # each phase its own adaptive conformal step (a rare phase moves as fast as a common one)
         Variant("v-online calibration, per-regime step", CombineConfig(tracking_step="per-regime")),
         Variant("v-linear-average", CombineConfig(scale="linear", calibration="none")),

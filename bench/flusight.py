@@ -212,8 +212,8 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     import dataclasses
 
     from pipeline.combine.plausibility import PlausibilityConfig
-    from pipeline.backtest.config import (Variant, skill_weighted_variants,
-                                          tracking_rate_variants)
+    from pipeline.backtest.config import (Variant, letting_go_variants,
+                                          skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
     from pipeline.members.boosting import BoostingConfig
@@ -255,6 +255,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                 Variant("v-published, bounded", dataclasses.replace(
                     reach, bounded=PlausibilityConfig())),
                 *tracking_rate_variants(reach),
+                *letting_go_variants(reach),
                 Variant("v-log-mixture, no online calibration",
                         dataclasses.replace(reach, calibration="none")))
     result = run_hub_rounds(rounds, latest, members.published,
@@ -330,6 +331,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "coverage50": coverage["h0-3"]["coverage50"],
         "coverage95": coverage["h0-3"]["coverage95"],
         "coverage_by_horizon": coverage,
+        # coverage (with its bootstrap interval) by the phase of the epidemic at each origin
+        "by_phase": result.summary(PUBLISHED, [h for h in result.horizons if h >= 0]
+                                   )["by_regime"],
+        # the online calibration's cost: published WIS over the same average uncalibrated
+        # (horizons 0-3), over every round and in the worst window of 15 consecutive rounds
+        "calibration_cost_by_window": result.calibration_cost(
+            [h for h in result.horizons if h >= 0]),
+        "calibration_cost_variants": result.calibration_cost_variants(
+            [h for h in result.horizons if h >= 0]),
         "rank": [r["model_id"] for r in published["all"]].index(PUBLISHED) + 1,
         "n_models": len(published["all"]),
         "teams": {r["model_id"]: {"relative_wis": float(r["relative_wis"]),

@@ -293,8 +293,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     import pandas as pd
 
     from pipeline.combine.plausibility import PlausibilityConfig
-    from pipeline.backtest.config import (Variant, skill_weighted_variants,
-                                          tracking_rate_variants)
+    from pipeline.backtest.config import (Variant, letting_go_variants,
+                                          skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
@@ -345,6 +345,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-published, bounded", dataclasses.replace(
             reach, bounded=PlausibilityConfig())),
         *tracking_rate_variants(reach),
+        *letting_go_variants(reach),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
@@ -401,9 +402,16 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "coverage95": coverage["h0-3"]["coverage95"],
         "coverage50_interval": scored["coverage50_interval"],
         "coverage95_interval": scored["coverage95_interval"],
+        # coverage (with its bootstrap interval) by the phase of the epidemic at each origin
+        "by_phase": scored["by_regime"],
         # the online calibration's cost: published WIS over the same average uncalibrated
         # (horizons 0-3, every round and location, both reconciled)
         "calibration_cost": float(wis[PUBLISHED] / wis[UNCALIBRATED]),
+        # the same over every round and in the worst window of 15 consecutive rounds
+        "calibration_cost_by_window": result.calibration_cost(
+            [h for h in result.horizons if h >= 0]),
+        "calibration_cost_variants": result.calibration_cost_variants(
+            [h for h in result.horizons if h >= 0]),
         "coverage_by_horizon": coverage,
         "ablations": ablations,
         "n_rounds": len(rounds), "n_locations": len(result.places),

@@ -14,7 +14,7 @@ from pipeline.backtest.config import BacktestConfig
 from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.writers import HUB_COLUMNS
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
-from pipeline.evaluation.summary import score_cells, summarize_forecaster
+from pipeline.evaluation.summary import calibration_cost, score_cells, summarize_forecaster
 from pipeline.forecast.sources import sf_history
 from pipeline.members.hub_baseline import HubBaseline
 from pipeline.panels.history import EpiHistory
@@ -74,6 +74,24 @@ def test_scores_per_target_and_horizon_hand_computed():
     assert s["pit_histogram"]["counts"] == [0, 0, 0, 0, 0, 7, 0, 0, 0, 0]
 
 
+def test_calibration_cost_over_every_origin_and_its_worst_window_hand_computed():
+    """20 origins, 2 places, 1 horizon: the calibration costs 50 % at origins 3 and 4 and
+    saves 10 % everywhere else; the first window of 15 holding both (and the cell not scored)
+    is the worst."""
+    origins = pd.date_range("2024-01-06", periods=20, freq="7D")
+    uncalibrated = np.full((2, 20, 1), 2.0)
+    published = np.full((2, 20, 1), 1.8)
+    published[:, 3:5] = 3.0
+    published[1, 7] = np.nan                         # not scored: left out of both sums
+    cost = calibration_cost(published, uncalibrated, list(origins), window=15)
+    assert cost["all"] == pytest.approx((4 * 3.0 + 35 * 1.8) / (39 * 2.0))
+    assert cost["worst_window"] == pytest.approx((4 * 3.0 + 25 * 1.8) / (29 * 2.0))
+    assert cost["worst_window_origins"] == ["2024-01-06", "2024-04-13"]
+    assert cost["n_windows"] == 6
+    assert calibration_cost(published[:, :10], uncalibrated[:, :10], list(origins[:10]),
+                            window=15)["worst_window"] is None
+
+
 def test_the_published_forecast_at_an_origin_uses_only_the_past():
     """Truth after an origin changes neither its members' forecasts nor its weights."""
     history = random_walk_history(40, seed=2)
@@ -105,6 +123,12 @@ def test_recalibration_in_the_backtest_fixes_an_over_confident_member():
     assert raw["coverage90"] < 0.45 and raw["coverage50"] < 0.2          # measured 0.30 / 0.09
     assert pub["coverage90"] > raw["coverage90"] + 0.3
     assert pub["relative_wis_vs_baseline"]["all"] < raw["relative_wis_vs_baseline"]["all"]
+    # the calibration's cost is the published Σ WIS over the uncalibrated, from the scores
+    scores = result.scores()
+    cases = scores[scores["target"] == "cases"].groupby("forecaster")["wis"].sum()
+    cost = result.summary()["calibration_cost"]["cases"]
+    assert cost["all"] == pytest.approx(cases[PUBLISHED] / cases[UNCALIBRATED], rel=1e-12)
+    assert cost["all"] < 1 and cost["worst_window"] >= cost["all"]
 
 
 def test_a_forecast_is_unchanged_when_data_after_its_origin_change(sf):

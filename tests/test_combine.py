@@ -169,6 +169,37 @@ def test_combiner_learns_only_from_the_past_and_averages_in_logs():
     np.testing.assert_allclose(reach.published[0, 3], members["a"][0, 3], rtol=1e-12)
 
 
+def test_stacking_reads_each_past_average_once_and_chooses_as_from_scratch():
+    """The stacking's store of past averages (GridAverages) gives, at every origin, the weights
+    that averaging the window's cells afresh gives (fit_weights without the store), on the
+    log-mixture where a member misses some cells."""
+    rng = np.random.default_rng(11)
+    levels = np.asarray(HUB_QUANTILE_LEVELS)
+    n_c, n_o, horizons = 4, 10, (1, 2)
+    origins = pd.date_range("2021-01-02", periods=n_o, freq="7D")
+    members = {m: np.sort(np.exp(rng.normal(4 + s, 0.5, (n_c, n_o, 2, levels.size))), axis=-1)
+               for m, s in (("a", 0.0), ("b", 0.4), ("c", -0.3))}
+    members["c"][1, 2] = np.nan                    # a cell one member did not forecast
+    baseline = np.sort(np.exp(rng.normal(4.2, 0.6, (n_c, n_o, 2, levels.size))), axis=-1)
+    truth = np.exp(rng.normal(4.1, 0.5, (n_c, n_o, 2)))
+    config = CombineConfig(weights="stacking", stacking_step=0.25, window_origins=4,
+                           beyond_reach="reachable-members")
+    stored = combine(members, baseline, truth, np.ones((n_c, n_o), np.intp), levels, horizons,
+                     origins, config)
+    values = np.stack(list(members.values()))
+    base_wis = scored_wis(levels, baseline, truth)
+    known = scored_before(origins, horizons)
+    for j in range(n_o):
+        for k in range(len(horizons)):
+            fit = np.flatnonzero(known[j, :, k])[-config.window_origins:]
+            afresh = fit_weights("stacking", values[:, :, fit, k], truth[:, fit, k],
+                                 base_wis[:, fit, k], levels, len(fit), scale=config.scale,
+                                 shrinkage_origins=config.shrinkage_origins,
+                                 stacking_step=config.stacking_step)
+            np.testing.assert_allclose(stored.weights[j, k], afresh, rtol=0, atol=1e-12)
+    assert (stored.weights[-1].max(axis=-1) > 1 / 3 + 0.05).all()     # it did choose
+
+
 def test_mixture_of_forecasts_averages_their_cdfs():
     a, b = _lognormal(4.0, 0.3, LEVELS), _lognormal(6.0, 0.3, LEVELS)
     mixed = mix_quantiles(np.stack([a, b]), LEVELS)
@@ -278,6 +309,35 @@ def test_aggregated_tracker_weighs_by_relative_wis_among_the_experts_that_cover(
     # η = 0 learns nothing: its next forecast is the average's own
     np.testing.assert_allclose(agg.expert_quantiles(quantiles[1, :1], np.zeros(1, np.intp))[0],
                                quantiles[1, :1])
+
+
+def test_a_calibration_that_forgets_halves_old_losses_and_lets_a_stretch_fade() -> None:
+    """Hand-computed: with a half-life of 2 origins, an origin's losses and misses count half
+    two origins later, and the choice among the experts is the same as if the older outcomes
+    had been seen half as often; a stretch leaking 10 % an origin is 0.9ⁿ of itself after n
+    origins without outcomes, and a stretch without leak stays."""
+    levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
+    truth = np.array([3.5] * 5 + [4.5] * 4 + [7.0])
+    quantiles = np.stack([np.tile(q, (10, 1)) for q in ([1.0, 2.0, 3.0, 4.0, 5.0],
+                                                        [0.0, 1.5, 3.0, 4.4, 6.0])])
+    wis = np.stack([np.full(10, 1.2), np.linspace(1.1, 1.4, 10)])
+    regimes = np.zeros(10, dtype=np.intp)
+    nothing = np.full(10, np.nan)
+    forgets = AggregatedTracker(tuple(IntervalTracker(levels, r, 0.9) for r in (0.0, 0.1)),
+                                memory_origins=2.0)
+    forgets.update(quantiles, truth, regimes, wis)
+    loss, missed, scored = forgets.loss.copy(), forgets.missed.copy(), forgets.scored
+    for _ in range(2):
+        forgets.update(quantiles, nothing, regimes, np.full_like(wis, np.nan))
+    np.testing.assert_allclose(forgets.loss, loss / 2)
+    np.testing.assert_allclose(forgets.missed, missed / 2)
+    assert forgets.scored == pytest.approx(scored / 2)
+    for leak, expected in ((0.1, 0.9 ** 3), (0.0, 1.0)):
+        tracker = IntervalTracker(levels, 0.1, 0.9, leak=leak)
+        tracker.stretch[:] = 0.5
+        for _ in range(3):
+            tracker.update(quantiles[0], nothing, regimes)
+        np.testing.assert_allclose(tracker.stretch, 0.5 * expected)
 
 
 def test_while_no_expert_covers_the_nearest_to_covering_are_published() -> None:

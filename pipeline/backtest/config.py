@@ -33,6 +33,25 @@ def tracking_rate_variants(published: CombineConfig, prefix: str = "v-") -> tupl
                  for rate in TRACKING_RATE_VARIANTS)
 
 
+# calibrations that let go of a past surge (issue 51): the experts' losses and coverage
+# forgotten with a half-life of 4 origins, or each stretch let go by 10 % at every origin
+FORGETTING_HALF_LIFE_ORIGINS = 4.0
+STRETCH_LEAK = 0.1
+
+
+def letting_go_variants(published: CombineConfig, prefix: str = "v-") -> tuple[Variant, ...]:
+    """The published combiner with a calibration that forgets: the aggregate's experts chosen
+    on the outcomes of the last origins more than the older ones
+    (:data:`FORGETTING_HALF_LIFE_ORIGINS`), and each expert's stretch fading when nothing renews
+    it (:data:`STRETCH_LEAK`), named ``<prefix>calibration …`` (every panel's backtest scores
+    them beside it)."""
+    return (Variant(f"{prefix}calibration forgetting (half-life "
+                    f"{FORGETTING_HALF_LIFE_ORIGINS:g} origins)", dataclasses.replace(
+                        published, aggregation_memory_origins=FORGETTING_HALF_LIFE_ORIGINS)),
+            Variant(f"{prefix}calibration letting go ({STRETCH_LEAK:.0%} of a stretch a week)",
+                    dataclasses.replace(published, tracking_leak=STRETCH_LEAK)))
+
+
 def skill_weighted_variants(published: CombineConfig, members: tuple[str, ...],
                             methods: tuple[WeightMethod, ...] = ("inverse-wis", "stacking"),
                             prefix: str = "v-") -> tuple[Variant, ...]:

@@ -36,13 +36,15 @@ from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
 from pipeline.combine.reconcile import median_gap, reconcilable, top_down
 from pipeline.evaluation.hub_leaderboard import SCORED_HORIZONS
 from pipeline.evaluation.quantile_function import quantiles_at
-from pipeline.evaluation.summary import regime_masks, score_cells, summarize_forecaster
+from pipeline.evaluation.summary import (calibration_cost, regime_masks, score_cells,
+                                         summarize_forecaster)
 from pipeline.members.base import Member
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.nowcast.revisions import RevisionNowcastConfig, WeekNowcast, nowcast_weeks
 from pipeline.data.hub.locations import POPULATION
 from pipeline.panels.hub import HUB_HORIZONS, US, HubRound, is_share, target_scale
 from pipeline.panels.panel import Panel, weeks_ending
+from pipeline.panels.quantiles import Quantiles, long_frame
 from pipeline.panels.targets import DAYS_PER_WEEK, HUB_QUANTILE_LEVELS, format_level
 from pipeline.progress import ProgressReporter
 
@@ -116,12 +118,31 @@ class HubRoundsResult:
         summarize_forecaster`) of ``forecaster`` at the hub ``horizons`` (default: all),
         against the hub baseline, by the phase of the epidemic at each round's origin."""
         steps = list(self.horizons) if horizons is None else list(horizons)
-        k = [self.horizons.index(h) for h in steps]
+        k = [self.horizon_index(h) for h in steps]
         truth = self.truth[:, :, k]
         scores = score_cells(self.forecasts[forecaster][:, :, k], truth, self.levels)
         base = score_cells(self.forecasts[HUB_BASELINE][:, :, k], truth, self.levels).wis
         return summarize_forecaster(scores, base, steps, self.places,
                                     regime_masks(self.backtest.regimes, truth, len(k)))
+
+    def calibration_cost(self, horizons: Sequence[int] | None = None,
+                         forecaster: str = PUBLISHED) -> dict[str, Any]:
+        """``forecaster``'s WIS over the published members' average uncalibrated at the hub
+        ``horizons`` (default: all), over every round and in its worst window of consecutive
+        rounds (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
+        k = [self.horizon_index(h) for h in (horizons or self.horizons)]
+        truth = self.truth[:, :, k]
+        made, uncalibrated = (score_cells(self.forecasts[name][:, :, k], truth, self.levels).wis
+                              for name in (forecaster, UNCALIBRATED))
+        return calibration_cost(made, uncalibrated, self.references)
+
+    def calibration_cost_variants(self, horizons: Sequence[int] | None = None
+                                  ) -> dict[str, dict[str, Any]]:
+        """:meth:`calibration_cost` of each variant of the published members (another
+        calibration, another average)."""
+        return {v.name: self.calibration_cost(horizons, v.name)
+                for v in self.backtest.config.variants
+                if v.members is None and v.name in self.forecasts}
 
     def scores(self, forecasters: Sequence[str] | None = None) -> pd.DataFrame:
         """One row per scored (forecaster, round, horizon, location): WIS and its parts,
@@ -144,36 +165,48 @@ class HubRoundsResult:
                 "coverage_95": s.covered[0.95][c, r, h]}))
         return pd.concat(frames, ignore_index=True)
 
+    def quantiles(self, forecaster: str = PUBLISHED) -> Quantiles:
+        """``forecaster``'s quantiles, labelled: locations × rounds (reference dates) × hub
+        horizons × levels."""
+        return Quantiles(self.forecasts[forecaster], self.places, self.references,
+                         self.horizons, self.levels)
+
+    def horizon_index(self, horizon: int) -> int:
+        """The position of hub ``horizon`` along the horizons' axis."""
+        if horizon not in self.horizons:
+            raise EnsembleError(f"horizon {horizon} is not among the round's {self.horizons}")
+        return self.horizons.index(horizon)
+
+    def draws(self, horizon: int, index: int = -1) -> NDArray[np.float64]:
+        """``(C, n)`` the published sample trajectories at hub ``horizon`` of round
+        ``index``."""
+        if self.samples is None:
+            raise EnsembleError("the rounds were forecast without sample trajectories")
+        return self.samples[:, index, :, self.horizon_index(horizon)]
+
     def round_frame(self, index: int, forecaster: str = PUBLISHED) -> pd.DataFrame:
         """Round ``index``'s forecast in the hubverse format (quantiles and, for the published
         forecast, the sample trajectories: one id per location × target, across horizons)."""
         rnd = self.rounds[index]
         values = self.forecasts[forecaster][:, index]                        # (C, H, Q)
         keep = np.isfinite(values).all(axis=(1, 2))
-        places = np.asarray(self.places, dtype=object)[keep]
-        n_h, n_q = values.shape[1:]
-        ends = [str(rnd.target_end(h).date()) for h in self.horizons]
-        quantiles = pd.DataFrame({
-            "location": np.repeat(places, n_h * n_q),
-            "horizon": np.tile(np.repeat(self.horizons, n_q), len(places)),
-            "target_end_date": np.tile(np.repeat(ends, n_q), len(places)),
-            "output_type": "quantile",
-            "output_type_id": np.tile([format_level(lv) for lv in self.levels],
-                                      len(places) * n_h),
-            "value": values[keep].reshape(-1)})
-        frames = [quantiles]
+        places = np.asarray(self.places)[keep]
+        frames = [long_frame(values[keep], {
+            "location": places, "horizon": self.horizons,
+            "output_type_id": [format_level(lv) for lv in self.levels]}
+        ).assign(output_type="quantile")]
         if forecaster == PUBLISHED and self.samples is not None:
             draws = self.samples[keep, index]                                 # (C', n, H)
             n = draws.shape[1]
-            ids = (np.arange(len(places))[:, None] * n + np.arange(n)[None, :] + 1)
-            frames.append(pd.DataFrame({
-                "location": np.repeat(places, n * n_h),
-                "horizon": np.tile(np.tile(self.horizons, n), len(places)),
-                "target_end_date": np.tile(np.tile(ends, n), len(places)),
-                "output_type": "sample",
-                "output_type_id": np.repeat(ids.reshape(-1), n_h).astype(str),
-                "value": draws.reshape(-1)}))
+            sampled = long_frame(draws, {"location": places, "output_type_id": np.arange(n),
+                                         "horizon": self.horizons})
+            # one trajectory id per location and draw, shared by its horizons
+            ids = np.arange(len(places))[:, None, None] * n + np.arange(n)[None, :, None] + 1
+            sampled["output_type_id"] = np.broadcast_to(ids, draws.shape).reshape(-1).astype(str)
+            frames.append(sampled.assign(output_type="sample"))
         frame = pd.concat(frames, ignore_index=True)
+        ends = {h: str(rnd.target_end(h).date()) for h in self.horizons}
+        frame["target_end_date"] = frame["horizon"].map(ends)
         frame.insert(0, "reference_date", str(rnd.reference.date()))
         frame.insert(1, "target", self.target)
         return frame[["reference_date", "target", "horizon", "location", "target_end_date",
@@ -232,8 +265,10 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
                             levels) / scale if result.paths is not None else None)
     truth = _truth(latest, places, rounds, config.horizons) / scale
     seconds["total"] = time.perf_counter() - started
-    return HubRoundsResult(target, tuple(rounds), places, tuple(config.horizons), levels,
-                           by_hub, truth, samples, result, nowcasts, gap, seconds)
+    return HubRoundsResult(target=target, rounds=tuple(rounds), places=places,
+                           horizons=tuple(config.horizons), levels=levels, forecasts=by_hub,
+                           truth=truth, samples=samples, backtest=result, nowcasts=nowcasts,
+                           gap=gap, seconds=seconds)
 
 
 def burn_in_origins(first: Panel, weeks: int,

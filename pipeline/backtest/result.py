@@ -21,12 +21,14 @@ from numpy.typing import NDArray
 
 from pipeline.members.isolation import MemberFailure
 from pipeline.combine.average import EnsembleError
-from pipeline.combine.combiner import PUBLISHED
+from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED
 from pipeline.combine.paths import InvalidCounts, add_counts, count_invalid
-from pipeline.evaluation.summary import regime_masks, score_cells, summarize_forecaster
+from pipeline.evaluation.summary import (calibration_cost, regime_masks, score_cells,
+                                         summarize_forecaster)
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.history import EpiHistory, History
 from pipeline.panels.panel import Panel
+from pipeline.panels.quantiles import Quantiles
 from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, TargetError
 
 if TYPE_CHECKING:
@@ -100,6 +102,12 @@ class BacktestResult:
     def targets(self) -> tuple[str, ...]:
         return tuple(self.forecasts)
 
+    def quantiles(self, target: str, forecaster: str = PUBLISHED) -> Quantiles:
+        """``forecaster``'s quantiles of ``target``, labelled (places × origins × horizons ×
+        levels)."""
+        return Quantiles(self.forecasts[target][forecaster], self.places, self.origins,
+                         self.horizons, self.levels)
+
     def reported_only(self) -> BacktestResult:
         """The result at the reported origins only."""
         keep = np.asarray(self.reported, dtype=bool)
@@ -107,16 +115,7 @@ class BacktestResult:
             return self
         if not keep.any():
             raise EnsembleError("no reported origin in the backtest")
-        return dataclasses.replace(
-            self, origins=tuple(o for o, k in zip(self.origins, keep) if k),
-            forecasts={t: {n: v[:, keep] for n, v in f.items()}
-                       for t, f in self.forecasts.items()},
-            truth={t: v[:, keep] for t, v in self.truth.items()}, regimes=self.regimes[:, keep],
-            weights=self.weights[keep],
-            paths=None if self.paths is None else self.paths[:, keep],
-            reported=np.ones(int(keep.sum()), dtype=bool),
-            failures={n: MemberFailure(f.cells[:, keep], f.why)
-                      for n, f in self.failures.items()})
+        return self._subset(np.arange(len(self.places)), np.flatnonzero(keep))
 
     def for_places(self, places: Sequence[str]) -> BacktestResult:
         """The same backtest restricted to ``places`` (their forecasts are unchanged: pooled
@@ -125,13 +124,21 @@ class BacktestResult:
         if unknown:
             raise EnsembleError(f"places {unknown} are not in the backtest ({len(self.places)} "
                                 f"places: {', '.join(self.places[:5])}, …)")
-        keep = np.array([self.places.index(p) for p in places])
+        return self._subset(np.array([self.places.index(p) for p in places]),
+                            np.arange(len(self.origins)))
+
+    def _subset(self, c: NDArray[np.intp], o: NDArray[np.intp]) -> BacktestResult:
+        """The places ``c`` at the origins ``o`` (positions), every array cut alike."""
+        cells = np.ix_(c, o)
+        places = tuple(self.places[i] for i in c)
         return dataclasses.replace(
-            self, panel=self.panel.only(places),
-            forecasts={t: {n: v[keep] for n, v in f.items()} for t, f in self.forecasts.items()},
-            truth={t: v[keep] for t, v in self.truth.items()}, regimes=self.regimes[keep],
-            paths=None if self.paths is None else self.paths[keep],
-            failures={n: MemberFailure(f.cells[keep], f.why) for n, f in self.failures.items()})
+            self, panel=self.panel if len(c) == len(self.places) else self.panel.only(places),
+            origins=tuple(self.origins[i] for i in o),
+            forecasts={t: {n: v[cells] for n, v in f.items()} for t, f in self.forecasts.items()},
+            truth={t: v[cells] for t, v in self.truth.items()}, regimes=self.regimes[cells],
+            weights=self.weights[o], paths=None if self.paths is None else self.paths[cells],
+            reported=self.reported[o],
+            failures={n: MemberFailure(f.cells[cells], f.why) for n, f in self.failures.items()})
 
     def dropped_members(self, index: int = -1) -> dict[str, str]:
         """The members the guard left out at origin ``index`` (at one place or more), and why
@@ -150,19 +157,18 @@ class BacktestResult:
                     ) -> QuantileForecast:
         """One forecaster's forecast of ``place`` from ``origin`` (the published one with its
         sample paths)."""
-        c, o = self.places.index(place), self.origins.index(pd.Timestamp(origin))
-        values = {t: f[forecaster][c, o] for t, f in self.forecasts.items() if forecaster in f}
-        paths = (self.paths[c, o] if forecaster == PUBLISHED and self.paths is not None
-                 else None)
-        return QuantileForecast(forecaster, self.origins[o], self.horizons, self.levels, values,
-                                paths)
+        origin = pd.Timestamp(origin)
+        values = {t: self.quantiles(t, forecaster).at(place=place, origin=origin)
+                  for t, f in self.forecasts.items() if forecaster in f}
+        paths = (self.paths[self.places.index(place), self.origins.index(origin)]
+                 if forecaster == PUBLISHED and self.paths is not None else None)
+        return QuantileForecast(forecaster, origin, self.horizons, self.levels, values, paths)
 
     def forecasters_at(self, place: str, origin: pd.Timestamp) -> dict[str, QuantileForecast]:
         """Every forecaster that forecast ``place`` from ``origin``."""
-        c, o = self.places.index(place), self.origins.index(pd.Timestamp(origin))
-        names = self.forecasts[self.panel.count_target]
-        return {n: self.forecast_at(place, origin, n) for n, v in names.items()
-                if np.isfinite(v[c, o]).all()}
+        count = self.panel.count_target
+        return {n: self.forecast_at(place, origin, n) for n in self.forecasts[count]
+                if np.isfinite(self.quantiles(count, n).at(place=place, origin=origin)).all()}
 
     # ---------------------------------------------------------------------------- summaries
 
@@ -186,6 +192,16 @@ class BacktestResult:
                 for name, values in self.forecasts[target].items()}
         out: dict[str, Any] = {
             "by_target": by_target,
+            "calibration_cost": {target: self._calibration_cost(target)
+                                 for target in self.targets
+                                 if {PUBLISHED, UNCALIBRATED} <= set(self.forecasts[target])},
+            # the same for each variant of the published members (another calibration, another
+            # average): its WIS over the published members' average uncalibrated
+            "calibration_cost_variants": {
+                target: {v.name: self._calibration_cost(target, v.name)
+                         for v in self.config.variants
+                         if v.members is None and v.name in self.forecasts[target]}
+                for target in self.targets if UNCALIBRATED in self.forecasts[target]},
             "n_places": len(self.places), "places": list(self.places),
             "n_origins": len(self.origins),
             "origins": {"first": str(self.origins[0].date()),
@@ -202,6 +218,16 @@ class BacktestResult:
             out["invalid_values"] = invalid.total
             out["invalid_values_detail"] = invalid.to_dict()
         return out
+
+    def _calibration_cost(self, target: str, forecaster: str = PUBLISHED) -> dict[str, Any]:
+        """``forecaster``'s WIS over the published members' average uncalibrated, over every
+        origin and in its worst window (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
+        made = self.forecasts[target]
+        unit = self._unit(target)
+        return calibration_cost(
+            score_cells(made[forecaster], self.truth[target], self.levels, unit).wis,
+            score_cells(made[UNCALIBRATED], self.truth[target], self.levels, unit).wis,
+            self.origins)
 
     def _unit(self, target: str) -> NDArray[np.float64]:
         """Turns the target into counts for the PIT: N for I, 1 for a count."""

@@ -92,12 +92,56 @@ def log_relative_wis_by_place(wis: NDArray[np.float64], baseline_wis: NDArray[np
             / np.maximum(places.sum(axis=-1), 1))
 
 
+def grid_averages(values: NDArray[np.float64], grid: NDArray[np.float64], scale: AverageScale
+                  ) -> NDArray[np.float64]:
+    """The average ``(K, ..., Q)`` of ``values (M, ..., Q)`` under each weighting of ``grid``
+    ``(K, M)``, on the cells every member forecast (a stand-in of 1 elsewhere: such a cell's
+    truth is not scored)."""
+    every = np.asarray(np.isfinite(values).all(axis=(0, -1)), dtype=bool)
+    values = np.where(every[None, ..., None], values, 1.0)
+    return np.stack([vincentize(values, w, scale) for w in grid])
+
+
+class GridAverages:
+    """The stacking's averages of past forecasts, each origin × horizon computed once.
+
+    The stacking at origin j scores every weighting of the grid on the window of origins
+    scored by then; the next origins' windows hold most of the same origins, and an average
+    of a cell does not depend on the origin that reads it, so each is computed once
+    (:func:`grid_averages`) and dropped when no later window can hold it. Without the store a
+    window of n origins averages each past origin n times (the stacking of three members took
+    most of an hour of a FluSight backtest)."""
+
+    def __init__(self, values: NDArray[np.float64], step: float, scale: AverageScale) -> None:
+        self.values = values                                             # (M, C, O, H, Q)
+        self.grid = simplex_grid(values.shape[0], step)
+        self.scale: AverageScale = scale
+        self._made: dict[tuple[int, int], NDArray[np.float64]] = {}
+
+    def at(self, origins: NDArray[np.intp], k: int) -> NDArray[np.float64]:
+        """``(K, C, n, Q)``: each weighting's average of the cells of ``origins`` at horizon
+        position ``k``."""
+        if origins.size:
+            first = int(origins.min())
+            for key in [key for key in self._made if key[1] == k and key[0] < first]:
+                del self._made[key]
+        for i in origins:
+            if (int(i), k) not in self._made:
+                self._made[int(i), k] = grid_averages(self.values[:, :, int(i), k], self.grid,
+                                                      self.scale)
+        return np.stack([self._made[int(i), k] for i in origins], axis=2) if origins.size \
+            else np.empty((len(self.grid), self.values.shape[1], 0, self.values.shape[-1]))
+
+
 def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
                 past_truth: NDArray[np.float64], past_baseline_wis: NDArray[np.float64],
                 levels: NDArray[np.float64], n_origins: int, *, scale: AverageScale,
-                shrinkage_origins: float, stacking_step: float) -> NDArray[np.float64]:
+                shrinkage_origins: float, stacking_step: float,
+                averages: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Weights ``(M,)`` from past quantiles ``(M, C, n, Q)``, truth ``(C, n)`` and the
-    baseline's WIS ``(C, n)`` over ``n_origins`` scored origins (module docstring)."""
+    baseline's WIS ``(C, n)`` over ``n_origins`` scored origins (module docstring); the
+    stacking's ``averages`` ``(K, C, n, Q)`` of the past cells when already made
+    (:class:`GridAverages`)."""
     m = past_values.shape[0]
     equal = np.full(m, 1.0 / m)
     if method == "equal" or n_origins == 0 or m == 1:
@@ -112,9 +156,9 @@ def fit_weights(method: WeightMethod, past_values: NDArray[np.float64],
     grid = simplex_grid(m, stacking_step)                                  # (K, M)
     # scored on the cells every member forecast (a stand-in elsewhere, its truth unseen)
     every = np.asarray(np.isfinite(past_values).all(axis=(0, -1)), dtype=bool)  # (C, n)
-    past_values = np.where(every[None, ..., None], past_values, 1.0)
     past_truth = np.where(every, past_truth, np.nan)
-    combined = np.stack([vincentize(past_values, w, scale) for w in grid])  # (K, C, n, Q)
+    combined = (grid_averages(past_values, grid, scale) if averages is None
+                else averages)                                             # (K, C, n, Q)
     wis = scored_wis(levels, combined, np.broadcast_to(past_truth, combined.shape[:-1]))
     loss = log_relative_wis_by_place(wis, past_baseline_wis)               # (K,)
     return lam * grid[int(np.argmin(loss))] + (1.0 - lam) * equal

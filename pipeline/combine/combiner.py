@@ -35,8 +35,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.combine.average import (AverageScale, EnsembleError, WeightMethod, fit_weights,
-                                      scored_wis, vincentize)
+from pipeline.combine.average import (AverageScale, EnsembleError, GridAverages, WeightMethod,
+                                      fit_weights, scored_wis, vincentize)
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
 from pipeline.combine.recalibration import (ONLINE_METHODS, RECALIBRATION_METHODS,
                                             TRACKING_STEPS, AggregatedTracker, IntervalTracker,
@@ -70,9 +70,12 @@ class CombineConfig:
     tracking_rate: float = 0.15         # η of the single online calibration ("regime-aci")
     tracking_step: TrackingStep = "pooled"
     tracking_standardized: bool = True    # each interval's misses in their own units
+    tracking_leak: float = 0.0          # the share of a stretch let go at every origin
     # the experts' η of "aggregated-aci" (0: the average uncalibrated) and their temperature
     tracking_rates: tuple[float, ...] = (0.0, 0.05, 0.15, 0.3)
     aggregation_temperature: float = 0.01
+    # the half-life in origins of the outcomes that choose among them (None: all alike)
+    aggregation_memory_origins: float | None = None
     outer_interval: float = 0.9         # the outer interval it holds (the hub's: 0.95)
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
@@ -101,7 +104,9 @@ class CombineConfig:
                 or not 0 < self.stacking_step <= 0.5 or self.shrinkage_origins < 0
                 or self.shrinkage_pits < 0 or self.tracking_rate < 0
                 or not self.tracking_rates or min(self.tracking_rates) < 0
-                or self.aggregation_temperature <= 0):
+                or self.aggregation_temperature <= 0 or not 0 <= self.tracking_leak < 1
+                or (self.aggregation_memory_origins is not None
+                    and self.aggregation_memory_origins <= 0)):
             raise EnsembleError(f"invalid CombineConfig {self}")
 
 
@@ -167,6 +172,8 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
     calibration = np.empty((n_o, n_h, N_REGIMES, 2))
     wis_truth = truth
     baseline_wis = scored_wis(levels, baseline, truth)                     # (C, O, H)
+    stacked = (GridAverages(values, config.stacking_step, config.scale)
+               if config.weights == "stacking" and len(names) > 1 else None)
     for j in range(n_o):
         if truth_at is not None:
             wis_truth = truth_at(j)
@@ -186,7 +193,9 @@ def combine(members: Mapping[str, NDArray[np.float64]], baseline: NDArray[np.flo
                                         wis_truth[:, fit, k], baseline_wis[:, fit, k], levels,
                                         len(fit), scale=config.scale,
                                         shrinkage_origins=config.shrinkage_origins,
-                                        stacking_step=config.stacking_step)
+                                        stacking_step=config.stacking_step,
+                                        averages=None if stacked is None or not fit.size
+                                        else stacked.at(fit, k))
             uncal[:, j, k] = _average(values[:, :, j, k], weights[j, k], config,
                                       None if failed is None else failed[:, :, j],
                                       baseline[:, j, k])
@@ -219,8 +228,9 @@ def _online_tracker(config: CombineConfig, levels: NDArray[np.float64]
              else (config.tracking_rate,))
     return AggregatedTracker(tuple(
         IntervalTracker(levels, rate, config.outer_interval, step=config.tracking_step,
-                        standardized=config.tracking_standardized) for rate in rates),
-        config.aggregation_temperature)
+                        standardized=config.tracking_standardized, leak=config.tracking_leak)
+        for rate in rates),
+        config.aggregation_temperature, memory_origins=config.aggregation_memory_origins)
 
 
 def _pits(levels: NDArray[np.float64], quantiles: NDArray[np.float64],

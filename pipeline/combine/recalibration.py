@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr, ndtri
 
-from pipeline.evaluation.quantile_function import quantiles_at
+from pipeline.evaluation.quantile_function import level_index, quantiles_at
 from pipeline.evaluation.regimes import N_REGIMES
 
 RecalibrationMethod = Literal["scale-regime", "scale", "bias-scale-regime", "bias-scale",
@@ -119,6 +119,9 @@ class IntervalTracker:
     # each interval's misses in units of their standard deviation √(α(1−α)), relative to the
     # inner interval's: the outer interval (α = 0.05) otherwise moves 2.3 times slower
     standardized: bool = False
+    # the share of its stretch each phase lets go of at every origin (0: it keeps it until
+    # outcomes move it back): a surge's widening fades when nothing renews it
+    leak: float = 0.0
 
     def __post_init__(self) -> None:
         self.stretch = np.zeros((N_REGIMES, 2))
@@ -126,8 +129,8 @@ class IntervalTracker:
         self._alpha = 1.0 - cover
         self._unit = (0.5 / np.sqrt(self._alpha * (1.0 - self._alpha)) if self.standardized
                       else np.ones(2))
-        self._low = np.array([int(np.argmin(np.abs(self.levels - (0.5 - c / 2)))) for c in cover])
-        self._up = np.array([int(np.argmin(np.abs(self.levels - (0.5 + c / 2)))) for c in cover])
+        self._low = np.array([level_index(self.levels, 0.5 - c / 2) for c in cover])
+        self._up = np.array([level_index(self.levels, 0.5 + c / 2) for c in cover])
         z_end = ndtri(0.5 + cover / 2)
         self._z = ndtri(self.levels)
         self._outer_weight = np.clip((np.abs(self._z) - z_end[0]) / (z_end[1] - z_end[0]), 0, 1)
@@ -136,6 +139,7 @@ class IntervalTracker:
                regimes: NDArray[np.intp]) -> None:
         """The newly known forecasts of one origin: published quantiles ``(N, Q)``, truth
         ``(N,)`` (NaN: not observed), the regime at each forecast's origin ``(N,)``."""
+        self.stretch *= 1.0 - self.leak
         seen = np.isfinite(truth) & np.isfinite(published).all(axis=-1)
         if not seen.any():
             return
@@ -186,11 +190,15 @@ class AggregatedTracker:
     experts: tuple[IntervalTracker, ...]
     temperature: float = 0.01
     tolerance: tuple[float, float] = (0.05, 0.025)
+    # the half-life, in origins, of what an outcome counts towards the experts' losses and
+    # coverage (None: every outcome counts alike for ever)
+    memory_origins: float | None = None
 
     def __post_init__(self) -> None:
         self.loss = np.zeros(len(self.experts))
         self.missed = np.zeros((len(self.experts), 2))
-        self.scored = 0
+        self.scored = 0.0
+        self._decay = 1.0 if self.memory_origins is None else 0.5 ** (1.0 / self.memory_origins)
 
     @property
     def admissible(self) -> NDArray[np.bool_]:
@@ -230,6 +238,9 @@ class AggregatedTracker:
         ``(N,)``, regimes ``(N,)`` and each expert's WIS of them ``(E, N)`` (NaN: unscored)."""
         for expert, quantiles in zip(self.experts, experts):
             expert.update(quantiles, truth, regimes)
+        self.loss *= self._decay
+        self.missed *= self._decay
+        self.scored *= self._decay
         finite = np.isfinite(wis).all(axis=0)
         mean = np.where(finite, wis, 0.0).mean(axis=0)
         seen = finite & (mean > 0)
@@ -238,4 +249,4 @@ class AggregatedTracker:
         self.loss += (wis[:, seen] / mean[seen]).sum(axis=1)
         self.missed += np.stack([e.missed(q[seen], truth[seen]).sum(axis=0)
                                  for e, q in zip(self.experts, experts)])
-        self.scored += int(seen.sum())
+        self.scored += float(seen.sum())

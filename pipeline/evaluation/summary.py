@@ -20,6 +20,11 @@ hub baseline's into its summary:
   (:mod:`pipeline.evaluation.regimes`) and over the cells of each place's largest 10 % of
   observed weekly counts (intervals that hold on average can fail exactly when the epidemic
   turns).
+
+:func:`calibration_cost` is what a calibration costs (or saves) in WIS: the published forecast's
+Σ WIS over the same average's before calibration, on the cells both scored, over every origin
+and in each window of consecutive origins (a calibration that holds on average may not let go
+of a past surge: its worst window says so).
 """
 from __future__ import annotations
 
@@ -31,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.evaluation.bootstrap import coverage_interval
-from pipeline.evaluation.quantile_function import pit_from_quantiles
+from pipeline.evaluation.quantile_function import median_index, pit_from_quantiles
 from pipeline.evaluation.regimes import REGIME_NAMES
 from pipeline.evaluation.scoring import interval_coverage, weighted_interval_score
 
@@ -64,7 +69,7 @@ def score_cells(values: NDArray[np.float64], truth: NDArray[np.float64],
     y = np.where(seen, truth, 0.0)
     parts = weighted_interval_score(levels, q, y)
     u = np.broadcast_to(np.asarray(unit, dtype=np.float64), y.shape)
-    mid = int(np.argmin(np.abs(np.asarray(levels) - 0.5)))
+    mid = median_index(levels)
     return CellScores(
         wis=parts.wis * nan, dispersion=parts.dispersion * nan,
         overprediction=parts.overprediction * nan, underprediction=parts.underprediction * nan,
@@ -202,3 +207,36 @@ def _at_horizon(scores: CellScores, k: int) -> CellScores:
                       scores.overprediction[:, :, k], scores.underprediction[:, :, k],
                       {c: v[:, :, k] for c, v in scores.covered.items()}, scores.pit[:, :, k],
                       scores.median[:, :, k])
+
+
+# the windows a calibration's cost is read over: 15 consecutive origins (about a season's turn)
+COST_WINDOW_ORIGINS = 15
+
+
+def calibration_cost(published_wis: NDArray[np.float64], uncalibrated_wis: NDArray[np.float64],
+                     origins: Sequence[Any], window: int = COST_WINDOW_ORIGINS
+                     ) -> dict[str, Any]:
+    """Σ WIS published / Σ WIS uncalibrated ``(C, O, H)`` over every origin (``all``) and over
+    each ``window`` consecutive origins: the worst window, its first and last origin, and how
+    many windows there were (``None`` where nothing is scored)."""
+    both = np.isfinite(published_wis) & np.isfinite(uncalibrated_wis)
+    num = np.where(both, published_wis, 0.0).sum(axis=(0, 2))                    # (O,)
+    den = np.where(both, uncalibrated_wis, 0.0).sum(axis=(0, 2))
+    out: dict[str, Any] = {"all": _ratio(float(num.sum()), float(den.sum())),
+                           "window_origins": window, "worst_window": None, "n_windows": 0}
+    if len(num) < window:
+        return out
+    kernel = np.ones(window)
+    num_w, den_w = np.convolve(num, kernel, "valid"), np.convolve(den, kernel, "valid")
+    seen = den_w > 0
+    if not seen.any():
+        return out
+    ratios = np.where(seen, num_w / np.where(seen, den_w, 1.0), -np.inf)
+    worst = int(np.argmax(ratios))
+    return out | {"worst_window": float(ratios[worst]), "n_windows": int(seen.sum()),
+                  "worst_window_origins": [_day(origins[worst]),
+                                           _day(origins[worst + window - 1])]}
+
+
+def _day(origin: Any) -> str:
+    return str(np.datetime_as_string(np.datetime64(origin, "D")))
