@@ -324,6 +324,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     targets = derive_targets(result, latest, population, seed=args.seed)
     derived = derived_scores(targets)
     validation = validate_round_files(result, targets, hub)
+    # the online calibration's cost: WIS over the same average uncalibrated (horizons 0-3),
+    # of the published forecast and each variant of its members
+    costs = result.calibration_cost([h for h in result.horizons if h >= 0],
+                                    (PUBLISHED, *result.variants_of_members()))
     out = {
         "target": HOSP_FLU,
         "pairwise_relative_wis": relative(published, PUBLISHED),
@@ -336,10 +340,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                    )["by_regime"],
         # the online calibration's cost: published WIS over the same average uncalibrated
         # (horizons 0-3), over every round and in the worst window of 15 consecutive rounds
-        "calibration_cost_by_window": result.calibration_cost(
-            [h for h in result.horizons if h >= 0]),
-        "calibration_cost_variants": result.calibration_cost_variants(
-            [h for h in result.horizons if h >= 0]),
+        "calibration_cost_by_window": costs[PUBLISHED],
+        "calibration_cost_variants": {n: c for n, c in costs.items() if n != PUBLISHED},
         "rank": [r["model_id"] for r in published["all"]].index(PUBLISHED) + 1,
         "n_models": len(published["all"]),
         "teams": {r["model_id"]: {"relative_wis": float(r["relative_wis"]),

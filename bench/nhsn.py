@@ -395,6 +395,10 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         if name in per_model:            # the table's reference rows
             ablations.setdefault(f"[{name}]", {"member": name} | {
                 k: v for k, v in per_model[name].items()})
+    # the online calibration's cost: WIS over the same average uncalibrated (horizons 0-3),
+    # of the published forecast and each variant of its members
+    costs = result.calibration_cost([h for h in result.horizons if h >= 0],
+                                    (PUBLISHED, *result.variants_of_members()))
     return {
         "target": target,
         "pairwise_relative_wis": relative(published, PUBLISHED),
@@ -408,10 +412,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         # (horizons 0-3, every round and location, both reconciled)
         "calibration_cost": float(wis[PUBLISHED] / wis[UNCALIBRATED]),
         # the same over every round and in the worst window of 15 consecutive rounds
-        "calibration_cost_by_window": result.calibration_cost(
-            [h for h in result.horizons if h >= 0]),
-        "calibration_cost_variants": result.calibration_cost_variants(
-            [h for h in result.horizons if h >= 0]),
+        "calibration_cost_by_window": costs[PUBLISHED],
+        "calibration_cost_variants": {n: c for n, c in costs.items() if n != PUBLISHED},
         "coverage_by_horizon": coverage,
         "ablations": ablations,
         "n_rounds": len(rounds), "n_locations": len(result.places),

@@ -126,23 +126,23 @@ class HubRoundsResult:
                                     regime_masks(self.backtest.regimes, truth, len(k)))
 
     def calibration_cost(self, horizons: Sequence[int] | None = None,
-                         forecaster: str = PUBLISHED) -> dict[str, Any]:
-        """``forecaster``'s WIS over the published members' average uncalibrated at the hub
-        ``horizons`` (default: all), over every round and in its worst window of consecutive
-        rounds (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
+                         forecasters: Sequence[str] = (PUBLISHED,)) -> dict[str, dict[str, Any]]:
+        """Each of ``forecasters``' WIS over the published members' average uncalibrated at
+        the hub ``horizons`` (default: all), over every round and in its worst window of
+        consecutive rounds (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
         k = [self.horizon_index(h) for h in (horizons or self.horizons)]
         truth = self.truth[:, :, k]
-        made, uncalibrated = (score_cells(self.forecasts[name][:, :, k], truth, self.levels).wis
-                              for name in (forecaster, UNCALIBRATED))
-        return calibration_cost(made, uncalibrated, self.references)
 
-    def calibration_cost_variants(self, horizons: Sequence[int] | None = None
-                                  ) -> dict[str, dict[str, Any]]:
-        """:meth:`calibration_cost` of each variant of the published members (another
-        calibration, another average)."""
-        return {v.name: self.calibration_cost(horizons, v.name)
-                for v in self.backtest.config.variants
-                if v.members is None and v.name in self.forecasts}
+        def wis(name: str) -> NDArray[np.float64]:
+            return score_cells(self.forecasts[name][:, :, k], truth, self.levels).wis
+        uncalibrated = wis(UNCALIBRATED)
+        return {name: calibration_cost(wis(name), uncalibrated, self.references)
+                for name in forecasters}
+
+    def variants_of_members(self) -> tuple[str, ...]:
+        """The variants of the published members (another calibration, another average)."""
+        return tuple(v.name for v in self.backtest.config.variants
+                     if v.members is None and v.name in self.forecasts)
 
     def scores(self, forecasters: Sequence[str] | None = None) -> pd.DataFrame:
         """One row per scored (forecaster, round, horizon, location): WIS and its parts,

@@ -179,29 +179,34 @@ class BacktestResult:
     @functools.cached_property
     def _summary(self) -> dict[str, Any]:
         by_target: dict[str, dict[str, Any]] = {}
+        costs: dict[str, dict[str, Any]] = {}
+        cost_variants: dict[str, dict[str, Any]] = {}
+        of_members = [v.name for v in self.config.variants if v.members is None]
         for target in self.targets:
             unit = self._unit(target)
             truth = self.truth[target]
             masks = regime_masks(self.regimes, self.truth[self.panel.count_target],
                                  len(self.horizons))
-            base = score_cells(self.forecasts[target][HUB_BASELINE], truth, self.levels,
-                               unit).wis
+            scored = {name: score_cells(values, truth, self.levels, unit)
+                      for name, values in self.forecasts[target].items()}
+            base = scored[HUB_BASELINE].wis
             by_target[target] = {
-                name: summarize_forecaster(score_cells(values, truth, self.levels, unit), base,
-                                           self.horizons, self.places, masks)
-                for name, values in self.forecasts[target].items()}
+                name: summarize_forecaster(s, base, self.horizons, self.places, masks)
+                for name, s in scored.items()}
+            if UNCALIBRATED not in scored:
+                continue
+            # each forecaster's WIS over the published members' average uncalibrated: the
+            # published calibration's cost, and each variant of the same members'
+            def cost(name: str) -> dict[str, Any]:
+                return calibration_cost(scored[name].wis, scored[UNCALIBRATED].wis,
+                                        self.origins)
+            if PUBLISHED in scored:
+                costs[target] = cost(PUBLISHED)
+            cost_variants[target] = {n: cost(n) for n in of_members if n in scored}
         out: dict[str, Any] = {
             "by_target": by_target,
-            "calibration_cost": {target: self._calibration_cost(target)
-                                 for target in self.targets
-                                 if {PUBLISHED, UNCALIBRATED} <= set(self.forecasts[target])},
-            # the same for each variant of the published members (another calibration, another
-            # average): its WIS over the published members' average uncalibrated
-            "calibration_cost_variants": {
-                target: {v.name: self._calibration_cost(target, v.name)
-                         for v in self.config.variants
-                         if v.members is None and v.name in self.forecasts[target]}
-                for target in self.targets if UNCALIBRATED in self.forecasts[target]},
+            "calibration_cost": costs,
+            "calibration_cost_variants": cost_variants,
             "n_places": len(self.places), "places": list(self.places),
             "n_origins": len(self.origins),
             "origins": {"first": str(self.origins[0].date()),
@@ -218,16 +223,6 @@ class BacktestResult:
             out["invalid_values"] = invalid.total
             out["invalid_values_detail"] = invalid.to_dict()
         return out
-
-    def _calibration_cost(self, target: str, forecaster: str = PUBLISHED) -> dict[str, Any]:
-        """``forecaster``'s WIS over the published members' average uncalibrated, over every
-        origin and in its worst window (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
-        made = self.forecasts[target]
-        unit = self._unit(target)
-        return calibration_cost(
-            score_cells(made[forecaster], self.truth[target], self.levels, unit).wis,
-            score_cells(made[UNCALIBRATED], self.truth[target], self.levels, unit).wis,
-            self.origins)
 
     def _unit(self, target: str) -> NDArray[np.float64]:
         """Turns the target into counts for the PIT: N for I, 1 for a count."""

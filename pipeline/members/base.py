@@ -14,7 +14,7 @@ depends only on its own history, its panel as known at its origin and its own se
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -136,6 +136,60 @@ def weekly_series(cells: Cells, member: str) -> list[NDArray[np.float64]]:
         raise TargetError(f"{member} at {short[0].origin.date()}: needs two complete weeks, got "
                           f"{len(short[0])} {unit}")
     return own
+
+
+@dataclass(frozen=True, eq=False)
+class PoolGroup:
+    """Cells that learn from one pool (:meth:`~pipeline.panels.panel.Cells.pool_groups`): their
+    panel, origin and weeks known, and per cell its place, position among the cells, own weekly
+    counts and population."""
+
+    panel: Panel
+    origin: pd.Timestamp
+    n_weeks: int
+    places: list[str]
+    index: list[int]
+    own: list[NDArray[np.float64]]
+    populations: NDArray[np.float64]
+
+    @property
+    def pool(self) -> NDArray[np.float64]:
+        """The weekly counts the group learns from (:meth:`~pipeline.panels.panel.Panel.pool`:
+        the same for every cell of the group)."""
+        return self.panel.pool(self.places[0], self.origin, self.n_weeks)
+
+
+def forecast_by_pool(cells: Cells, horizons: tuple[int, ...], levels: NDArray[np.float64],
+                     member: str, group_forecast: Callable[[PoolGroup], NDArray[np.float64]]
+                     ) -> MemberForecast:
+    """A pooled member's forecast of every cell: one ``group_forecast`` ``(B_g, H, Q)`` per
+    group of cells sharing a pool, each cell needing two complete weeks
+    (:func:`weekly_series`)."""
+    own = weekly_series(cells, member)
+    out = np.empty((len(cells), len(horizons), len(levels)))
+    for (_, origin, n, _), index in cells.pool_groups().items():
+        out[index] = group_forecast(PoolGroup(
+            cells.panels[index[0]], origin, n, [cells.places[b] for b in index], index,
+            [own[b] for b in index], cells.populations[index]))
+    return MemberForecast(out)
+
+
+class ForecastsByPool:
+    """A pooled member's :meth:`forecast`: every group of cells sharing a pool forecast at once
+    by the member's :meth:`group_forecast` (:func:`forecast_by_pool`)."""
+
+    name: str
+
+    def forecast(self, cells: Cells, horizons: tuple[int, ...],
+                 levels: NDArray[np.float64]) -> MemberForecast:
+        levels = np.asarray(levels, dtype=np.float64)
+        return forecast_by_pool(cells, horizons, levels, self.name,
+                                lambda group: self.group_forecast(group, horizons, levels))
+
+    def group_forecast(self, group: PoolGroup, horizons: tuple[int, ...],
+                       levels: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``(B, H, Q)`` counts of the group's cells."""
+        raise NotImplementedError
 
 
 def quantiles_of_samples(samples: NDArray[np.float64], levels: NDArray[np.float64]

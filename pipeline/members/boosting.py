@@ -33,8 +33,7 @@ from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
 from pipeline.evaluation.quantile_function import quantiles_at
-from pipeline.members.base import MemberForecast, weekly_series
-from pipeline.panels.panel import Cells, Panel
+from pipeline.members.base import ForecastsByPool, PoolGroup
 from pipeline.panels.targets import DAYS_PER_WEEK
 
 GBQR = "gbqr"
@@ -225,7 +224,7 @@ def _week_ends(origin: pd.Timestamp, n_weeks: int) -> pd.DatetimeIndex:
 
 
 @dataclass(frozen=True, eq=False)
-class PooledBoostingMember:
+class PooledBoostingMember(ForecastsByPool):
     """``gbqr`` (module docstring): one set of quantile models per panel and origin, trained
     on the panel's pool as known at the origin, predicting every cell from its own history."""
 
@@ -233,28 +232,15 @@ class PooledBoostingMember:
     name: str = GBQR
     pools: ClassVar[bool] = True          # learns from the cell's panel (the memo keys on it)
 
-    def forecast(self, cells: Cells, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64]) -> MemberForecast:
-        levels = np.asarray(levels, dtype=np.float64)
-        own = weekly_series(cells, self.name)
-        out = np.empty((len(cells), len(horizons), len(levels)))
-        for (_, origin, n, _), index in cells.pool_groups().items():
-            panel, place = cells.panels[index[0]], cells.places[index[0]]
-            out[index] = self._group_forecast(panel, place, origin, n, [own[b] for b in index],
-                                              cells.populations[index], horizons, levels)
-        return MemberForecast(out)
-
-    def _group_forecast(self, panel: Panel, place: str, origin: pd.Timestamp, n_weeks: int,
-                        own: list[NDArray[np.float64]], population: NDArray[np.float64],
-                        horizons: tuple[int, ...], levels: NDArray[np.float64]
-                        ) -> NDArray[np.float64]:
+    def group_forecast(self, group: PoolGroup, horizons: tuple[int, ...],
+                       levels: NDArray[np.float64]) -> NDArray[np.float64]:
         """``(B, H, Q)`` counts of the group's cells."""
+        origin, n_weeks, own = group.origin, group.n_weeks, group.own
         week_ends = _week_ends(origin, n_weeks)
-        pool = scaled(panel.pool(place, origin, n_weeks), panel.pool_populations(place),
-                      self.config)
+        pool = scaled(group.pool, group.panel.pool_populations(group.places[0]), self.config)
         rows = training_rows(pool, features(pool, week_ends, self.config), horizons,
                              self.config)
-        mine = scaled(np.stack(own), population, self.config)
+        mine = scaled(np.stack(own), group.populations, self.config)
         now = features(mine, week_ends, self.config)[:, -1]                # (B, F-1)
         n_b, n_h = len(own), len(horizons)
         x_now = np.column_stack([np.repeat(now, n_h, axis=0),

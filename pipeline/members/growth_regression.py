@@ -33,9 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
-from pipeline.members.base import MemberForecast, weekly_series
+from pipeline.members.base import ForecastsByPool, PoolGroup
 from pipeline.members.hub_baseline import row_quantiles
-from pipeline.panels.panel import Cells
 
 GROWTH_QR = "growth-qr"
 LEVEL_SCALE = 10.0            # log counts / 10: features of comparable size for the ridge
@@ -253,7 +252,7 @@ def _fitted_log_quantiles(x: NDArray[np.float64], y: NDArray[np.float64],
 
 
 @dataclass(frozen=True, eq=False)
-class PooledGrowthMember:
+class PooledGrowthMember(ForecastsByPool):
     """``growth-qr`` (module docstring). A cell's pool is its panel as known at its origin
     (:meth:`~pipeline.panels.panel.Panel.pool`: the references other than its place, then every
     place of the panel), with the cell's own history as its place's row. Cells whose own rows
@@ -265,20 +264,14 @@ class PooledGrowthMember:
     name: str = GROWTH_QR
     pools: ClassVar[bool] = True          # learns from the cell's panel (the memo keys on it)
 
-    def forecast(self, cells: Cells, horizons: tuple[int, ...],
-                 levels: NDArray[np.float64]) -> MemberForecast:
-        levels = np.asarray(levels, dtype=np.float64)
-        own = weekly_series(cells, self.name)
-        out = np.empty((len(cells), len(horizons), len(levels)))
-        for (_, origin, n, _), index in cells.pool_groups().items():
-            panel, place = cells.panels[index[0]], cells.places[index[0]]
-            pool = panel.pool(place, origin, n)
-            rows = np.array([panel.own_row(cells.places[b]) for b in index])
-            mine = np.stack([own[b] for b in index])
-            if np.array_equal(pool[rows], mine, equal_nan=True):
-                out[index] = growth_regression_quantiles(pool, np.array([n - 1]), horizons,
-                                                         levels, self.config)[rows, 0]
-            else:
-                out[index] = pooled_growth_quantiles(mine, pool, rows, horizons, levels,
-                                                     self.config)
-        return MemberForecast(out)
+    def group_forecast(self, group: PoolGroup, horizons: tuple[int, ...],
+                       levels: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``(B, H, Q)`` counts of the group's cells: one regression where their rows are
+        their panel's, else one each."""
+        pool = group.pool
+        rows = np.array([group.panel.own_row(place) for place in group.places])
+        mine = np.stack(group.own)
+        if np.array_equal(pool[rows], mine, equal_nan=True):
+            return growth_regression_quantiles(pool, np.array([group.n_weeks - 1]), horizons,
+                                               levels, self.config)[rows, 0]
+        return pooled_growth_quantiles(mine, pool, rows, horizons, levels, self.config)
