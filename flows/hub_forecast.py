@@ -87,16 +87,14 @@ def hub_forecast(disease: Literal["covid", "flu", "rsv"] = "covid",
     except NoHubRoundError as error:
         logger.info("%s", error)
         return no_round_outcome(str(error), config)
-    run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False)(
-        run_hub_round)(config, LogProgress(logger, "rounds", 2000))
-    try:
+    try:       # FluSight off season: the data's newest round is none of the hub's (no failure)
+        run = task(name="forecast-rounds", cache_policy=NO_CACHE, persist_result=False)(
+            run_hub_round)(config, LogProgress(logger, "rounds", 2000))
         published = task(name="publish-round", cache_policy=NO_CACHE, persist_result=False)(
             publish_hub_round)(run)
-    except NoHubRoundError as error:           # FluSight off season: no round, not a failure
+    except NoHubRoundError as error:
         logger.info("%s", error)
-        return {**no_round_outcome(str(error), config),
-                "reference_date": str(run.reference_date), "data_stale": run.stale,
-                "seconds": run.seconds}
+        return no_round_outcome(str(error), config, error.reference)
     stale = "; ".join(f"{p.target}: {n}" for p in run.provenance.values() for n in p.notes)
     create_markdown_artifact(
         f"Hub round {published.reference_date} ({disease}): `{published.model_output}`"
@@ -143,9 +141,11 @@ def due_today(config: HubRunConfig, now: dt.datetime | None = None) -> dt.date:
     return today
 
 
-def no_round_outcome(why: str, config: HubRunConfig) -> dict[str, object]:
-    """The flow's outcome when there is no round to make: rc 0, nothing written."""
-    return {"reference_date": None, "no_round": why, "output_dir": None, "model_output": None,
+def no_round_outcome(why: str, config: HubRunConfig, reference: dt.date | None = None
+                     ) -> dict[str, object]:
+    """The flow's outcome when there is no round to make: rc 0, nothing written;
+    ``reference``: the round the data would have served, where known."""
+    return {"reference_date": str(reference) if reference else None, "no_round": why, "output_dir": None, "model_output": None,
             "files": [], "data_stale": False, "seconds": {}, "published_targets": [],
             "degraded": False, "dropped": [], "due": str(config.due) if config.due else None}
 

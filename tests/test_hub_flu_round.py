@@ -82,15 +82,26 @@ def test_an_in_season_flu_round_is_flusights(tmp_path, monkeypatch):
 
 
 def test_no_round_off_season_and_the_rsv_hubs_config(tmp_path, monkeypatch):
+    """Off season the round the data serve is none of the hub's: said from the releases'
+    dates, before any member is built (no model trained, no cell forecast, nothing written)."""
     from pipeline.errors import ConfigError
-    from pipeline.hub_round.publish import publish_hub_round, require_hub_config
+    from pipeline.hub_round.publish import require_hub_config
     from pipeline.hub_round.run import HubRunConfig
     from pipeline.outputs.hub_conform import NoHubRoundError
-    config, run = _round(tmp_path, monkeypatch, "2025-06-04", "2025-06-18")
+    import pipeline.hub_round.run as run_module
+
+    def never(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("a member was built off season")
+
+    monkeypatch.setattr(run_module, "build_hub_members", never)
     with pytest.raises(NoHubRoundError, match=r"the flu hub takes no round for the reference "
-                       r"date 2025-06-21 \(89 rounds, 2023-10-07 … 2026-05-30\): no round"):
-        publish_hub_round(run)
+                       r"date 2025-06-21 \(89 rounds, 2023-10-07 … 2026-05-30\): no round") \
+            as raised:
+        _round(tmp_path, monkeypatch, "2025-06-04", "2025-06-18")
+    assert str(raised.value.reference) == "2025-06-21"
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.csv"))
+    assert not (tmp_path / "data" / "models").exists()
+    assert not (tmp_path / "data" / "forecast-memo").exists()
     monkeypatch.delenv("FLOWCAST_HUB_CONFIG", raising=False)
     # the RSV hub's config is beside the checkout now (issue 49): its round validates there
     assert require_hub_config(HubRunConfig(disease="rsv")) == FLUSIGHT.parent / "rsv" / \

@@ -42,7 +42,7 @@ from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
 from pipeline.members.published import HubMembersConfig, build_hub_members, published_names
 from pipeline.members.nf.weekly import WeeklyFlowConfig
 from pipeline.outputs.hub_calendar import HubCalendar
-from pipeline.outputs.hub_conform import NoHubRoundError
+from pipeline.outputs.hub_conform import NoHubRoundError, no_round_error
 from pipeline.outputs.hubverse_round import CDC_HUB_MODEL_ID
 from pipeline.outputs.hubverse_validation import load_tasks_config
 from pipeline.hub_round.member_training import hub_member_training, target_inputs
@@ -281,6 +281,8 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     vintages = {t: load_vintages(t, config.data_folder) if t in provenance else []
                 for t in targets}
     seconds["data"] = time.perf_counter() - started
+    if due_reference is None and calendar is not None:      # off season: before any forecast
+        require_open_round(calendar, vintages, config.disease)
     # the ED share's vintages are COVID-19's seasonal climatology (none released yet: no
     # seasonal forecast); influenza's seasonal member reads the admissions' own earlier seasons
     # (FluSight's data hold no influenza ED vintage: SEASONAL_READS_ED_SHARE)
@@ -323,6 +325,21 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
             log.warning("the round left out %s", item.line())
     return HubRun(config, results, provenance, model_key, reused, seconds, tuple(dropped),
                   due_reference, target_seconds=per_target)
+
+
+def require_open_round(calendar: HubCalendar,
+                       vintages: dict[str, list[tuple[pd.Timestamp, Panel]]], disease: str
+                       ) -> None:
+    """Raise :class:`NoHubRoundError` when the newest round the vintages serve (the round a
+    run with no due day publishes) is none of the hub's: known from the data's dates alone,
+    before any member is trained or any cell forecast."""
+    released = [v[-1][0] for v in vintages.values() if v]
+    if not released:
+        return
+    newest = max(calendar.serving(as_of) for as_of in released).date()
+    if newest not in calendar.references:
+        raise no_round_error(f"the {disease} hub", newest,
+                             [str(r) for r in calendar.references])
 
 
 def target_seconds(total: float, built: dict[str, float], result: HubRoundsResult

@@ -14,7 +14,8 @@ product's constants, decides (:mod:`pipeline.outputs.hub_tasks`).
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+import datetime as dt
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +27,12 @@ from pipeline.outputs.hub_tasks import (HubValidationError, describe_rounds, has
 
 
 class NoHubRoundError(HubValidationError):
-    """The hub takes no round for this reference date (FluSight off season)."""
+    """The hub takes no round for this reference date (FluSight off season); ``reference``:
+    the round the data would have served, where one is known."""
+
+    def __init__(self, message: str, reference: dt.date | None = None) -> None:
+        super().__init__(message)
+        self.reference = reference
 
 
 @dataclass(frozen=True)
@@ -40,10 +46,16 @@ class ConformedRound:
 def require_round(tasks: Mapping[str, Any], reference: pd.Timestamp, hub: str = "the hub"
                   ) -> None:
     """Raise :class:`NoHubRoundError` when ``hub`` takes no round for ``reference``."""
-    if not has_round(tasks, pd.Timestamp(reference).date()):
-        raise NoHubRoundError(f"{hub} takes no round for the reference date "
-                              f"{pd.Timestamp(reference).date()} "
-                              f"({describe_rounds(hub_round_ids(tasks))}): no round written")
+    day = pd.Timestamp(reference).date()
+    if not has_round(tasks, day):
+        raise no_round_error(hub, day, hub_round_ids(tasks))
+
+
+def no_round_error(hub: str, reference: dt.date, rounds: Sequence[str]) -> NoHubRoundError:
+    """What is said when ``hub`` (whose rounds are ``rounds``) takes no round for
+    ``reference``."""
+    return NoHubRoundError(f"{hub} takes no round for the reference date {reference} "
+                           f"({describe_rounds(rounds)}): no round written", reference)
 
 
 def conform_round(frame: pd.DataFrame, tasks: Mapping[str, Any]) -> ConformedRound:
