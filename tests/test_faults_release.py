@@ -1,7 +1,9 @@
 """Issue 39's catalogue (bench/faults_release.py): faults arriving as a release newer than the
 cached one, through the live fetch from a fake data.cdc.gov on 127.0.0.1 and through the
 import; every case must pass with 0 bytes of good cache lost. FluSight's whole import is
-tests/test_release_judgement.py's."""
+tests/test_release_judgement.py's. A round after a release that revises one location (held,
+still forecast from its accepted series) is tests/test_replay.py's each-Wednesday test; the
+bench's own case of it is in bench/results/faults.json."""
 from __future__ import annotations
 
 import pytest
@@ -21,21 +23,6 @@ def test_a_fault_in_a_newer_release(fault, tmp_path):
 def test_an_import_fault(case, tmp_path):
     result = case(tmp_path)
     assert result.passed, f"{result.name}: {result.note}"
-
-
-@pytest.mark.slow
-def test_a_round_after_a_release_that_revises_one_location_publishes_it_held(tmp_path):
-    """The hub round (tiny preset, from the cache) after a newer release that revised
-    California's settled week tenfold: published, California held, named, and still forecast
-    from its accepted series (issue 49)."""
-    from bench.faults_round import round_faults, run_round_fault
-    fault = next(f for f in round_faults() if f.name == "round-location-revised-held-alone")
-    result = run_round_fault(fault, tmp_path / "round", tmp_path / "models")
-    assert result.passed, result.note
-    assert result.detail["round_published"] is True
-    dropped = result.detail["dropped"]
-    assert isinstance(dropped, dict) and dropped[HOSP_COVID] == {}
-    assert result.detail["locations"][HOSP_COVID] == 53
 
 
 @pytest.mark.slow

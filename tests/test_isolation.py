@@ -216,8 +216,13 @@ def test_only_what_changes_the_submission_degrades_a_round():
     config = HubRunConfig(members=hub_members_preset("tiny"))
     assert "nf-real" not in (*config.members.published, *config.members.published_share)
 
+    from pipeline.members.published import published_names
+
+    # the plan each target's members carry (HubMembers.planned): asked once, at build time
+    planned = {t: published_names(config.members, t, refitted=True) for t in (hosp, ed)}
+
     def run(*dropped: Dropped) -> HubRun:
-        return HubRun(config, {}, {}, "", True, {}, dropped)
+        return HubRun(config, {}, {}, "", True, {}, dropped, planned=planned)
 
     beside = Dropped("refit", hosp, "nf-real 2025-09-20", "diverged; the refit of 2025-08-23 "
                      "instead")

@@ -524,12 +524,19 @@ def real_results(datasf_dir, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def real_report(real_results, tmp_path_factory):
-    from pipeline.report.render import pdf_bytes, start_report
+def real_content(real_results):
+    """The run's report content, every section drawn here (in this process)."""
     from pipeline.forecast.report.weekly import forecast_report_content
 
+    return forecast_report_content(real_results)
+
+
+@pytest.fixture(scope="module")
+def real_report(real_content, tmp_path_factory):
+    from pipeline.report.render import pdf_bytes, start_report
+
     out = tmp_path_factory.mktemp("real-report")
-    written = start_report(forecast_report_content(real_results)).write(out)  # as publish does
+    written = start_report(real_content).write(out)  # as publish does
     assert sorted(p.name for p in out.iterdir()) == ["report.html", "report.pdf"]
     # the PDF laid out in a forked child is the one laid out here, byte for byte
     assert written.pdf_path.read_bytes() == pdf_bytes(written.html_path.read_text())[0]
@@ -651,7 +658,7 @@ def test_real_report_pages_are_neither_blank_nor_mixed_conventions(real_results,
 
 
 @pytest.mark.slow
-def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results):
+def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results, real_content):
     """Diagnostic sections drawn in a forked child (as publish draws half of them): the report
     holds the same sections, captions and images as when all are drawn here."""
     from pipeline.forecast.report.diagnostics import start_diagnostics
@@ -661,7 +668,7 @@ def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results):
         return [(s.key, [getattr(i, "png", None) for i in s.items],
                  [getattr(i, "caption", None) for i in s.items]) for s in content.sections]
 
-    here = forecast_report_content(real_results)
+    here = real_content
     forked = start_diagnostics(real_results.model_outputs())
     assert forked.build.process is not None          # drawn in a child process
     assert parts(forecast_report_content(real_results, forked)) == parts(here)

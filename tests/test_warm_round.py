@@ -35,14 +35,21 @@ Vintages = list[tuple[pd.Timestamp, Panel]]
 # the ED share's first four releases (2025-06-18 … 07-09; refit date 2025-06-14 among their
 # weeks); the fifth, of 2025-07-16, ends on 2025-07-12: a new refit date comes with next week
 LAST_WEEK, THIS_WEEK = 4, 5
+# the nation and a dozen states of every size and region: what a warm week reads back and what
+# it forecasts is per cell, so a dozen places show it as well as 51, in a quarter of the time
+PLACES = ("US", "06", "48", "12", "36", "17", "13", "53", "04", "29", "31", "50", "02")
 
 
 @pytest.fixture(scope="module")
 def vintages(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Vintages]:
     root = tmp_path_factory.mktemp("nhsn-warm")
     import_hub_time_series(NHSN, root)
-    return {t: [(v.as_of, panel_of(v)) for v in cached_weekly_vintages(t, root)]
+    return {t: [(v.as_of, _only(panel_of(v))) for v in cached_weekly_vintages(t, root)]
             for t in (HOSP_COVID, ED_COVID)}
+
+
+def _only(panel: Panel) -> Panel:
+    return panel.only([p for p in PLACES if p in panel.places])
 
 
 def _trainings(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:

@@ -39,7 +39,7 @@ from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targ
 from pipeline.errors import ConfigError, OfflineError
 from pipeline.members.nf.real import FineTuneConfig
 from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
-from pipeline.members.published import HubMembersConfig, build_hub_members, published_names
+from pipeline.members.published import HubMembersConfig, build_hub_members
 from pipeline.members.nf.weekly import WeeklyFlowConfig
 from pipeline.outputs.hub_calendar import HubCalendar
 from pipeline.outputs.hub_conform import NoHubRoundError, no_round_error
@@ -184,6 +184,8 @@ class HubRun:
     due_reference: dt.date | None = None
     # per target, its seconds in all and each member's (target_seconds)
     target_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
+    # per target, the members of its published average as planned (HubMembers.planned)
+    planned: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
     def reference_date(self) -> dt.date:
@@ -210,8 +212,7 @@ class HubRun:
         if item.what in ("target", "location"):
             return item.what == "target"
         member = item.name.split(" ")[0]       # a refit is named "<member> <date>"
-        return member in published_names(self.config.members, item.target, refitted=True,
-                                         own_seasons=self.config.seasonal_own_seasons)
+        return member in self.planned.get(item.target, ())
 
     @property
     def degraded(self) -> bool:
@@ -291,6 +292,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
     results: dict[str, HubRoundsResult] = {}
     model_key, reused = "", True
     per_target: dict[str, dict[str, float]] = {}
+    planned: dict[str, tuple[str, ...]] = {}
     store_root = config.data_folder / MODELS_FOLDER
     cold = any(not memo_path(config, t.target).is_file() for t in inputs)
     with hub_member_training(config.members, store_root, inputs, config.seasonal_own_seasons,
@@ -302,6 +304,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
                                         seasonal_own_seasons=config.seasonal_own_seasons,
                                         other_signal=target.other_signal)
             model_key, reused = members.model_key, reused and members.reused
+            planned[target.target] = members.planned
             memo = ForecastMemo.load(memo_path(config, target.target))
             result = results[target.target] = run_hub_rounds(
                 hub_rounds(target.vintages, serving), target.vintages[-1][1],
@@ -324,7 +327,7 @@ def run_hub_round(config: HubRunConfig, progress: ProgressReporter | None = None
         if item.what != "location":
             log.warning("the round left out %s", item.line())
     return HubRun(config, results, provenance, model_key, reused, seconds, tuple(dropped),
-                  due_reference, target_seconds=per_target)
+                  due_reference, target_seconds=per_target, planned=planned)
 
 
 def require_open_round(calendar: HubCalendar,

@@ -248,6 +248,9 @@ class HubMembers:
     dropped: tuple[Dropped, ...] = ()
     # the seconds each member took to build (train, or read back from the model store)
     seconds: dict[str, float] = field(default_factory=dict)
+    # the published average as planned (a refit of nf-real in it): what a member dropped
+    # from it changed in the submission (HubRun.in_submission)
+    planned: tuple[str, ...] = ()
 
 
 def context_sources(target: str, climatology: Sequence[tuple[pd.Timestamp, Panel]],
@@ -376,4 +379,6 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
                           f"{[m.name for m in members]}")
     return HubMembers([m for m in members if m.name in published],
                       [m for m in members if m.name not in published], stored.key,
-                      stored.reused, tuple(dropped), seconds)
+                      stored.reused, tuple(dropped), seconds,
+                      planned=published_names(config, target, refitted=True,
+                                              own_seasons=seasonal_own_seasons))
