@@ -13,19 +13,18 @@ export OMP_WAIT_POLICY := PASSIVE
 
 .PHONY: forecast hub test variants venv sysdeps bench clean-venv
 
-# The venv is byte-compiled once, by compileall on every core (pip's own compile runs on one):
-# where PYTHONDONTWRITEBYTECODE is set (this VM, CI) an uncompiled venv compiles torch, prefect,
-# pandas, ... again in every process the tests start, about 5 s each (`make test` in a fresh
-# clone: 6 min 40 s uncompiled, 6 min 07 s with pip's compile, 5 min 52 s so). Files that do not
-# compile (Python 2 examples shipped in some packages) are skipped, as pip skips them.
+# Bytecode: each module is compiled the first time a process imports it, and written for the
+# processes after. PYTHONDONTWRITEBYTECODE (set on this VM and in CI) would make every process
+# compile torch, prefect, pandas, ... again (about 20 s of CPU each), so the targets unset it.
+# The venv is not compiled ahead: compileall over site-packages took 56 s on 2 cores, mostly
+# modules nothing imports.
+unexport PYTHONDONTWRITEBYTECODE
 # --no-build-isolation: the package builds with the venv's own setuptools and wheel (installed
 # beside torch) instead of a throw-away build environment made on every install.
-SITE = $$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --no-compile torch==2.13.0 'setuptools>=68' wheel
 	$(PY) -m pip install --quiet --no-compile --no-build-isolation -e '.[dev]'
-	$(PY) -m compileall -q -j 0 "$(SITE)" > /dev/null || true
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -76,14 +75,12 @@ hub: venv
 	  $(VENV)/bin/flowcast data import --if-empty "$(HUB_ARCHIVE_$(HUB))/time-series.parquet"; fi
 	$(MAKE) forecast FORECAST_ARGS="--hub $(HUB) $(FORECAST_ARGS)"
 
-# The project's own modules byte-compiled first (PYTHONDONTWRITEBYTECODE: see the venv above).
 # The type check (pyright over pipeline/ and flows/, settings in pyproject.toml: zero errors)
 # beside the tests, in the time the test workers wait on servers and sockets; its report follows
 # theirs, and either failing fails the target. The tests go as whole files to two workers (a
 # file's module fixtures are built once), longest files first (the order tests/conftest.py
 # collects them in; xdist's own reorder by test count is off).
 test: venv sysdeps
-	$(PY) -m compileall -q -j 0 pipeline flows tests bench > /dev/null
 	@$(VENV)/bin/pyright > $(VENV)/pyright.log 2>&1 & types=$$!; \
 	$(VENV)/bin/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder; tests=$$?; \
 	wait $$types; typed=$$?; echo "pyright:"; cat $(VENV)/pyright.log; \
