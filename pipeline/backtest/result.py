@@ -28,7 +28,7 @@ from pipeline.evaluation.summary import (calibration_cost, regime_masks, score_c
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.history import EpiHistory, History
 from pipeline.panels.panel import Panel
-from pipeline.panels.quantiles import Quantiles
+from pipeline.panels.quantiles import Quantiles, long_frame, positions
 from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, TargetError
 
 if TYPE_CHECKING:
@@ -124,7 +124,7 @@ class BacktestResult:
         if unknown:
             raise EnsembleError(f"places {unknown} are not in the backtest ({len(self.places)} "
                                 f"places: {', '.join(self.places[:5])}, …)")
-        return self._subset(np.array([self.places.index(p) for p in places]),
+        return self._subset(np.array(positions(self.places, list(places), "place")),
                             np.arange(len(self.origins)))
 
     def _subset(self, c: NDArray[np.intp], o: NDArray[np.intp]) -> BacktestResult:
@@ -160,7 +160,8 @@ class BacktestResult:
         origin = pd.Timestamp(origin)
         values = {t: self.quantiles(t, forecaster).at(place=place, origin=origin)
                   for t, f in self.forecasts.items() if forecaster in f}
-        paths = (self.paths[self.places.index(place), self.origins.index(origin)]
+        paths = (self.paths[positions(self.places, [place], "place")[0],
+                            positions(self.origins, [origin], "origin")[0]]
                  if forecaster == PUBLISHED and self.paths is not None else None)
         return QuantileForecast(forecaster, origin, self.horizons, self.levels, values, paths)
 
@@ -273,12 +274,9 @@ class BacktestResult:
 
     def weights_frame(self) -> pd.DataFrame:
         """origin, horizon, member, weight of the published combination."""
-        o, h, m = np.meshgrid(np.arange(len(self.origins)), np.arange(len(self.horizons)),
-                              np.arange(len(self.members)), indexing="ij")
-        return pd.DataFrame({"origin_date": [self.origins[i].date() for i in o.ravel()],
-                             "horizon": [self.horizons[i] for i in h.ravel()],
-                             "member": [self.members[i] for i in m.ravel()],
-                             "weight": self.weights.ravel()})
+        return long_frame(self.weights, {
+            "origin_date": np.array([o.date() for o in self.origins], dtype=object),
+            "horizon": self.horizons, "member": self.members}, value="weight")
 
 
 def _state_at(history: History, origin: pd.Timestamp) -> NDArray[np.float64]:

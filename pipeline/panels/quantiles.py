@@ -39,9 +39,10 @@ def long_frame(values: ArrayLike, axes: Mapping[str, Sequence[Any] | ArrayLike],
                          value: arr.reshape(-1)})
 
 
-def _positions(labels: Sequence[Any], wanted: Sequence[Any], axis: str) -> list[int]:
-    """Where each wanted label is along an axis; a label missing, or there twice (two rounds
-    of one origin), is an error: a cell is found by what it is or not at all."""
+def positions(labels: Sequence[Any], wanted: Sequence[Any], axis: str) -> list[int]:
+    """Where each wanted label is along an axis of a labelled array; a label missing, or there
+    twice (two rounds of one origin), is a :class:`TargetError`: a cell is found by what it is
+    or not at all."""
     found = [[i for i, label in enumerate(labels) if label == w] for w in wanted]
     missing = [w for w, at in zip(wanted, found) if not at]
     if missing:
@@ -75,11 +76,11 @@ class Quantiles:
 
     def _index(self, place: str | None, origin: pd.Timestamp | str | None,
                horizon: int | None, level: float | None) -> tuple[Any, ...]:
-        return (slice(None) if place is None else _positions(self.places, [place], "place")[0],
+        return (slice(None) if place is None else positions(self.places, [place], "place")[0],
                 slice(None) if origin is None else
-                _positions(self.origins, [pd.Timestamp(origin)], "origin")[0],
+                positions(self.origins, [pd.Timestamp(origin)], "origin")[0],
                 slice(None) if horizon is None else
-                _positions(self.horizons, [horizon], "horizon")[0],
+                positions(self.horizons, [horizon], "horizon")[0],
                 slice(None) if level is None else level_index(self.levels, level))
 
     def at(self, *, place: str | None = None, origin: pd.Timestamp | str | None = None,
@@ -94,15 +95,15 @@ class Quantiles:
         """The forecast of some places, origins (labels, or a mask over them) and horizons,
         with their labels."""
         c = (list(range(len(self.places))) if places is None
-             else _positions(self.places, list(places), "place"))
+             else positions(self.places, list(places), "place"))
         if origins is None:
             o = list(range(len(self.origins)))
         elif isinstance(origins, np.ndarray) and origins.dtype == bool:
             o = [int(i) for i in np.flatnonzero(origins)]
         else:
-            o = _positions(self.origins, [pd.Timestamp(x) for x in origins], "origin")
+            o = positions(self.origins, [pd.Timestamp(x) for x in origins], "origin")
         h = (list(range(len(self.horizons))) if horizons is None
-             else _positions(self.horizons, list(horizons), "horizon"))
+             else positions(self.horizons, list(horizons), "horizon"))
         return Quantiles(self.values[np.ix_(c, o, h, list(range(len(self.levels))))],
                          tuple(self.places[i] for i in c), tuple(self.origins[i] for i in o),
                          tuple(self.horizons[i] for i in h), self.levels)
