@@ -155,7 +155,7 @@ def test_horizon_minus_one_is_scored_against_the_last_reported_value(hub_round):
 
     _, run = hub_round
     result = run.results[ADMISSIONS]
-    k = result.horizons.index(-1)
+    k = result.horizon_index(-1)
     assert scored_rounds(result).tolist() == [True, True, False]
     # the last value each round's own vintage reported, read here from the panel directly
     rnd = result.rounds[0]
@@ -204,12 +204,11 @@ def test_hub_page_one_renders_the_map_and_fan_within_150_words(hub_round, tmp_pa
         ["pdftotext", "-f", "1", "-l", "1", str(pdf), "-"], capture_output=True, text=True,
         check=True).stdout.split())
     # the headline's and the table's numbers are the published US quantiles
-    result = run.results[ADMISSIONS]
-    us = result.places.index("US")
-    q = result.forecasts[PUBLISHED][us, -1]
-    mid = int(np.argmin(np.abs(result.levels - 0.5)))
-    assert f"forecast at {q[result.horizons.index(1), mid]:,.0f}" in text
-    assert f"nowcast of {q[result.horizons.index(-1), mid]:,.0f}" in text
+    published = run.results[ADMISSIONS].quantiles(PUBLISHED)
+    newest = published.origins[-1]
+    median = {h: published.at(place="US", origin=newest, horizon=h, level=0.5) for h in (-1, 1)}
+    assert f"forecast at {median[1]:,.0f}" in text
+    assert f"nowcast of {median[-1]:,.0f}" in text
     for notice in ("member nf-real left out", "a vintage held for review", "Missouri"):
         assert notice in text, notice
     assert "CDC COVID-19 Forecast Hub round" in text
