@@ -112,7 +112,7 @@ def _seed_cache(folder: Path, fault: RoundFault) -> None:
 
 def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult:
     from pipeline.hub_round.publish import publish_hub_round
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+    from pipeline.hub_round.run import HubRunConfig, run_hub_round
     started = time.monotonic()
     data = folder / "data"
     data.mkdir(parents=True)
@@ -121,9 +121,9 @@ def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult
     with data_folder(data):
         try:
             _seed_cache(folder, fault)
-            config = HubRunConfig(data_source="cache", output_dir=str(folder / "reports"),
-                                  members=hub_members_preset("tiny"),
-                                  hub_config=str(NHSN / "hub-config"))
+            config = HubRunConfig.of_preset("tiny", data_source="cache",
+                                            output_dir=str(folder / "reports"),
+                                            hub_config=str(NHSN / "hub-config"))
             run = run_hub_round(config)
             published = publish_hub_round(run)
         except Exception as exc:  # noqa: BLE001 - a crash is a failed case, reported

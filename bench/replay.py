@@ -113,9 +113,9 @@ def _replay(out: Path, releases: list[Any], preset: str, start: str | None, end:
 
     from flows.hub_forecast import flow_step
     from pipeline.hub_round import replay as rp
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset
+    from pipeline.hub_round.run import HubRunConfig
 
-    run = HubRunConfig(disease=disease, members=hub_members_preset(preset))  # type: ignore[arg-type]
+    run = HubRunConfig.of_preset(preset, disease=disease)
     config = rp.ReplayConfig(out, run, dt.date.fromisoformat(start) if start else None,
                              dt.date.fromisoformat(end) if end else None)
     rp.copy_hub_config(run.hub_config_dir(), out)

@@ -222,14 +222,14 @@ def _relative(scores: pd.DataFrame) -> dict[str, Any]:
 def run_rsv(args: argparse.Namespace, path: Path) -> None:
     from flows.hub_forecast import flow_step
     from pipeline.hub_round import replay as rp
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset
+    from pipeline.hub_round.run import HubRunConfig
     from bench.replay import valid_files
 
     out = Path(args.work) / "rsv"
     if out.exists():
         shutil.rmtree(out)
     releases = _releases("rsv")
-    run = HubRunConfig(disease="rsv", members=hub_members_preset(args.preset))
+    run = HubRunConfig.of_preset(args.preset, disease="rsv")
     config = rp.ReplayConfig(out, run, dt.date.fromisoformat(args.start) if args.start else None)
     rp.copy_hub_config(run.hub_config_dir(), out)
     started = time.perf_counter()

@@ -111,11 +111,10 @@ def _track_record(result: Any) -> dict[str, Any]:
 
 
 def hub_covid_report(root: Path) -> Any:
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+    from pipeline.hub_round.run import HubRunConfig, run_hub_round
 
     _import_hub(SHARED / "nhsn" / "time-series.parquet", COVID_SINCE, root)
-    run = run_hub_round(HubRunConfig(disease="covid", data_source="cache",
-                                     members=hub_members_preset("tiny")))
+    run = run_hub_round(HubRunConfig.of_preset("tiny", disease="covid", data_source="cache"))
     vintage = "; ".join(f"{p.target}: as of {p.as_of}" for p in run.provenance.values())
     main = run.results["wk inc covid hosp"]
     return _hub_content(run.results, run.skipped(), vintage), {

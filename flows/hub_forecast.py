@@ -34,7 +34,7 @@ from prefect.states import Completed
 from pipeline.data.core.cache import data_dir
 from pipeline.hub_round.publish import PublishedRound, publish_hub_round, require_hub_config
 from pipeline.hub_round.replay import RoundOutcome, RoundStep
-from pipeline.hub_round.run import HubRun, HubRunConfig, hub_members_preset, run_hub_round
+from pipeline.hub_round.run import HubRun, HubRunConfig, run_hub_round
 from pipeline.outputs.hub_conform import NoHubRoundError
 from pipeline.progress import LogProgress
 
@@ -119,9 +119,9 @@ def run_config(disease: Literal["covid", "flu", "rsv"], data_source: Literal["li
                preset: Literal["default", "tiny"], due: dt.date | None) -> HubRunConfig:
     """The round's configuration from the deployment's parameters; the data folder read from
     the environment here, once ($FLOWCAST_DATA_DIR or ./data)."""
-    config = HubRunConfig(disease=disease, data_source=data_source, output_dir=output_dir,
-                          hub_config=hub_config, seed=seed, members=hub_members_preset(preset),
-                          due=due, data_dir=str(data_dir()))
+    config = HubRunConfig.of_preset(preset, disease=disease, data_source=data_source,
+                                    output_dir=output_dir, hub_config=hub_config, seed=seed,
+                                    due=due, data_dir=str(data_dir()))
     return dataclasses.replace(config, rounds=dataclasses.replace(config.rounds, seed=seed))
 
 

@@ -19,7 +19,7 @@ FLUSIGHT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flu
 
 def _round(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, first: str, last: str):
     from pipeline.data.hub.target_import import import_hub_time_series
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+    from pipeline.hub_round.run import HubRunConfig, run_hub_round
 
     series = pd.read_parquet(FLUSIGHT / "time-series.parquet")
     as_of = pd.to_datetime(series["as_of"])
@@ -27,8 +27,8 @@ def _round(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, first: str, last: st
         .to_parquet(tmp_path / "time-series.parquet")
     monkeypatch.setenv("FLOWCAST_DATA_DIR", str(tmp_path / "data"))
     import_hub_time_series(tmp_path / "time-series.parquet", accept_revisions=True)
-    config = HubRunConfig(disease="flu", data_source="cache", output_dir=str(tmp_path / "out"),
-                          members=hub_members_preset("tiny"))
+    config = HubRunConfig.of_preset("tiny", disease="flu", data_source="cache",
+                                    output_dir=str(tmp_path / "out"))
     return config, run_hub_round(config)
 
 

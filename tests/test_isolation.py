@@ -209,11 +209,11 @@ def test_only_what_changes_the_submission_degrades_a_round():
     """A target or a published member left out (or the refit of a published member replaced)
     degrades the round; nf-real's refit replaced while nf-real is scored beside the hub's
     average, or a location the gate left out, is named in ``dropped`` but does not."""
-    from pipeline.hub_round.run import HubRun, HubRunConfig, hub_members_preset
+    from pipeline.hub_round.run import HubRun, HubRunConfig
     from pipeline.members.isolation import Dropped
 
     hosp, ed = "wk inc covid hosp", "wk inc covid prop ed visits"
-    config = HubRunConfig(members=hub_members_preset("tiny"))
+    config = HubRunConfig.of_preset("tiny")
     assert "nf-real" not in (*config.members.published, *config.members.published_share)
 
     from pipeline.members.published import published_names

@@ -44,9 +44,9 @@ def _replay(tmp_path: Path, releases, start: str = DUE,  # noqa: ANN001
 
     from flows.hub_forecast import flow_step
     from pipeline.hub_round import replay as rp
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset
+    from pipeline.hub_round.run import HubRunConfig
 
-    run = HubRunConfig(members=hub_members_preset("tiny"))
+    run = HubRunConfig.of_preset("tiny")
     config = rp.ReplayConfig(tmp_path / "replay", run, dt.date.fromisoformat(start),
                              dt.date.fromisoformat(end))
     rp.copy_hub_config(run.hub_config_dir(), config.out)

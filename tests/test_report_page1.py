@@ -128,7 +128,7 @@ def test_the_checkers_find_what_they_look_for(tmp_path):
 @pytest.fixture(scope="module")
 def hub_round(tmp_path_factory):
     from pipeline.data.hub.target_import import import_hub_time_series
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+    from pipeline.hub_round.run import HubRunConfig, run_hub_round
 
     root = tmp_path_factory.mktemp("hub-page1")
     series = pd.read_parquet(NHSN / "time-series.parquet")
@@ -137,8 +137,8 @@ def hub_round(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FLOWCAST_DATA_DIR", str(root / "data"))
         import_hub_time_series(root / "time-series.parquet")
-        run = run_hub_round(HubRunConfig(disease="covid", data_source="cache",
-                                         members=hub_members_preset("tiny")))
+        run = run_hub_round(HubRunConfig.of_preset("tiny", disease="covid",
+                                                   data_source="cache"))
     return root, run
 
 

@@ -24,7 +24,7 @@ def test_a_stale_origin_with_a_member_missing_its_last_step_publishes_and_names_
     from pipeline.data.core.cache import data_folder
     from pipeline.data.hub.target_import import import_hub_time_series
     from pipeline.hub_round.publish import publish_hub_round
-    from pipeline.hub_round.run import HubRunConfig, hub_members_preset, run_hub_round
+    from pipeline.hub_round.run import HubRunConfig, run_hub_round
     from pipeline.members.base import MemberForecast
     from pipeline.members.seasonal import SeasonalGrowthMember
 
@@ -43,10 +43,9 @@ def test_a_stale_origin_with_a_member_missing_its_last_step_publishes_and_names_
     series[keep].to_parquet(tmp_path / "time-series.parquet")
     with data_folder(tmp_path / "data"):
         import_hub_time_series(tmp_path / "time-series.parquet")
-        run = run_hub_round(HubRunConfig(
-            data_source="cache", output_dir=str(tmp_path / "reports"),
-            members=hub_members_preset("tiny"), hub_config=str(NHSN / "hub-config"),
-            due=dt.date(2025, 9, 24)))
+        run = run_hub_round(HubRunConfig.of_preset(
+            "tiny", data_source="cache", output_dir=str(tmp_path / "reports"),
+            hub_config=str(NHSN / "hub-config"), due=dt.date(2025, 9, 24)))
         published = publish_hub_round(run)
     assert run.provenance[HOSP].last_week == "2025-09-06"        # 18 days before the due date
     dropped = {(d.target, d.name): d.why for d in run.dropped if d.what == "member"}

@@ -82,7 +82,7 @@ def _week(vintages: dict[str, Vintages], releases: int, store: Path, memos: Path
                                 other_signal=admissions)
     memo = {m.name: ForecastMemo.load(memos / f"{m.name}.npz")
             for m in (*members.published, *members.references)}
-    config = HubBacktestConfig(n_samples=50)
+    config = HubBacktestConfig(n_samples=50, burn_in_weeks=8)       # the tiny preset's burn-in
     result = run_hub_rounds(hub_rounds(ed), ed[-1][1],
                             [memo[m.name].wrap(m, config.n_samples) for m in members.published],
                             config, references=[memo[m.name].wrap(m, config.n_samples)

@@ -22,7 +22,7 @@ from pipeline.data.hub.target_import import hub_time_series_file, read_hub_time_
 from pipeline.errors import ConfigError, ValidationError
 from pipeline.hub_round.replay import (Release, ReplayConfig, cached_releases,
                                        releases_of_time_series, wednesdays)
-from pipeline.hub_round.run import Disease, HubRunConfig, hub_members_preset
+from pipeline.hub_round.run import Disease, HubRunConfig
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,8 +90,8 @@ def judge_replay_input(out: Path, disease: Disease, preset: str, seed: int, star
     :class:`~pipeline.errors.FlowcastError` naming the first problem, nothing written."""
     first, last = option_date(start, "--from"), option_date(end, "--to")
     writable_output_dir(out, option="--out")
-    run = HubRunConfig(disease=disease, members=hub_members_preset(preset), seed=seed,
-                       hub_config=str(hub_config) if hub_config else None)
+    run = HubRunConfig.of_preset(preset, disease=disease, seed=seed,
+                                 hub_config=str(hub_config) if hub_config else None)
     folder = run.hub_config_dir()
     if folder is not None:    # the option, $FLOWCAST_HUB_CONFIG or the default: judged alike
         hub_config_folder(folder, option="--hub-config" if hub_config else "hub-config")

@@ -27,7 +27,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import pandas as pd
 
@@ -82,6 +82,14 @@ HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
 }
 
 
+# The rounds' settings of each preset. "tiny" calibrates from 8 weeks of burn-in before its
+# first round, not a year: a cold tiny round forecasts 11 origins a place, not 55.
+HUB_ROUNDS_PRESETS: dict[str, HubBacktestConfig] = {
+    "default": HubBacktestConfig(),
+    "tiny": HubBacktestConfig(burn_in_weeks=8),
+}
+
+
 def hub_members_preset(preset: str) -> HubMembersConfig:
     if preset not in HUB_MEMBER_PRESETS:
         raise ConfigError(f"hub preset {preset!r}: use one of {sorted(HUB_MEMBER_PRESETS)}")
@@ -108,6 +116,13 @@ class HubRunConfig:
     # the flowcast data folder (cache, model store, memo), set at the edge (the CLI, the
     # flow, a replay's week); None: $FLOWCAST_DATA_DIR or ./data, read when the round runs
     data_dir: str | None = None
+
+    @classmethod
+    def of_preset(cls, preset: str, **fields: Any) -> HubRunConfig:
+        """The preset's members and rounds' settings (:data:`HUB_MEMBER_PRESETS`,
+        :data:`HUB_ROUNDS_PRESETS`), with ``fields`` (any other field of the config)."""
+        return cls(members=hub_members_preset(preset), rounds=HUB_ROUNDS_PRESETS[preset],
+                   **fields)
 
     def __post_init__(self) -> None:
         if self.disease not in ("covid", "flu", "rsv"):
