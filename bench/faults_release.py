@@ -450,13 +450,27 @@ def _flusight(folder: Path) -> tuple[object, ...]:
             cached_weekly_vintages("wk inc flu hosp", folder / "data"))
 
 
+# FluSight's four revisions beyond the policy: (held since, settled by) the release repeating it
+FLUSIGHT_HOLDS = {"22": ("2024-11-20", "2024-12-04"), "39": ("2024-11-20", "2024-12-04"),
+                  "04": ("2025-02-05", "2025-02-12"), "72": ("2025-03-19", "2025-03-26")}
+
+
 def _flusight_holds(folder: Path) -> tuple[bool, str]:
+    """Each revision holds its location alone, and the next release that repeats it settles
+    the hold (issue 49): nothing is left waiting for an operator."""
+    from pipeline.data.core.cache import DatasetCache
+    from pipeline.data.hub.held_locations import read_holds
+    from pipeline.data.hub.nhsn_vintages import target_spec
+
     summary, waiting, _ = _flusight(folder)
     actions = [v.action for v in summary.vintages]  # type: ignore[attr-defined]
-    since = {loc: h.since for loc, h in waiting.items()}  # type: ignore[attr-defined]
-    return (actions == ["live"] * 59 and since == {"22": "2024-11-20", "39": "2024-11-20",
-                                                  "04": "2025-02-05", "72": "2025-03-19"},
-            f"{actions.count('live')} of 59 releases live; held alone: {since}")
+    holds = read_holds(DatasetCache.default(folder / "data").directory(
+        target_spec("wk inc flu hosp"))).entries
+    spans = {h.location: (h.since, h.until) for h in holds}
+    repeated = all("repeats the revision" in (h.settled or "") for h in holds)
+    return (actions == ["live"] * 59 and spans == FLUSIGHT_HOLDS and repeated and not waiting,
+            f"{actions.count('live')} of 59 releases live; held alone, then settled by the "
+            f"release repeating it: {spans}; waiting: {sorted(waiting)}")  # type: ignore[arg-type]
 
 
 def _flusight_na(folder: Path) -> tuple[bool, str]:
