@@ -20,7 +20,7 @@ from pipeline.combine.reconcile import median_gap, top_down
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series
 from pipeline.evaluation.summary import score_cells
-from pipeline.hub_round.run import HUB_MEMBER_PRESETS
+from pipeline.hub_round.run import HUB_PRESETS
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
 from pipeline.members.nf.weekly import WeeklyFlowMember
@@ -38,7 +38,7 @@ from tests.forecasting_helpers import forecast_one
 REPO = Path(__file__).resolve().parents[1]
 NHSN = REPO.parent / "shared" / "data" / "nhsn"
 LEVELS = np.asarray(HUB_QUANTILE_LEVELS)
-TINY_FLOW = HUB_MEMBER_PRESETS["tiny"].flow          # the hub round's smoke preset
+TINY_FLOW = HUB_PRESETS["tiny"].members.flow          # the hub round's smoke preset
 
 
 def _weekly(values, start: str = "2024-11-09", population: int = 1_000_000,

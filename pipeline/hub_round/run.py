@@ -69,31 +69,42 @@ DEFAULT_HUB_CONFIGS: dict[str, Path] = {"covid": DEFAULT_HUB_CONFIG,
                                         "flu": SHARED_DATA / "flusight" / "hub-config",
                                         "rsv": SHARED_DATA / "rsv" / "hub-config"}
 HubPreset = Literal["default", "tiny"]
-HUB_MEMBER_PRESETS: dict[str, HubMembersConfig] = {
-    "default": HubMembersConfig(),
-    # Seconds, for tests and smoke runs: a small flow, a short refit, fewer draws.
-    "tiny": HubMembersConfig(
-        flow=WeeklyFlowConfig(n_trajectories=150, iterations=40, batch_size=256,
-                              hidden_features=16, flow_layers=2, flow_hidden=16),
-        finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
-                                batch_size=128),
-        context=TINY_CONTEXT_FLOW, context_refit=TINY_CONTEXT_REFIT, context_seeds=1,
-        flow_samples=200, baseline_samples=2000, background_training=False),
+
+
+@dataclass(frozen=True)
+class HubPresetConfig:
+    """What a preset names: the members, and the rounds' settings."""
+
+    members: HubMembersConfig = field(default_factory=HubMembersConfig)
+    rounds: HubBacktestConfig = field(default_factory=HubBacktestConfig)
+
+
+HUB_PRESETS: dict[str, HubPresetConfig] = {
+    "default": HubPresetConfig(),
+    # Seconds, for tests and smoke runs: a small flow, a short refit, fewer draws, and a
+    # calibration burn-in of 8 weeks before the first round, not a year (a cold tiny round
+    # forecasts 11 origins a place, not 55).
+    "tiny": HubPresetConfig(
+        HubMembersConfig(
+            flow=WeeklyFlowConfig(n_trajectories=150, iterations=40, batch_size=256,
+                                  hidden_features=16, flow_layers=2, flow_hidden=16),
+            finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
+                                    batch_size=128),
+            context=TINY_CONTEXT_FLOW, context_refit=TINY_CONTEXT_REFIT, context_seeds=1,
+            flow_samples=200, baseline_samples=2000, background_training=False),
+        HubBacktestConfig(burn_in_weeks=8)),
 }
 
 
-# The rounds' settings of each preset. "tiny" calibrates from 8 weeks of burn-in before its
-# first round, not a year: a cold tiny round forecasts 11 origins a place, not 55.
-HUB_ROUNDS_PRESETS: dict[str, HubBacktestConfig] = {
-    "default": HubBacktestConfig(),
-    "tiny": HubBacktestConfig(burn_in_weeks=8),
-}
+def hub_preset(preset: str) -> HubPresetConfig:
+    if preset not in HUB_PRESETS:
+        raise ConfigError(f"hub preset {preset!r}: use one of {sorted(HUB_PRESETS)}")
+    return HUB_PRESETS[preset]
 
 
 def hub_members_preset(preset: str) -> HubMembersConfig:
-    if preset not in HUB_MEMBER_PRESETS:
-        raise ConfigError(f"hub preset {preset!r}: use one of {sorted(HUB_MEMBER_PRESETS)}")
-    return HUB_MEMBER_PRESETS[preset]
+    """The preset's members alone (a test or bench that builds members itself)."""
+    return hub_preset(preset).members
 
 
 @dataclass(frozen=True)
@@ -119,10 +130,10 @@ class HubRunConfig:
 
     @classmethod
     def of_preset(cls, preset: str, **fields: Any) -> HubRunConfig:
-        """The preset's members and rounds' settings (:data:`HUB_MEMBER_PRESETS`,
-        :data:`HUB_ROUNDS_PRESETS`), with ``fields`` (any other field of the config)."""
-        return cls(members=hub_members_preset(preset), rounds=HUB_ROUNDS_PRESETS[preset],
-                   **fields)
+        """The preset's members and rounds' settings (:data:`HUB_PRESETS`), with ``fields``
+        (any other field of the config)."""
+        chosen = hub_preset(preset)
+        return cls(members=chosen.members, rounds=chosen.rounds, **fields)
 
     def __post_init__(self) -> None:
         if self.disease not in ("covid", "flu", "rsv"):
