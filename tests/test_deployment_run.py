@@ -74,7 +74,10 @@ def start_prefect_server(tmp_path: Path, env: dict[str, str], port: int,
     server_log = tmp_path / "server.log"
     proc = start([PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port),
                   "--analytics-off"], env, server_log)
-    wait_healthy(api, proc, server_log, 60)
+    # 120 s, as the test harness's own bound (conftest): the first server of a fresh venv
+    # compiles prefect's server modules as it imports them, on a 2-core box shared with the
+    # other test worker and pyright (60 s ran out once beside a `make forecast`)
+    wait_healthy(api, proc, server_log, 120)
     return proc
 
 
