@@ -209,3 +209,21 @@ def test_the_tracking_rate_variants_change_eta_alone():
                                        tracking_standardized=True) == hub
                and v.members is None for v in variants)
     assert tracking_rate_variants(hub, prefix="")[0].name == "regime-aci eta=0.05"
+
+
+def test_a_short_track_record_keeps_the_latest_origins_and_reports_among_them(sf):
+    """``recent_origins`` (the tiny preset's short track record): the latest N Saturdays; the
+    scored ones start where the forecast ones do, so every reported origin is forecast."""
+    from pipeline.backtest.track_record import TrackRecordConfig
+    from pipeline.errors import ConfigError
+
+    every = TrackRecordConfig().origins(sf)
+    short = TrackRecordConfig(recent_origins=30)
+    assert short.origins(sf) == every[-30:]
+    scored = short.origins(sf, scored_only=True)
+    assert scored[0] == every[-30] and set(scored) <= set(every[-30:])
+    assert scored == [o for o in TrackRecordConfig().origins(sf, scored_only=True)
+                      if o >= every[-30]]
+    assert TrackRecordConfig(recent_origins=10_000).origins(sf) == every
+    with pytest.raises(ConfigError, match="recent_origins=0 must be >= 1"):
+        TrackRecordConfig(recent_origins=0)

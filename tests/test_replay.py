@@ -16,6 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from tests.hub_places import PLACES, only_places
+
 pytestmark = pytest.mark.slow
 
 NHSN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nhsn"
@@ -25,9 +27,10 @@ DUE = "2025-09-24"                # the last release; its round is 2025-09-27
 
 @pytest.fixture(scope="module")
 def every_release():
+    """The releases since 2025-08-20 at a dozen places (tests/hub_places.py)."""
     from pipeline.hub_round.replay import releases_of_time_series
 
-    series = pd.read_parquet(NHSN / "time-series.parquet")
+    series = only_places(pd.read_parquet(NHSN / "time-series.parquet"))
     recent = series[pd.to_datetime(series["as_of"]) >= pd.Timestamp("2025-08-20")]
     return releases_of_time_series(recent, "covid")
 
@@ -119,12 +122,13 @@ def test_members_that_fail_and_a_refit_that_diverges_are_dropped_and_named(
     assert all("injected: validation NLL 30.64" in why and "instead" in why
                for why in refits.values())
     back = _checked(out)
-    assert back.groupby("target")["location"].nunique().to_dict() == {HOSP: 53, ED: 51}
+    # every place of the data (Missouri has no ED share)
+    assert back.groupby("target")["location"].nunique().to_dict() == {HOSP: 13, ED: 12}
     # without the floor (the hub baseline where every published member failed) admissions
     # would have no forecast at any location from horizon 0 on
     hosp = back[(back["target"] == HOSP) & (back["output_type"] == "quantile")]
     assert hosp.groupby("horizon")["location"].nunique().to_dict() == {
-        -1: 53, 0: 53, 1: 53, 2: 53, 3: 53}
+        h: len(PLACES) for h in (-1, 0, 1, 2, 3)}
 
 
 def _revised(releases, due: str):  # noqa: ANN001, ANN202
@@ -194,7 +198,7 @@ def test_each_wednesday_sees_only_its_releases_and_a_revision_holds_one_location
     september = rows[(rows["reference_date"].astype(str) == "2025-09-27")
                      & (rows["target"] == HOSP)]
     # held, not left out: every location of admissions is in the round, California with it
-    assert september["location"].nunique() == 53 and "06" in set(september["location"])
+    assert september["location"].nunique() == len(PLACES) and "06" in set(september["location"])
     folder = Path(last["model_output"]).parents[2]
     summary = json.loads((folder / "summary.json").read_text())
     assert "06" in summary["held"][HOSP]

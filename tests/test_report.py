@@ -675,8 +675,19 @@ def test_diagnostics_drawn_in_a_child_are_those_drawn_here(real_results, real_co
 
 
 @pytest.mark.slow
-def test_malformed_diagnostic_is_named_and_a_renamed_field_fails(real_results):
+def test_malformed_diagnostic_is_named_and_a_renamed_field_fails(real_results, monkeypatch):
+    import io
+
+    from PIL import Image
+
     from pipeline.forecast.report.weekly import forecast_report_content
+    from pipeline.report import figures
+
+    # which sections are drawn is the question, not their pictures (the other tests draw
+    # them): every figure's PNG encoding skipped
+    blank = io.BytesIO()
+    Image.new("RGB", (1, 1)).save(blank, format="png")
+    monkeypatch.setattr(figures, "_png", lambda fig: blank.getvalue())
 
     smc = real_results.smc
     broken = dataclasses.replace(real_results, smc=dataclasses.replace(

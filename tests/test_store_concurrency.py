@@ -87,7 +87,10 @@ def test_concurrent_writers_never_leave_a_broken_entry(tmp_path):
     # forkserver: writers fork from a clean server process, not from pytest's, which by now may
     # hold other tests' threads (Prefect's harness) that a plain fork copies mid-flight.
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["pipeline.data.core.cache", "pipeline.training.model_store"])
+    # this module too: each child unpickles its target by importing the module that defines it,
+    # and without the preload each of the 50 children imported pandas again (~3 s of CPU each)
+    ctx.set_forkserver_preload([__name__, "pipeline.data.core.cache",
+                                "pipeline.training.model_store"])
     failures = ctx.Value("i", 0)
     after_failures = []
     for trial in range(TRIALS):

@@ -27,6 +27,7 @@ from pipeline.members.published import build_hub_members
 from pipeline.members.seasonal import SEASONAL
 from pipeline.panels.hub import ED_COVID, HOSP_COVID, hub_rounds, panel_of
 from pipeline.panels.panel import Panel
+from tests.hub_places import PLACES
 from tests.test_hub_engine import NHSN
 
 pytestmark = pytest.mark.slow
@@ -35,9 +36,6 @@ Vintages = list[tuple[pd.Timestamp, Panel]]
 # the ED share's first four releases (2025-06-18 … 07-09; refit date 2025-06-14 among their
 # weeks); the fifth, of 2025-07-16, ends on 2025-07-12: a new refit date comes with next week
 LAST_WEEK, THIS_WEEK = 4, 5
-# the nation and a dozen states of every size and region: what a warm week reads back and what
-# it forecasts is per cell, so a dozen places show it as well as 51, in a quarter of the time
-PLACES = ("US", "06", "48", "12", "36", "17", "13", "53", "04", "29", "31", "50", "02")
 
 
 @pytest.fixture(scope="module")

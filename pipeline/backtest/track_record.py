@@ -25,6 +25,7 @@ from pipeline.backtest.backtest import OneVintage, run_backtest
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.backtest.result import BacktestResult, QuantileForecast
 from pipeline.combine.combiner import PUBLISHED, CombineConfig
+from pipeline.errors import ConfigError
 from pipeline.members.autoets import AutoETSMember
 from pipeline.members.base import Member
 from pipeline.members.isolation import Dropped
@@ -39,9 +40,9 @@ from pipeline.progress import ProgressReporter, start_phase
 @dataclass(frozen=True)
 class TrackRecordConfig:
     """The published forecast's members and combiner, and the track record's origins: every
-    Saturday with ``min_history_weeks`` of data, from ``first_origin`` to ``last_origin`` when
-    given (``scored_only``: those with four weeks of truth); ``n_paths`` published sample paths
-    per origin."""
+    Saturday with ``min_history_weeks`` of data (only the latest ``recent_origins`` of them when
+    given), from ``first`` to ``last`` when given (``scored_only``: those with four weeks of
+    truth); ``n_paths`` published sample paths per origin."""
 
     members: MembersConfig = field(default_factory=MembersConfig)
     combine: CombineConfig = field(default_factory=CombineConfig)
@@ -49,14 +50,29 @@ class TrackRecordConfig:
     n_paths: int = 200
     seed: int = 0
     variants: tuple[Variant, ...] = ()      # other combiners scored beside it (benchmarks)
+    # a smoke run's short track record (the tiny preset): the forecasts of the latest origins
+    # only; None: every origin since ``min_history_weeks``
+    recent_origins: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.recent_origins is not None and self.recent_origins < 1:
+            raise ConfigError(f"TrackRecordConfig.recent_origins={self.recent_origins} must be "
+                              ">= 1 (or None: every origin)")
 
     def origins(self, history: History, *, scored_only: bool = False,
                 first: dt.date | None = None, last: dt.date | None = None
                 ) -> list[pd.Timestamp]:
+        start = None if first is None else pd.Timestamp(first)
+        if self.recent_origins is not None:
+            # the same first origin whether scored only or not: the reported origins are
+            # always among the forecast ones
+            every = weekly_origins(history.dates, min_history_weeks=self.min_history_weeks,
+                                   scored_only=False)
+            recent = every[-min(self.recent_origins, len(every))]
+            start = recent if start is None else max(start, recent)
         return weekly_origins(history.dates, min_history_weeks=self.min_history_weeks,
                               horizon_weeks=max(HORIZONS_WEEKS), scored_only=scored_only,
-                              first=None if first is None else pd.Timestamp(first),
-                              last=None if last is None else pd.Timestamp(last))
+                              first=start, last=None if last is None else pd.Timestamp(last))
 
     def backtest_config(self) -> BacktestConfig:
         return BacktestConfig(seed=self.seed, combine=self.combine, variants=self.variants,

@@ -192,7 +192,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
     # member's multi-wave prior (docs/forecasting.md "One model of the epidemic").
     "default": ForecastConfig(preset="default"),
     # Seconds, for tests and smoke runs: same preset family with a small ensemble, a short
-    # prior, few iterations, samples, particles and backtest origins.
+    # prior, few iterations, samples, particles and backtest origins (the latest 30).
     "tiny": ForecastConfig(
         preset="tiny",
         training=TrainingSettings(n_trajectories=16, iterations=30, batch_size=256,
@@ -206,7 +206,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
                                                            prior=WavePrior(days=140)),
                                   finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),
                                   boosting=BoostingConfig(n_estimators=10)),
-            n_paths=100),
+            n_paths=100, recent_origins=30),
         nowcast=NowcastSettings(completions=8, nowcast_samples=100),
         data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,
                               task_retry_delay_s=0.0)),
