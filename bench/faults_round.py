@@ -18,7 +18,7 @@ left out and said), and a stale admissions release (the target left out and said
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,9 +95,11 @@ def round_faults() -> list[RoundFault]:
     ]
 
 
-def _seed_cache(folder: Path, fault: RoundFault) -> None:
+def _seed_cache(folder: Path, fault: RoundFault, places: Sequence[str] | None) -> None:
     from pipeline.data.hub.target_import import import_hub_time_series, import_target_csv
     series = pd.read_parquet(NHSN / "time-series.parquet")
+    if places is not None:
+        series = series[series["location"].isin(places)]
     as_of = series["as_of"].astype(str)
     recent = series[(as_of >= "2025-09-10")
                     & ~((as_of == "2025-09-24") & (series["target"] == fault.target))]
@@ -110,7 +112,10 @@ def _seed_cache(folder: Path, fault: RoundFault) -> None:
     import_target_csv(folder / "newest.csv", target=fault.target, as_of="2025-09-24")
 
 
-def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult:
+def run_round_fault(fault: RoundFault, folder: Path, models: Path,
+                    places: Sequence[str] | None = None) -> CaseResult:
+    """``fault``'s round, at every hub location or at ``places`` alone (the hub's releases cut
+    to them: a test's dozen places, the same work at each)."""
     from pipeline.hub_round.publish import publish_hub_round
     from pipeline.hub_round.run import HubRunConfig, run_hub_round
     started = time.monotonic()
@@ -120,7 +125,7 @@ def run_round_fault(fault: RoundFault, folder: Path, models: Path) -> CaseResult
     (data / "models").symlink_to(models, target_is_directory=True)
     with data_folder(data):
         try:
-            _seed_cache(folder, fault)
+            _seed_cache(folder, fault, places)
             config = HubRunConfig.of_preset("tiny", data_source="cache",
                                             output_dir=str(folder / "reports"),
                                             hub_config=str(NHSN / "hub-config"))

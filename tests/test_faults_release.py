@@ -10,6 +10,7 @@ import pytest
 
 from bench.faults_release import import_cases, newer_faults, run_newer
 from pipeline.data.hub.nhsn import HOSP_COVID
+from tests.hub_places import PLACES
 
 
 @pytest.mark.parametrize("fault", newer_faults(), ids=lambda f: f.name)
@@ -27,16 +28,19 @@ def test_an_import_fault(case, tmp_path):
 
 @pytest.mark.slow
 def test_a_round_after_an_ed_share_release_without_the_us_row_publishes_the_states(tmp_path):
-    """The hub round (tiny preset, from the cache) after an ED-share release of 2025-09-24
-    without its national row: published with the 50 states' shares and the US's admissions;
-    the ED share's US left out, named in the panel's skipped and in ``HubRun.dropped``
-    (reconciliation neither spreads nor needs a national total for a share)."""
+    """The hub round (tiny preset, from the cache, at the dozen places of tests/hub_places.py)
+    after an ED-share release of 2025-09-24 without its national row: published with the
+    states' shares (Missouri has none) and the US's admissions; the ED share's US left out,
+    named in the panel's skipped and in ``HubRun.dropped`` (reconciliation neither spreads nor
+    needs a national total for a share). The bench runs it at all 53 locations."""
     from bench.faults_round import round_faults, run_round_fault
     from pipeline.data.hub.nhsn import ED_COVID
     fault = next(f for f in round_faults() if f.name == "round-ed-no-national-row")
-    result = run_round_fault(fault, tmp_path / "round", tmp_path / "models")
+    result = run_round_fault(fault, tmp_path / "round", tmp_path / "models", places=PLACES)
     assert result.passed, result.note
     dropped = result.detail["dropped"]
     assert isinstance(dropped, dict) and list(dropped[ED_COVID]) == ["US"]
     assert dropped[HOSP_COVID] == {}
-    assert result.detail["locations"] == {HOSP_COVID: 53, ED_COVID: 50}
+    states_with_ed_share = set(PLACES) - {"US", "29"}
+    assert result.detail["locations"] == {HOSP_COVID: len(PLACES),
+                                          ED_COVID: len(states_with_ed_share)}

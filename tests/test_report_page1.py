@@ -193,6 +193,9 @@ def test_hub_page_one_renders_the_map_and_fan_within_150_words(hub_round, tmp_pa
         skipped=run.skipped(), config={},
         notices=[Notice(NoticeKind.LEFT_OUT, "member nf-real left out")])
     assert content.page1 is not None and len(content.page1.figures) == 2
+    # the appendix names every location left out, one the data never held included
+    assert "wk inc covid prop ed visits: 29 (not in the data)" in \
+        content.provenance.extra["locations left out"]
     files = write_report(content, tmp_path)
     pdf = files.pdf_path
     assert pdf_page_images(pdf, 1) == 2
@@ -212,3 +215,29 @@ def test_hub_page_one_renders_the_map_and_fan_within_150_words(hub_round, tmp_pa
     for notice in ("member nf-real left out", "a vintage held for review", "Missouri"):
         assert notice in text, notice
     assert "CDC COVID-19 Forecast Hub round" in text
+
+
+def test_page_one_counts_a_long_list_of_left_out_locations_and_the_appendix_names_them():
+    """A round missing a few locations of a target names them on page 1; one missing most of
+    them (a wide outage) counts them there, within page 1's word budget, and the appendix's
+    provenance names every one, those the data never held included."""
+    from types import SimpleNamespace
+
+    from pipeline.data.hub.locations import BY_LOCATION
+    from pipeline.report.hub import PAGE_ONE_NAMED, missing_locations, round_notices
+
+    every = list(BY_LOCATION)
+    kept = ["US", "06", "48", "36"]                  # an outage left four of 53
+    results = {"wk inc covid hosp": SimpleNamespace(places=[p for p in every if p != "29"]),
+               "wk inc covid prop ed visits": SimpleNamespace(places=kept)}
+    skipped = {"wk inc covid prop ed visits": {"12": "'value' is not finite on 2025-09-13"}}
+    notices = round_notices(results, [], skipped)      # type: ignore[arg-type]
+    assert [n.text for n in notices] == [
+        "admissions: Missouri (no usable data).",
+        f"ED-visit share: {len(every) - len(kept)} of {len(every)} locations, named in the "
+        "appendix (no usable data)."]
+    assert word_count(" ".join(n.text for n in notices)) < 25
+    missing = missing_locations(results, skipped)      # type: ignore[arg-type]
+    assert missing["wk inc covid hosp"] == ["29"]
+    assert len(missing["wk inc covid prop ed visits"]) == len(every) - len(kept) > PAGE_ONE_NAMED
+    assert set(missing["wk inc covid prop ed visits"]) == set(every) - set(kept)

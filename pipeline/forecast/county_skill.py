@@ -82,9 +82,11 @@ def county_backtest(vintage: CDPHVintage, config: ForecastConfig, store_root: Pa
                     references: Sequence[Member] = (), progress: ProgressReporter | None = None
                     ) -> tuple[BacktestResult, ChosenMembers]:
     """The published method at every county of ``vintage`` (or ``counties``) and Saturday
-    origin with four weeks of truth, its members' models the weekly run's own (shared through
+    origin with four weeks of truth (the latest ``recent_origins`` of the run's track record
+    when it sets them), its members' models the weekly run's own (shared through
     the model store), with the ``variants`` and ``references`` scored beside it."""
-    panel, origins = panel_and_origins(vintage, counties)
+    panel, origins = panel_and_origins(vintage, counties,
+                                       config.track_record_config().recent_origins)
     if progress is not None:
         start_phase(progress, "members' models", None)
     chosen = build_members(config.track_record_config().members, store_root, panel, origins,
@@ -125,13 +127,15 @@ def skill_path(vintage: CDPHVintage, config: ForecastConfig) -> Path:
     return config.data.folder / FOLDER / f"{skill_key(vintage, county_backtest_config(config), config)[:24]}.json"
 
 
-def panel_and_origins(vintage: CDPHVintage, counties: Sequence[str] | None = None
-                      ) -> tuple[Panel, list[pd.Timestamp]]:
-    """The counties' panel and the weekly origins the county skill forecasts from."""
+def panel_and_origins(vintage: CDPHVintage, counties: Sequence[str] | None = None,
+                      recent_origins: int | None = None) -> tuple[Panel, list[pd.Timestamp]]:
+    """The counties' panel and the weekly origins the county skill forecasts from: every one,
+    or the latest ``recent_origins`` (the run's track record's setting: a smoke run's short
+    record)."""
     panel = county_panel(vintage, select_counties(vintage, counties=counties))
     origins = weekly_origins(panel.dates, min_history_weeks=MIN_HISTORY_WEEKS,
                              horizon_weeks=max(HORIZONS_WEEKS))
-    return panel, origins
+    return panel, origins if recent_origins is None else origins[-recent_origins:]
 
 
 def train_county_members(config: ForecastConfig, store_root: Path,
@@ -145,6 +149,7 @@ def train_county_members(config: ForecastConfig, store_root: Path,
         return
     if skill_path(vintage, config).is_file():
         return
-    panel, origins = panel_and_origins(vintage)
+    panel, origins = panel_and_origins(vintage,
+                                       recent_origins=config.track_record_config().recent_origins)
     build_members(config.track_record_config().members, store_root, panel, origins, progress,
                   newest_refits_first=True)

@@ -275,20 +275,39 @@ def _headline(result: HubRoundsResult, disease: str) -> str:
             f"territories are likely rising (P ≥ {RISING:.0%}), {len(down)} likely falling.")
 
 
+# Page 1 names at most this many left-out locations a target; beyond that it counts them and
+# the appendix names them (a round after a wide outage would otherwise spend page 1's word
+# budget on a list of names).
+PAGE_ONE_NAMED = 6
+
+
+def missing_locations(results: Mapping[str, HubRoundsResult],
+                      skipped: Mapping[str, Mapping[str, str]]) -> dict[str, list[str]]:
+    """Each target's hub locations the round has no forecast of: absent from its data, or
+    skipped by the gate (``skipped``)."""
+    missing: dict[str, list[str]] = {}
+    for target, result in results.items():
+        left = [p for p in BY_LOCATION if p not in result.places]
+        left += [p for p in skipped.get(target, {}) if p not in left and p not in result.places]
+        if left:
+            missing[target] = left
+    return missing
+
+
 def round_notices(results: Mapping[str, HubRoundsResult], warnings: Sequence[str],
                   skipped: Mapping[str, Mapping[str, str]]) -> tuple[Notice, ...]:
     """What the round left out or held: each target's hub locations it has no forecast of
-    (the gate skipped them, or the data hold none; named, why in the appendix) and the data's
-    notes (a stale cache, a vintage held for review)."""
+    (the gate skipped them, or the data hold none; named, or counted when more than
+    :data:`PAGE_ONE_NAMED`; the appendix names all and says why) and the data's notes (a stale
+    cache, a vintage held for review)."""
     left = []
-    for target, result in results.items():
-        missing = [p for p in BY_LOCATION if p not in result.places]
-        missing += [p for p in skipped.get(target, {}) if p not in missing
-                    and p not in result.places]
-        if missing:
-            names = ", ".join(BY_LOCATION[p].name if p in BY_LOCATION else p for p in missing)
-            left.append(Notice(NoticeKind.LEFT_OUT, f"{_target_label(target)}: {names} "
-                               "(no usable data)."))
+    for target, missing in missing_locations(results, skipped).items():
+        if len(missing) > PAGE_ONE_NAMED:
+            what = f"{len(missing)} of {len(BY_LOCATION)} locations, named in the appendix"
+        else:
+            what = ", ".join(BY_LOCATION[p].name if p in BY_LOCATION else p for p in missing)
+        left.append(Notice(NoticeKind.LEFT_OUT, f"{_target_label(target)}: {what} "
+                           "(no usable data)."))
     return tuple(left) + tuple(Notice(NoticeKind.HELD, w) for w in warnings if w.strip())
 
 
@@ -364,9 +383,14 @@ def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date
                 "Relative WIS of the published forecast by round")), new_page=True))
     notes = [f"{t}: {', '.join(f'{p} ({why})' for p, why in s.items())}"
              for t, s in skipped.items() if s]
+    # every location without a forecast, those the data never held included (page 1 may only
+    # count them)
+    every = [f"{t}: " + ", ".join(f"{p} ({skipped.get(t, {}).get(p, 'not in the data')})"
+                                  for p in places)
+             for t, places in missing_locations(results, skipped).items()]
     provenance = Provenance(package_version=__version__, config=dict(config),
                             extra={"model": model_id, "data": data_vintage,
-                                   "locations left out": "; ".join(notes) or "none"})
+                                   "locations left out": "; ".join(every) or "none"})
     return ReportContent(title=f"{HUB_NAMES[disease]} round {reference_date} — {model_id}",
                          reference_date=reference_date, data_vintage=data_vintage,
                          sections=tuple(sections), provenance=provenance,
