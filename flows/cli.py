@@ -16,14 +16,14 @@ import typer
 from pipeline.cli import app, build_command
 from pipeline.cli import main as library_main
 from pipeline.cli.choices import DataSource, Encoder, choices_enum, value
-from pipeline.forecast.config import FORECAST_PRESETS
+from pipeline.names import FORECAST_PRESET_NAMES
 
 if TYPE_CHECKING:
     from prefect.client.schemas.objects import State
 
     ForecastPreset: TypeAlias = Enum  # built from the preset names at run time (see choices)
 else:
-    ForecastPreset = choices_enum("ForecastPreset", tuple(FORECAST_PRESETS))
+    ForecastPreset = choices_enum("ForecastPreset", FORECAST_PRESET_NAMES)
 
 
 @app.command("forecast")

@@ -62,6 +62,40 @@ def test_help_shows_choices_and_no_python_type_names(cli):
     assert bad.exit_code == 2 and "'gru' is not one of" in bad.output
 
 
+def test_the_command_line_lists_its_commands_without_loading_the_engine():
+    """``flowcast --help`` (every command module registered) loads neither torch nor Prefect
+    nor matplotlib: the choices come from pipeline/names.py, each command loads the engine
+    when it runs. It took 5 s when the choices imported torch."""
+    import subprocess
+    import sys
+
+    # flows.cli attaches `forecast`; pipeline.cli.main is the console script's command without
+    # its hard exit (flows.server_guard.exit_now)
+    script = ("import sys\nimport flows.cli\nfrom pipeline.cli import main\n"
+              "sys.argv = ['flowcast', '--help']\n"
+              "try:\n    main()\nexcept SystemExit:\n    pass\n"
+              "print('loaded:', sorted(m for m in ('torch', 'prefect', 'matplotlib') "
+              "if m in sys.modules))")
+    run = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert "simulate" in run.stdout and "forecast" in run.stdout
+    assert run.stdout.strip().endswith("loaded: []"), run.stdout[-500:]
+
+
+def test_the_command_lines_names_are_those_of_their_registries():
+    """pipeline/names.py spells the choices; the registries that say what each means hold
+    exactly those keys, in the same order (the order --help lists them in)."""
+    from pipeline.forecast.config import FORECAST_PRESETS
+    from pipeline.names import FORECAST_PRESET_NAMES, SIR_PRIOR_NAMES, TRAINING_SETUPS
+    from pipeline.systems.sir import SIR_PRIORS
+    from pipeline.training.presets import PRESET_NAMES, SETUPS
+
+    assert TRAINING_SETUPS == tuple(SETUPS) == PRESET_NAMES
+    assert SIR_PRIOR_NAMES == tuple(SIR_PRIORS)
+    assert FORECAST_PRESET_NAMES == tuple(FORECAST_PRESETS)
+
+
 def test_makefile_forecast_target_calls_flowcast_forecast():
     makefile = (REPO / "Makefile").read_text()
     assert "$(VENV)/bin/flowcast forecast $(FORECAST_ARGS)" in makefile

@@ -8,9 +8,7 @@ from typing import TYPE_CHECKING, TypeAlias, cast, overload
 
 import typer
 
-from pipeline.models.maf.base import BACKENDS
-from pipeline.training.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES
-from pipeline.systems.sir import SIR_PRIORS
+from pipeline.names import BACKENDS, ENCODER_CHOICES, RECIPES, SIR_PRIOR_NAMES, TRAINING_SETUPS
 
 
 def choices_enum(name: str, values: tuple[str, ...] | list[str]) -> type[Enum]:
@@ -37,8 +35,8 @@ else:
     Encoder = choices_enum("Encoder", ENCODER_CHOICES)
     Backend = choices_enum("Backend", BACKENDS)
     Recipe = choices_enum("Recipe", RECIPES)
-    TrainPreset = choices_enum("TrainPreset", PRESET_NAMES)
-    SIRPriorName = choices_enum("SIRPriorName", tuple(SIR_PRIORS))
+    TrainPreset = choices_enum("TrainPreset", TRAINING_SETUPS)
+    SIRPriorName = choices_enum("SIRPriorName", SIR_PRIOR_NAMES)
     SMCSystem = choices_enum("SMCSystem", ("sir", "sir-params", "vehicle"))
     DataSource = choices_enum("DataSource", ("live", "cache", "import"))
 

@@ -4,16 +4,19 @@ from __future__ import annotations
 import time
 from enum import Enum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
 
 from pipeline.cli import app
 from pipeline.cli.output_paths import output_file
-from pipeline.training.datasets import (DEFAULT_VAL_FRACTION, DEFAULT_WINDOW, DatasetConfig,
-                               build_dataset_from_config, describe, progress_total, save_dataset)
 from pipeline.errors import FlowcastError
+from pipeline.names import DEFAULT_VAL_FRACTION, DEFAULT_WINDOW
 from pipeline.progress import rich_progress
+
+if TYPE_CHECKING:
+    from pipeline.training.datasets import DatasetConfig
 
 
 class DatasetName(str, Enum):
@@ -68,6 +71,10 @@ def simulate(
                                        help="Fraction of trajectories held out for validation."),
 ) -> None:
     """Simulate a system (SIR or vehicle) and write its windowed (context, target) dataset."""
+    # the engine (torch) loads when a command runs, not when the command line is listed
+    from pipeline.training.datasets import (DatasetConfig, build_dataset_from_config, describe,
+                                            progress_total, save_dataset)
+
     console = Console()
     try:
         dataset_config = DatasetConfig(

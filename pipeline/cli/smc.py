@@ -19,7 +19,6 @@ from typing import Annotated
 
 import numpy as np
 import pandas as pd
-import torch
 import typer
 
 from pipeline.cli import app
@@ -29,11 +28,8 @@ from pipeline.cli.output_paths import output_file
 from pipeline.errors import ConfigError, FlowcastError
 from pipeline.io import atomic_write_text
 from pipeline.progress import rich_progress
-from pipeline.inference.smc import SMCConfig, run_filter
-from pipeline.inference.smc_models import (DEFAULT_PROCESS_SIGMA, SIRParamsModel,
-                                 SIRStateModel, VehicleModel)
-from pipeline.systems.sir import SIR_PRIORS
-from pipeline.systems.vehicle import get_vehicle_config
+
+# The filter's modules (torch) load when the command runs, not when the command line is listed.
 
 smc_app = typer.Typer(no_args_is_help=True, help="Particle filter (bootstrap SMC) baselines.")
 app.add_typer(smc_app, name="smc")
@@ -47,6 +43,11 @@ _OBSERVED = {"sir": ("S", "I", "R"), "sir-params": ("S", "I", "R"), "vehicle": (
 
 def build_model(system: str, first: np.ndarray, settings: FilterSettings):  # noqa: ANN201
     """The filter's model; the prior is centred on the first observation (the paper's p(o_n))."""
+    import torch
+
+    from pipeline.inference.smc_models import SIRParamsModel, SIRStateModel, VehicleModel
+    from pipeline.systems.vehicle import get_vehicle_config
+
     first = np.array(first, dtype=np.float64)  # a writable copy (pandas hands out read-only views)
     if np.isnan(first).any():
         raise ConfigError("the first observation row must be complete: it centres the prior")
@@ -114,6 +115,9 @@ def filter_settings(prior_name: str, *, beta: float | None = None, gamma: float 
     """Settings from the prior ``prior_name`` (``pipeline.systems.sir.SIR_PRIORS``): its β, γ
     ranges (fixed rates: their geometric middle), observation noise, β random-walk jitter; the
     process noise is :data:`PRIOR_PROCESS_SIGMA`'s."""
+    from pipeline.inference.smc_models import DEFAULT_PROCESS_SIGMA
+    from pipeline.systems.sir import SIR_PRIORS
+
     prior = SIR_PRIORS[prior_name]
     return FilterSettings(
         prior=prior_name,
@@ -158,6 +162,10 @@ def filter_command(
                                    "default: the prior's)")] = None,
 ) -> None:
     """Filter one observed series with the bootstrap particle filter and write the summaries."""
+    import torch
+
+    from pipeline.inference.smc import SMCConfig, run_filter
+
     try:
         output_file(out, example="filtered.csv")
         system_name = str(value(system))

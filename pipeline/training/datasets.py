@@ -52,7 +52,8 @@ from pipeline.io import atomic_open, sha256_file
 from pipeline.models.standardization import STATS_FIELDS, Standardization, compute_standardization
 from pipeline.progress import ProgressReporter, SilentProgress
 from pipeline.systems import sir as sir_system
-from pipeline.names import COMPARTMENTS, DIRECTIONS, PARAMETERS
+from pipeline.names import (COMPARTMENTS, DEFAULT_VAL_FRACTION, DEFAULT_WINDOW, DIRECTIONS,
+                            PARAMETERS)
 from pipeline.models.context_transforms import SIR_LOG_INFECTIOUS, apply_context_transform
 from pipeline.systems import vehicle as vehicle_system
 from pipeline.systems import waves as waves_system
@@ -71,8 +72,6 @@ WAVE_TRAJECTORIES = 2000
 DATASET_NAMES = SIR_DATASETS + VEHICLE_DATASETS + WAVE_DATASETS
 TIME_FEATURE = "t_obs-t_target"
 ABSOLUTE_TIME_FEATURE = "t_obs"
-DEFAULT_WINDOW = 5
-DEFAULT_VAL_FRACTION = 0.1
 _TENSOR_FIELDS = ("context", "mask", "target", "trajectory", "target_time")
 
 

@@ -64,19 +64,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Literal, TypeGuard
+from typing import TypeGuard
 
 from pipeline.errors import ConfigError
 from pipeline.models.encoders import EncoderConfig, EncoderKind
 from pipeline.models.estimator import EstimatorConfig, make_estimator_config
+from pipeline.names import ENCODER_CHOICES, RECIPES, EncoderChoice, Recipe
 from pipeline.training.datasets import DatasetConfig
 from pipeline.training.kinetic import KineticWeights
 from pipeline.training.trainer import TrainConfig
 
-EncoderChoice = Literal["mlp", "transformer", "transformer-ke", "mamba"]
-Recipe = Literal["paper", "fast"]
-ENCODER_CHOICES: tuple[EncoderChoice, ...] = ("mlp", "transformer", "transformer-ke", "mamba")
-RECIPES: tuple[Recipe, ...] = ("paper", "fast")
 # The encoder each choice builds: transformer-ke is the transformer trained with kinetic terms.
 _ENCODER_KIND: dict[EncoderChoice, EncoderKind] = {"mlp": "mlp", "transformer": "transformer",
                                                    "transformer-ke": "transformer",

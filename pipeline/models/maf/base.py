@@ -22,15 +22,13 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
 from pipeline.errors import ConfigError
+from pipeline.names import BACKENDS, Backend
 
-Backend = Literal["nflows", "zuko"]
-BACKENDS: tuple[Backend, ...] = ("nflows", "zuko")
 
 # |log sigma| of the base is soft-clipped at this value (sigma in [4.5e-5, 2.2e4] in standardized
 # units): never binding for a sane model, but it keeps an untrained base from producing inf.
