@@ -9,7 +9,8 @@ import torch
 from pipeline.training.datasets import ABSOLUTE_TIME_FEATURE, build_dataset, save_dataset
 from pipeline.errors import ConfigError
 from pipeline.models.estimator import build_estimator
-from pipeline.training.presets import ENCODER_CHOICES, PRESET_NAMES, RECIPES, get_preset
+from pipeline.names import TRAINING_SETUPS
+from pipeline.training.presets import ENCODER_CHOICES, RECIPES, get_preset
 
 
 
@@ -22,7 +23,7 @@ def _unit_stats(channels: int, features: int, target_transform: str = "identity"
 
 @pytest.mark.parametrize("recipe", RECIPES)
 @pytest.mark.parametrize("encoder", ENCODER_CHOICES)
-@pytest.mark.parametrize("name", PRESET_NAMES)
+@pytest.mark.parametrize("name", TRAINING_SETUPS)
 def test_every_preset_builds_a_working_estimator(name, encoder, recipe):
     preset = get_preset(name, encoder, recipe=recipe)
     config = preset.estimator
@@ -65,7 +66,7 @@ def test_paper_numbers():
         paper_joint, target_transform="sir-log-ratio",
         flow=dataclasses.replace(paper_joint.flow, features=4))
     assert all(get_preset(name, "mlp").estimator.target_transform == "identity"
-               for name in PRESET_NAMES if name not in ("sir-sf-joint", "sf-waves-joint"))
+               for name in TRAINING_SETUPS if name not in ("sir-sf-joint", "sf-waves-joint"))
     # The product's joint model: (S, I, R, beta) on the multi-wave prior, two weeks of S/I/R
     # read with I on a log scale; the paper's presets read their windows as they are.
     waves = get_preset("sf-waves-joint", "mlp").estimator
@@ -73,7 +74,7 @@ def test_paper_numbers():
     assert (waves.target_transform, waves.context_transform) == ("sir-log-ratio",
                                                                  "sir-log-infectious")
     assert all(get_preset(name, "mlp").estimator.context_transform == "identity"
-               for name in PRESET_NAMES if name != "sf-waves-joint")
+               for name in TRAINING_SETUPS if name != "sf-waves-joint")
     assert sf.dataset.name == "sir-sf" and sf.train.context_noise_sigma == 0.0
     ke = get_preset("sir-multi", "transformer-ke").kinetic
     assert ke.path_length > 0 and ke.intermediate_nll > 0 and ke.nll == 1.0

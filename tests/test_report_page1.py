@@ -231,13 +231,13 @@ def test_page_one_counts_a_long_list_of_left_out_locations_and_the_appendix_name
     results = {"wk inc covid hosp": SimpleNamespace(places=[p for p in every if p != "29"]),
                "wk inc covid prop ed visits": SimpleNamespace(places=kept)}
     skipped = {"wk inc covid prop ed visits": {"12": "'value' is not finite on 2025-09-13"}}
-    notices = round_notices(results, [], skipped)      # type: ignore[arg-type]
+    missing = missing_locations(results, skipped)      # type: ignore[arg-type]
+    notices = round_notices(missing, [])
     assert [n.text for n in notices] == [
         "admissions: Missouri (no usable data).",
         f"ED-visit share: {len(every) - len(kept)} of {len(every)} locations, named in the "
         "appendix (no usable data)."]
     assert word_count(" ".join(n.text for n in notices)) < 25
-    missing = missing_locations(results, skipped)      # type: ignore[arg-type]
     assert missing["wk inc covid hosp"] == ["29"]
     assert len(missing["wk inc covid prop ed visits"]) == len(every) - len(kept) > PAGE_ONE_NAMED
     assert set(missing["wk inc covid prop ed visits"]) == set(every) - set(kept)

@@ -85,12 +85,11 @@ def county_backtest(vintage: CDPHVintage, config: ForecastConfig, store_root: Pa
     origin with four weeks of truth (the latest ``recent_origins`` of the run's track record
     when it sets them), its members' models the weekly run's own (shared through
     the model store), with the ``variants`` and ``references`` scored beside it."""
-    panel, origins = panel_and_origins(vintage, counties,
-                                       config.track_record_config().recent_origins)
+    record = config.track_record_config()
+    panel, origins = panel_and_origins(vintage, counties, record.recent_origins)
     if progress is not None:
         start_phase(progress, "members' models", None)
-    chosen = build_members(config.track_record_config().members, store_root, panel, origins,
-                           progress)
+    chosen = build_members(record.members, store_root, panel, origins, progress)
     result = run_backtest(OneVintage(panel), chosen.members, origins,
                           county_backtest_config(config, variants), references=references,
                           progress=progress)
@@ -149,7 +148,7 @@ def train_county_members(config: ForecastConfig, store_root: Path,
         return
     if skill_path(vintage, config).is_file():
         return
-    panel, origins = panel_and_origins(vintage,
-                                       recent_origins=config.track_record_config().recent_origins)
-    build_members(config.track_record_config().members, store_root, panel, origins, progress,
+    record = config.track_record_config()
+    panel, origins = panel_and_origins(vintage, recent_origins=record.recent_origins)
+    build_members(record.members, store_root, panel, origins, progress,
                   newest_refits_first=True)

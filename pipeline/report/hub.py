@@ -294,18 +294,18 @@ def missing_locations(results: Mapping[str, HubRoundsResult],
     return missing
 
 
-def round_notices(results: Mapping[str, HubRoundsResult], warnings: Sequence[str],
-                  skipped: Mapping[str, Mapping[str, str]]) -> tuple[Notice, ...]:
+def round_notices(missing: Mapping[str, Sequence[str]], warnings: Sequence[str]
+                  ) -> tuple[Notice, ...]:
     """What the round left out or held: each target's hub locations it has no forecast of
-    (the gate skipped them, or the data hold none; named, or counted when more than
+    (``missing``, :func:`missing_locations`: named, or counted when more than
     :data:`PAGE_ONE_NAMED`; the appendix names all and says why) and the data's notes (a stale
     cache, a vintage held for review)."""
     left = []
-    for target, missing in missing_locations(results, skipped).items():
-        if len(missing) > PAGE_ONE_NAMED:
-            what = f"{len(missing)} of {len(BY_LOCATION)} locations, named in the appendix"
+    for target, places in missing.items():
+        if len(places) > PAGE_ONE_NAMED:
+            what = f"{len(places)} of {len(BY_LOCATION)} locations, named in the appendix"
         else:
-            what = ", ".join(BY_LOCATION[p].name if p in BY_LOCATION else p for p in missing)
+            what = ", ".join(BY_LOCATION[p].name if p in BY_LOCATION else p for p in places)
         left.append(Notice(NoticeKind.LEFT_OUT, f"{_target_label(target)}: {what} "
                            "(no usable data)."))
     return tuple(left) + tuple(Notice(NoticeKind.HELD, w) for w in warnings if w.strip())
@@ -347,7 +347,8 @@ def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date
     lead = (f"{len(up)} of {len(main.places) - 1} states and territories likely rising (P ≥ 70 % "
             f"that admissions two weeks ahead exceed last week's): {listed}. "
             f"{len(down)} likely falling.")
-    page1 = hub_page_one(main, round_notices(results, warnings, skipped) + tuple(notices))
+    missing = missing_locations(results, skipped)
+    page1 = hub_page_one(main, round_notices(missing, warnings) + tuple(notices))
     sections: list[Section] = []
     for target, result in results.items():
         label = "ED-visit share" if is_share(target) else "hospital admissions"
@@ -387,7 +388,7 @@ def hub_report_content(results: Mapping[str, HubRoundsResult], *, reference_date
     # count them)
     every = [f"{t}: " + ", ".join(f"{p} ({skipped.get(t, {}).get(p, 'not in the data')})"
                                   for p in places)
-             for t, places in missing_locations(results, skipped).items()]
+             for t, places in missing.items()]
     provenance = Provenance(package_version=__version__, config=dict(config),
                             extra={"model": model_id, "data": data_vintage,
                                    "locations left out": "; ".join(every) or "none"})

@@ -69,7 +69,7 @@ from typing import TypeGuard
 from pipeline.errors import ConfigError
 from pipeline.models.encoders import EncoderConfig, EncoderKind
 from pipeline.models.estimator import EstimatorConfig, make_estimator_config
-from pipeline.names import ENCODER_CHOICES, RECIPES, EncoderChoice, Recipe
+from pipeline.names import ENCODER_CHOICES, RECIPES, TRAINING_SETUPS, EncoderChoice, Recipe
 from pipeline.training.datasets import DatasetConfig
 from pipeline.training.kinetic import KineticWeights
 from pipeline.training.trainer import TrainConfig
@@ -127,7 +127,6 @@ SETUPS: dict[str, SetUp] = {s.name: s for s in (
           0.0, window=SF_WAVES_WINDOW, target_transform="sir-log-ratio",
           context_transform="sir-log-infectious"),
 )}
-PRESET_NAMES: tuple[str, ...] = tuple(SETUPS)
 
 
 @dataclass(frozen=True)
@@ -207,7 +206,7 @@ def get_preset(name: str, encoder: str = "transformer", *, recipe: str = DEFAULT
                dataset_seed: int = 0, n_trajectories: int | None = None) -> TrainingPreset:
     """Resolve a preset by name. ``backend`` None = the flow package's default backend."""
     if name not in SETUPS:
-        raise ConfigError(f"unknown preset {name!r}; known: {list(PRESET_NAMES)}")
+        raise ConfigError(f"unknown preset {name!r}; known: {list(TRAINING_SETUPS)}")
     if not _is_encoder_choice(encoder):
         raise ConfigError(f"unknown encoder {encoder!r} for preset {name!r}; "
                           f"choose one of {list(ENCODER_CHOICES)}")
