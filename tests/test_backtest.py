@@ -105,8 +105,8 @@ def test_the_published_forecast_at_an_origin_uses_only_the_past():
     again = _backtest(altered, members, config)
     for o in range(21):
         np.testing.assert_array_equal(result.weights[o], again.weights[o])
-        np.testing.assert_array_equal(result.forecasts["cases"][PUBLISHED][:, o],
-                                      again.forecasts["cases"][PUBLISHED][:, o])
+        np.testing.assert_array_equal(result.forecasts["cases"][PUBLISHED].values[:, o],
+                                      again.forecasts["cases"][PUBLISHED].values[:, o])
     assert not np.array_equal(result.weights[25:], again.weights[25:])
     # no past score at the first origin: equal weights
     np.testing.assert_allclose(result.weights[0], 0.5)
@@ -141,11 +141,11 @@ def test_a_forecast_is_unchanged_when_data_after_its_origin_change(sf):
     members = [HubBaseline(), LogNormalMember("lognormal", 0.3)]
     a = _backtest(sf, members, config, last=last)
     b = _backtest(altered, members, config, last=last)
-    assert not np.array_equal(a.truth["cases"][0, -1], b.truth["cases"][0, -1])
+    assert not np.array_equal(a.truth["cases"].values[0, -1], b.truth["cases"].values[0, -1])
     for name in ("hub-baseline", "lognormal", UNCALIBRATED, PUBLISHED):
         for target in ("I", "cases"):
-            assert np.array_equal(a.forecasts[target][name][0, -1],
-                                  b.forecasts[target][name][0, -1]), name
+            assert np.array_equal(a.forecasts[target][name].values[0, -1],
+                                  b.forecasts[target][name].values[0, -1]), name
     assert a.paths is not None and b.paths is not None
     assert np.array_equal(a.paths[0, -1], b.paths[0, -1])
 

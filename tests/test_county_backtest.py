@@ -97,12 +97,12 @@ def test_a_forecast_is_unchanged_when_any_county_changes_after_its_origin(vintag
     upto = np.array([o <= cut for o in before.origins])
     assert before.origins == after.origins and upto.sum() >= 30
     for name in (*before.members, "published"):
-        a, b = before.forecasts["cases"][name], after.forecasts["cases"][name]
+        a, b = before.forecasts["cases"][name].values, after.forecasts["cases"][name].values
         np.testing.assert_array_equal(a[:, upto], b[:, upto], err_msg=name)
         assert not np.array_equal(a[:, ~upto], b[:, ~upto]), name
     fresno = COUNTIES.index("Fresno")
-    assert not np.array_equal(before.truth["cases"][fresno, ~upto],
-                              after.truth["cases"][fresno, ~upto])
+    assert not np.array_equal(before.truth["cases"].values[fresno, ~upto],
+                              after.truth["cases"].values[fresno, ~upto])
 
 
 def test_log_average_is_the_geometric_mean_of_counts_plus_one():

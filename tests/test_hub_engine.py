@@ -19,7 +19,6 @@ from pipeline.combine.combiner import PUBLISHED
 from pipeline.combine.reconcile import median_gap, top_down
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series
-from pipeline.evaluation.summary import score_cells
 from pipeline.hub_round.run import HUB_PRESETS
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
 from pipeline.members.seasonal import SeasonalConfig, SeasonalGrowthMember, seasonal_growth
@@ -171,19 +170,19 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
     # Pennsylvania's week ending 2024-11-16 as the latest vintage holds it is the truth of
     # the first round's horizon -1 (reported 6,124 in the round's own vintage, then revised)
     assert rounds[0].panel.histories["42"].cases[-1] == 6124.0
-    assert result.truth[pa, 0, 0] == latest.histories["42"].cases[1]
-    assert result.truth[pa, 0, 0] != 6124.0
+    assert result.truth.values[pa, 0, 0] == latest.histories["42"].cases[1]
+    assert result.truth.values[pa, 0, 0] != 6124.0
     # the published forecast at horizon -1 is the nowcast of the reported week
-    np.testing.assert_array_equal(result.forecasts[PUBLISHED][:, 0, 0],
+    np.testing.assert_array_equal(result.forecasts[PUBLISHED].values[:, 0, 0],
                                   np.stack([result.nowcasts[0].quantiles[p][0]
                                             for p in result.places]))
-    assert np.isfinite(result.forecasts[PUBLISHED][:, :, 1:]).all()
+    assert np.isfinite(result.forecasts[PUBLISHED].values[:, :, 1:]).all()
     # the one summary of every backtest, at the forecast horizons, by phase of the epidemic
     summary = result.summary(PUBLISHED, (0, 1))
     phases = [summary["by_regime"][r]["n_scored"] for r in ("falling", "flat", "rising")]
     assert sum(phases) == summary["n_scored"] > 0
-    covered = score_cells(result.forecasts[PUBLISHED][:, :, 1:3], result.truth[:, :, 1:3],
-                          result.levels).covered[0.5]
+    covered = result.forecasts[PUBLISHED].select(horizons=(0, 1)).score(
+        result.truth.select(horizons=(0, 1))).covered[0.5]
     assert summary["coverage50"] == pytest.approx(float(np.nanmean(covered)), abs=1e-12)
     frame = compound_sample_ids(result.round_frame(len(rounds) - 1))
     root = tmp_path / "hub"
@@ -289,10 +288,10 @@ def test_the_burn_in_teaches_the_calibration_from_the_first_vintage_alone(real_v
         assert all(as_of == rounds[0].as_of and last <= o for o, as_of, last in burn)
     without, with_burn_in = results[0], results[8]
     assert with_burn_in.references == without.references
-    np.testing.assert_array_equal(with_burn_in.forecasts[UNCALIBRATED],
-                                  without.forecasts[UNCALIBRATED])
-    assert not np.array_equal(with_burn_in.forecasts[PUBLISHED][:, 0, 1:],
-                              without.forecasts[PUBLISHED][:, 0, 1:])
+    np.testing.assert_array_equal(with_burn_in.forecasts[UNCALIBRATED].values,
+                                  without.forecasts[UNCALIBRATED].values)
+    assert not np.array_equal(with_burn_in.forecasts[PUBLISHED].values[:, 0, 1:],
+                              without.forecasts[PUBLISHED].values[:, 0, 1:])
     # the median is never moved by the calibration
-    np.testing.assert_allclose(with_burn_in.forecasts[PUBLISHED][..., 11],
-                               without.forecasts[PUBLISHED][..., 11], rtol=1e-9)
+    np.testing.assert_allclose(with_burn_in.forecasts[PUBLISHED].median(),
+                               without.forecasts[PUBLISHED].median(), rtol=1e-9)

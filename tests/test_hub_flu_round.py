@@ -47,7 +47,7 @@ def test_an_in_season_flu_round_is_flusights(tmp_path, monkeypatch):
     # published average was the flow alone)
     assert "seasonal" not in run.results["wk inc flu hosp"].dropped_members()
     seasonal = run.results["wk inc flu hosp"].backtest.forecasts["wk inc flu hosp"]["seasonal"]
-    assert np.isfinite(seasonal[:, -1]).all()
+    assert np.isfinite(seasonal.values[:, -1]).all()
     # influenza's published average: the two flows; the seasonal member, which reads the
     # seasons the context flow reads as its climatology, is scored beside it
     # (bench/results/flusight.json)

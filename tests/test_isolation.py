@@ -104,7 +104,7 @@ def test_a_member_without_a_forecast_at_a_horizon_it_reaches_is_dropped_not_fata
     failure = result.failures["broken"]
     assert failure.why == "non-finite quantiles in 6 cell(s)"
     assert failure.cells[0].tolist() == [True, False] * 6
-    published = result.forecasts[result.panel.count_target][PUBLISHED]
+    published = result.forecasts[result.panel.count_target][PUBLISHED].values
     assert published.shape == (1, 12, 3, 23) and np.isfinite(published).all()
 
 
@@ -166,13 +166,14 @@ def test_a_failing_member_leaves_the_backtest_of_the_others_unchanged(how):
     count = both.panel.count_target
     for name in (PUBLISHED, UNCALIBRATED):
         if how == "raise":                          # left out everywhere: the same backtest
-            np.testing.assert_allclose(both.forecasts[count][name],
-                                       alone.forecasts[count][name], rtol=1e-12)
+            np.testing.assert_allclose(both.forecasts[count][name].values,
+                                       alone.forecasts[count][name].values, rtol=1e-12)
         else:                                       # at the cells it failed, before any score
             first = int(np.flatnonzero(cells)[0])
-            np.testing.assert_allclose(both.forecasts[count][name][0, first],
-                                       alone.forecasts[count][name][0, first], rtol=1e-12)
-    assert np.isfinite(both.forecasts[count][PUBLISHED]).all()
+            np.testing.assert_allclose(both.forecasts[count][name].values[0, first],
+                                       alone.forecasts[count][name].values[0, first],
+                                       rtol=1e-12)
+    assert np.isfinite(both.forecasts[count][PUBLISHED].values).all()
 
 
 def test_a_diverged_refit_falls_back_to_the_one_before(monkeypatch):

@@ -184,8 +184,8 @@ def test_a_memoized_backtest_equals_the_plain_one_bit_for_bit(tmp_path: Path) ->
     assert kept == {(50, 4, 3)}
     for result in results:
         for target, made in plain.forecasts.items():
-            for name, values in made.items():
-                assert np.array_equal(result.forecasts[target][name], values), name
+            for name, q in made.items():
+                assert np.array_equal(result.forecasts[target][name].values, q.values), name
         assert plain.paths is not None and result.paths is not None
         assert np.array_equal(result.paths, plain.paths)
 

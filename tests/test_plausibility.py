@@ -109,7 +109,8 @@ def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so()
                             combine=CombineConfig(scale="log", calibration="none"),
                             variants=(Variant("bounded", bound),))
     result = run_backtest(Whole(), [Collapsing()], origins, config)
-    free, held = result.forecasts[TARGET][PUBLISHED], result.forecasts[TARGET]["bounded"]
+    free = result.forecasts[TARGET][PUBLISHED].values
+    held = result.forecasts[TARGET]["bounded"].values
     bands = plausible_bands(panel_cells(panel, origins, 0), (1, 2), bound.bounded
                             ).reshape(*free.shape[:3], 2)
     # the member's 5 % quantile falls by 95 %, far beyond a walk of σ = 0.1 a week

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from pipeline.evaluation.quantile_function import CalibrationError, level_index, median_index
-from pipeline.panels.quantiles import Quantiles, long_frame
+from pipeline.panels.quantiles import Observed, Quantiles, long_frame
 from pipeline.panels.targets import TargetError
 
 ORIGINS = (pd.Timestamp("2024-01-06"), pd.Timestamp("2024-01-13"))
@@ -62,6 +62,24 @@ def test_frame_keeps_only_forecasts_made() -> None:
 def test_a_shape_that_does_not_fit_its_labels_is_refused() -> None:
     with pytest.raises(TargetError, match="do not fit 3 places"):
         Quantiles(np.zeros((3, 2, 2, 2)), ("CA", "NY", "US"), ORIGINS, (1, 2), LEVELS)
+
+
+def test_a_forecast_is_scored_against_the_truth_of_its_own_cells_only() -> None:
+    # quantiles 1, 2, 3 at levels 0.25, 0.5, 0.75: WIS = (|y − m| / 2 + α/2 · IS_α) / 1.5 with
+    # α = 0.5; y = 2: (0 + 0.25 · 2) / 1.5 = 1/3; y = 5: (1.5 + 0.25 · (2 + 4 · 2)) / 1.5 = 8/3
+    q = Quantiles(np.tile([1.0, 2.0, 3.0], (2, 1, 1, 1)), ("CA", "NY"), ORIGINS[:1], (1,), LEVELS)
+    truth = Observed(np.array([[[2.0]], [[5.0]]]), ("CA", "NY"), ORIGINS[:1], (1,))
+    scores = q.score(truth)
+    np.testing.assert_allclose(scores.wis[:, 0, 0], [1 / 3, 8 / 3], rtol=1e-12)
+    assert scores.covered[0.5][:, 0, 0].tolist() == [1.0, 0.0]
+    assert truth.select(places=["NY"]).values.tolist() == [[[5.0]]]
+    # the same numbers labelled as other places are refused, not scored against the wrong cells
+    with pytest.raises(TargetError, match="place"):
+        q.score(Observed(truth.values, ("NY", "CA"), ORIGINS[:1], (1,)))
+    with pytest.raises(TargetError, match="horizon"):
+        q.score(Observed(truth.values, ("CA", "NY"), ORIGINS[:1], (2,)))
+    with pytest.raises(TargetError, match="do not fit 2 places"):
+        Observed(np.zeros((2, 1, 2)), ("CA", "NY"), ORIGINS[:1], (1,))
 
 
 def test_level_index_is_exact_never_the_nearest_level() -> None:

@@ -162,13 +162,13 @@ def test_horizon_minus_one_is_scored_against_the_last_reported_value(hub_round):
     ca = result.places.index("06")
     assert last_reported(result)[ca, 0] == weeks_ending(rnd.panel.histories["06"], rnd.origin,
                                                         1)[0] / target_scale(ADMISSIONS)
-    base = hub_baseline_as_scored(result)
+    base = hub_baseline_as_scored(result).values
     assert (base[:, :, k] == last_reported(result)[..., None]).all()
     others = [i for i in range(len(result.horizons)) if i != k]
     np.testing.assert_array_equal(base[:, :, others],
-                                  result.forecasts[HUB_BASELINE][:, :, others])
+                                  result.forecasts[HUB_BASELINE].values[:, :, others])
     scored = like_with_like(result)
-    absolute = np.abs(result.truth[:, :2, k] - last_reported(result)[:, :2])
+    absolute = np.abs(result.truth.values[:, :2, k] - last_reported(result)[:, :2])
     np.testing.assert_allclose(scored.baseline[:, :2, k], absolute, rtol=1e-12, atol=1e-9)
     assert np.isnan(scored.wis[:, 2, k]).all()
     table = track_record_table(result)

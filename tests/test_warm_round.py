@@ -121,7 +121,8 @@ def test_a_warm_round_forecasts_only_the_new_round_and_trains_only_the_new_refit
     assert trainings == {NF_CONTEXT: 0, NF_REAL: 0}          # every model from the store
     assert all(hits == 0 for hits, _ in fresh.values())
     assert set(again.forecasts) == set(after.forecasts)
-    for name, values in after.forecasts.items():
-        np.testing.assert_allclose(values, again.forecasts[name], rtol=1e-5, err_msg=name)
+    for name, q in after.forecasts.items():
+        np.testing.assert_allclose(q.values, again.forecasts[name].values, rtol=1e-5,
+                                   err_msg=name)
     assert after.samples is not None and again.samples is not None
     np.testing.assert_allclose(after.samples, again.samples, rtol=1e-5)

@@ -8,7 +8,8 @@ published forecast combines them with weights and recalibration learnt only from
 whose target week had ended by t (:mod:`pipeline.combine.combiner`), beside the variants; every
 forecaster is then scored per target × horizon against the latest data (the truth).
 
-The result holds arrays ``(C, O, H, Q)`` per target and forecaster; summaries, score tables and
+The result holds labelled quantiles (places × origins × horizons × levels,
+:class:`~pipeline.panels.quantiles.Quantiles`) per target and forecaster; summaries, score tables and
 hub-format files come from it (:mod:`pipeline.backtest.result`, :mod:`pipeline.backtest.writers`).
 San Francisco's weekly track record, the cross-county design backtest and the hub rounds of NHSN
 are all this function on different panels.
@@ -38,7 +39,8 @@ from pipeline.evaluation.regimes import growth_regimes
 from pipeline.members.base import Member, MemberForecast
 from pipeline.members.hub_baseline import HUB_BASELINE, HubBaseline
 from pipeline.panels.history import History
-from pipeline.panels.panel import Cells, Panel, origin_seed, truth_arrays
+from pipeline.panels.panel import Cells, Panel, observed_truth, origin_seed
+from pipeline.panels.quantiles import Quantiles
 from pipeline.panels.targets import SHARE
 from pipeline.progress import ProgressReporter, SilentProgress, start_phase
 
@@ -121,7 +123,11 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
     start_phase(progress, "forecasts", len(cells) * (len(members) + len(references)))
     shape = (len(latest.places), len(origins))
     seconds: dict[str, float] = {}
-    forecasts: dict[str, dict[str, NDArray[np.float64]]] = {t: {} for t in latest.targets}
+    forecasts: dict[str, dict[str, Quantiles]] = {t: {} for t in latest.targets}
+
+    def labelled(values: NDArray[np.float64]) -> Quantiles:
+        """Quantiles ``(C, O, H, Q)`` of every cell, with their labels."""
+        return Quantiles(values, latest.places, tuple(origins), horizons, levels)
     template: NDArray[np.float64] | None = None
     failures: dict[str, MemberFailure] = {}
     for member in (*members, *references):
@@ -134,16 +140,16 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
             failures[member.name] = MemberFailure(guarded.failed.reshape(shape), guarded.why)
         progress.advance(len(cells), member=member.name)
         for target, values in made.values(cells.histories).items():
-            forecasts[target][member.name] = values.reshape(*shape, *values.shape[1:])
+            forecasts[target][member.name] = labelled(values.reshape(*shape, *values.shape[1:]))
         if (config.n_paths and template is None and member.name in names
                 and made.paths is not None and not guarded.failed.any()):
             kept = made.paths[:, :config.n_paths]
             template = kept.reshape(*shape, *kept.shape[1:])
     started = time.perf_counter()
-    truth = truth_arrays(latest, origins, horizons)
+    truth = observed_truth(latest, origins, horizons)
     regimes = cell_regimes(cells).reshape(shape)
     count = latest.count_target
-    baseline = forecasts[count][HUB_BASELINE]
+    baseline = forecasts[count][HUB_BASELINE].values
 
     dropped = {n: f.cells for n, f in failures.items()}
 
@@ -159,16 +165,16 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
         return bounded(values, bands[combiner.bounded])
 
     def published_by(chosen: Sequence[str], combiner: CombineConfig) -> NDArray[np.float64]:
-        return held(combine({n: forecasts[count][n] for n in chosen}, baseline, truth[count],
-                            regimes, levels, horizons, origins, combiner, truth_at=truth_at,
-                            dropped=dropped).published, combiner)
+        return held(combine({n: forecasts[count][n].values for n in chosen}, baseline,
+                            truth[count].values, regimes, levels, horizons, origins, combiner,
+                            truth_at=truth_at, dropped=dropped).published, combiner)
 
-    combined = combine({n: forecasts[count][n] for n in names}, baseline, truth[count], regimes,
-                       levels, horizons, origins, config.combine, truth_at=truth_at,
-                       dropped=dropped)
+    combined = combine({n: forecasts[count][n].values for n in names}, baseline,
+                       truth[count].values, regimes, levels, horizons, origins, config.combine,
+                       truth_at=truth_at, dropped=dropped)
     combined = dataclasses.replace(combined, published=held(combined.published, config.combine))
-    _add(forecasts, PUBLISHED, combined.published, latest)
-    _add(forecasts, UNCALIBRATED, combined.uncalibrated, latest)
+    _add(forecasts, PUBLISHED, labelled(combined.published), latest)
+    _add(forecasts, UNCALIBRATED, labelled(combined.uncalibrated), latest)
     seconds["combine"] = time.perf_counter() - started
     started = time.perf_counter()
     for variant in config.variants:
@@ -176,8 +182,8 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
         if unknown:
             raise EnsembleError(f"variant {variant.name!r} combines {unknown}, which the "
                                 f"backtest did not forecast ({sorted(forecasts[count])})")
-        _add(forecasts, variant.name, published_by(variant.members or names, variant.combine),
-             latest)
+        _add(forecasts, variant.name,
+             labelled(published_by(variant.members or names, variant.combine)), latest)
     seconds["variants"] = time.perf_counter() - started
     paths = (published_paths(cells, combined.published, levels, config.n_paths, template)
              if config.n_paths else None)
@@ -191,13 +197,14 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
                           failures=failures).reported_only()
 
 
-def _add(forecasts: dict[str, dict[str, NDArray[np.float64]]], name: str,
-         count: NDArray[np.float64], panel: Panel) -> None:
+def _add(forecasts: dict[str, dict[str, Quantiles]], name: str, count: Quantiles,
+         panel: Panel) -> None:
     """A combined forecast of the count under ``name``, and its I = count / N where the panel
     has I."""
     forecasts[panel.count_target][name] = count
     if SHARE in forecasts:
-        forecasts[SHARE][name] = count / panel.populations[:, None, None, None]
+        forecasts[SHARE][name] = count.with_values(
+            count.values / panel.populations[:, None, None, None])
 
 
 def cell_regimes(cells: Cells) -> NDArray[np.intp]:

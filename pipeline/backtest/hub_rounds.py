@@ -12,8 +12,9 @@ medians sum to the national one). Each round's hub horizons −1 … 3 are then 
 ``h + lag`` (the vintage is ``lag`` weeks behind the reference date): a step ≤ 0 is a week in
 the data, whose forecast is its nowcast.
 
-The result holds every forecaster's quantiles ``(C, R, H, Q)`` in the hub's units (counts, or
-the ED share as a proportion) at the hub's horizons, the truth of the latest vintage, the
+The result holds every forecaster's quantiles (locations × rounds × hub horizons × levels,
+labelled by the rounds' reference dates) in the hub's units (counts, or the ED share as a
+proportion), the truth of the latest vintage, the
 published sample trajectories, and each round's hub file (:meth:`HubRoundsResult.round_frame`).
 """
 from __future__ import annotations
@@ -36,15 +37,14 @@ from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
 from pipeline.combine.reconcile import median_gap, reconcilable, top_down
 from pipeline.evaluation.hub_leaderboard import SCORED_HORIZONS
 from pipeline.evaluation.quantile_function import quantiles_at
-from pipeline.evaluation.summary import (calibration_cost, regime_masks, score_cells,
-                                         summarize_forecaster)
+from pipeline.evaluation.summary import calibration_cost, regime_masks, summarize_forecaster
 from pipeline.members.base import Member
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.nowcast.revisions import RevisionNowcastConfig, WeekNowcast, nowcast_weeks
 from pipeline.data.hub.locations import POPULATION
 from pipeline.panels.hub import HUB_HORIZONS, US, HubRound, is_share, target_scale
 from pipeline.panels.panel import Panel, weeks_ending
-from pipeline.panels.quantiles import Quantiles, long_frame
+from pipeline.panels.quantiles import Observed, Quantiles, long_frame
 from pipeline.panels.targets import DAYS_PER_WEEK, HUB_QUANTILE_LEVELS, format_level
 from pipeline.progress import ProgressReporter
 
@@ -81,8 +81,8 @@ class HubBacktestConfig:
 
 @dataclass(frozen=True, eq=False)
 class HubRoundsResult:
-    """Every round of one target (module docstring). ``forecasts[name]`` ``(C, R, H, Q)`` and
-    ``truth`` ``(C, R, H)`` in the hub's units; ``samples`` ``(C, R, n, H)`` of the published
+    """Every round of one target (module docstring). ``forecasts[name]`` (locations × rounds ×
+    horizons × levels) and ``truth`` in the hub's units, labelled by reference date; ``samples`` ``(C, R, n, H)`` of the published
     forecast; ``gap`` ``(R, S)``: log(US median / Σ states' medians) before reconciliation."""
 
     target: str
@@ -90,8 +90,8 @@ class HubRoundsResult:
     places: tuple[str, ...]
     horizons: tuple[int, ...]
     levels: NDArray[np.float64]
-    forecasts: dict[str, NDArray[np.float64]]
-    truth: NDArray[np.float64]
+    forecasts: dict[str, Quantiles]
+    truth: Observed
     samples: NDArray[np.float64] | None
     backtest: BacktestResult
     nowcasts: tuple[WeekNowcast, ...]
@@ -117,24 +117,24 @@ class HubRoundsResult:
         """The one summary of every backtest (:func:`~pipeline.evaluation.summary.
         summarize_forecaster`) of ``forecaster`` at the hub ``horizons`` (default: all),
         against the hub baseline, by the phase of the epidemic at each round's origin."""
-        steps = list(self.horizons) if horizons is None else list(horizons)
-        k = [self.horizon_index(h) for h in steps]
-        truth = self.truth[:, :, k]
-        scores = score_cells(self.forecasts[forecaster][:, :, k], truth, self.levels)
-        base = score_cells(self.forecasts[HUB_BASELINE][:, :, k], truth, self.levels).wis
+        steps = self._known_horizons(horizons)
+        truth = self.truth.select(horizons=steps)
+        scores = self.forecasts[forecaster].select(horizons=steps).score(truth)
+        base = self.forecasts[HUB_BASELINE].select(horizons=steps).score(truth).wis
         return summarize_forecaster(scores, base, steps, self.places,
-                                    regime_masks(self.backtest.regimes, truth, len(k)))
+                                    regime_masks(self.backtest.regimes, truth.values,
+                                                 len(steps)))
 
     def calibration_cost(self, horizons: Sequence[int] | None = None,
                          forecasters: Sequence[str] = (PUBLISHED,)) -> dict[str, dict[str, Any]]:
         """Each of ``forecasters``' WIS over the published members' average uncalibrated at
         the hub ``horizons`` (default: all), over every round and in its worst window of
         consecutive rounds (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
-        k = [self.horizon_index(h) for h in (horizons or self.horizons)]
-        truth = self.truth[:, :, k]
+        steps = self._known_horizons(horizons)
+        truth = self.truth.select(horizons=steps)
 
         def wis(name: str) -> NDArray[np.float64]:
-            return score_cells(self.forecasts[name][:, :, k], truth, self.levels).wis
+            return self.forecasts[name].select(horizons=steps).score(truth).wis
         uncalibrated = wis(UNCALIBRATED)
         return {name: calibration_cost(wis(name), uncalibrated, self.references)
                 for name in forecasters}
@@ -150,14 +150,14 @@ class HubRoundsResult:
         frames = []
         ends = self.target_ends()
         for name in forecasters or list(self.forecasts):
-            s = score_cells(self.forecasts[name], self.truth, self.levels)
+            s = self.forecasts[name].score(self.truth)
             c, r, h = np.nonzero(np.isfinite(s.wis))
             frames.append(pd.DataFrame({
                 "model_id": name, "reference_date": np.asarray(self.references,
                                                                dtype="datetime64[ns]")[r],
                 "target": self.target, "horizon": np.asarray(self.horizons)[h],
                 "location": np.asarray(self.places, dtype=object)[c],
-                "target_end_date": ends[r, h], "observed": self.truth[c, r, h],
+                "target_end_date": ends[r, h], "observed": self.truth.values[c, r, h],
                 "wis": s.wis[c, r, h], "dispersion": s.dispersion[c, r, h],
                 "overprediction": s.overprediction[c, r, h],
                 "underprediction": s.underprediction[c, r, h],
@@ -168,8 +168,15 @@ class HubRoundsResult:
     def quantiles(self, forecaster: str = PUBLISHED) -> Quantiles:
         """``forecaster``'s quantiles, labelled: locations × rounds (reference dates) × hub
         horizons × levels."""
-        return Quantiles(self.forecasts[forecaster], self.places, self.references,
-                         self.horizons, self.levels)
+        return self.forecasts[forecaster]
+
+    def _known_horizons(self, horizons: Sequence[int] | None) -> list[int]:
+        """``horizons`` (None or empty: all), each one of the round's."""
+        steps = list(horizons or self.horizons)
+        unknown = [h for h in steps if h not in self.horizons]
+        if unknown:
+            raise EnsembleError(f"horizons {unknown} are not among the round's {self.horizons}")
+        return steps
 
     def horizon_index(self, horizon: int) -> int:
         """The position of hub ``horizon`` along the horizons' axis."""
@@ -188,7 +195,7 @@ class HubRoundsResult:
         """Round ``index``'s forecast in the hubverse format (quantiles and, for the published
         forecast, the sample trajectories: one id per location × target, across horizons)."""
         rnd = self.rounds[index]
-        values = self.forecasts[forecaster][:, index]                        # (C, H, Q)
+        values = self.forecasts[forecaster].values[:, index]                 # (C, H, Q)
         keep = np.isfinite(values).all(axis=(1, 2))
         places = np.asarray(self.places)[keep]
         frames = [long_frame(values[keep], {
@@ -253,17 +260,21 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
     count = result.forecasts[target]
     gap = None
     if config.reconcile and not is_share(target) and reconcilable(places, US, POPULATION):
-        gap = median_gap(count[PUBLISHED], places, US, levels)
+        gap = median_gap(count[PUBLISHED].values, places, US, levels)
         count[UNRECONCILED] = count[PUBLISHED]
         for name in (PUBLISHED, UNCALIBRATED, *(v.name for v in config.variants)):
-            count[name] = top_down(count[name], places, US, levels)
+            count[name] = count[name].with_values(top_down(count[name].values, places, US,
+                                                           levels))
     scale = target_scale(target)
-    by_hub = {name: _hub_horizons(values, rounds, nowcasts, places, config.horizons, steps,
-                                  levels) / scale
-              for name, values in count.items()}
-    samples = (_hub_samples(result, by_hub[PUBLISHED] * scale, rounds, config.horizons, steps,
+    reference_dates = tuple(r.reference for r in rounds)
+    by_hub = {name: Quantiles(_hub_horizons(q.values, rounds, nowcasts, places,
+                                            config.horizons, steps, levels) / scale,
+                              places, reference_dates, tuple(config.horizons), levels)
+              for name, q in count.items()}
+    samples = (_hub_samples(result, by_hub[PUBLISHED].values * scale, rounds, config.horizons, steps,
                             levels) / scale if result.paths is not None else None)
-    truth = _truth(latest, places, rounds, config.horizons) / scale
+    truth = Observed(_truth(latest, places, rounds, config.horizons) / scale, places,
+                     reference_dates, tuple(config.horizons))
     seconds["total"] = time.perf_counter() - started
     return HubRoundsResult(target=target, rounds=tuple(rounds), places=places,
                            horizons=tuple(config.horizons), levels=levels, forecasts=by_hub,

@@ -1,8 +1,9 @@
 """A backtest's result: every forecaster's quantiles at every cell, the truth, the weights and
 the published sample paths, with its summary and score table computed once.
 
-``forecasts[target][forecaster]`` are ``(C, O, H, Q)`` arrays (places × origins × horizons ×
-levels; NaN where a forecaster made no forecast), ``truth[target]`` ``(C, O, H)``. The summary
+``forecasts[target][forecaster]`` are :class:`~pipeline.panels.quantiles.Quantiles` (places ×
+origins × horizons × levels, labelled; NaN where a forecaster made no forecast),
+``truth[target]`` the :class:`~pipeline.panels.quantiles.Observed` of the same cells. The summary
 (:meth:`BacktestResult.summary`) is :mod:`pipeline.evaluation.summary` per target × forecaster
 with the run's facts; :meth:`BacktestResult.scores` the long table of scored cells;
 :meth:`BacktestResult.forecast_at` one cell's forecast (the report's and the hub file's view).
@@ -23,12 +24,11 @@ from pipeline.members.isolation import MemberFailure
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED
 from pipeline.combine.paths import InvalidCounts, add_counts, count_invalid
-from pipeline.evaluation.summary import (calibration_cost, regime_masks, score_cells,
-                                         summarize_forecaster)
+from pipeline.evaluation.summary import calibration_cost, regime_masks, summarize_forecaster
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.history import EpiHistory, History
 from pipeline.panels.panel import Panel
-from pipeline.panels.quantiles import Quantiles, long_frame, positions
+from pipeline.panels.quantiles import Observed, Quantiles, long_frame, positions
 from pipeline.panels.targets import DAYS_PER_WEEK, SHARE, TargetError
 
 if TYPE_CHECKING:
@@ -79,8 +79,8 @@ class BacktestResult:
     levels: NDArray[np.float64]
     members: tuple[str, ...]
     references: tuple[str, ...]
-    forecasts: dict[str, dict[str, NDArray[np.float64]]]
-    truth: dict[str, NDArray[np.float64]]
+    forecasts: dict[str, dict[str, Quantiles]]
+    truth: dict[str, Observed]
     regimes: NDArray[np.intp]
     weights: NDArray[np.float64]
     paths: NDArray[np.float64] | None
@@ -105,8 +105,7 @@ class BacktestResult:
     def quantiles(self, target: str, forecaster: str = PUBLISHED) -> Quantiles:
         """``forecaster``'s quantiles of ``target``, labelled (places × origins × horizons ×
         levels)."""
-        return Quantiles(self.forecasts[target][forecaster], self.places, self.origins,
-                         self.horizons, self.levels)
+        return self.forecasts[target][forecaster]
 
     def reported_only(self) -> BacktestResult:
         """The result at the reported origins only."""
@@ -115,7 +114,7 @@ class BacktestResult:
             return self
         if not keep.any():
             raise EnsembleError("no reported origin in the backtest")
-        return self._subset(np.arange(len(self.places)), np.flatnonzero(keep))
+        return self._subset(None, keep)
 
     def for_places(self, places: Sequence[str]) -> BacktestResult:
         """The same backtest restricted to ``places`` (their forecasts are unchanged: pooled
@@ -124,18 +123,23 @@ class BacktestResult:
         if unknown:
             raise EnsembleError(f"places {unknown} are not in the backtest ({len(self.places)} "
                                 f"places: {', '.join(self.places[:5])}, …)")
-        return self._subset(np.array(positions(self.places, list(places), "place")),
-                            np.arange(len(self.origins)))
+        return self._subset(tuple(places), np.ones(len(self.origins), dtype=bool))
 
-    def _subset(self, c: NDArray[np.intp], o: NDArray[np.intp]) -> BacktestResult:
-        """The places ``c`` at the origins ``o`` (positions), every array cut alike."""
+    def _subset(self, places: tuple[str, ...] | None, keep: NDArray[np.bool_]
+                ) -> BacktestResult:
+        """``places`` (None: all) at the origins ``keep`` marks (a mask: two hub rounds may
+        share an origin), every forecast, truth and array cut alike."""
+        c = (np.arange(len(self.places)) if places is None
+             else np.array(positions(self.places, list(places), "place")))
+        o = np.flatnonzero(keep)
         cells = np.ix_(c, o)
-        places = tuple(self.places[i] for i in c)
         return dataclasses.replace(
-            self, panel=self.panel if len(c) == len(self.places) else self.panel.only(places),
+            self, panel=self.panel if places is None else self.panel.only(places),
             origins=tuple(self.origins[i] for i in o),
-            forecasts={t: {n: v[cells] for n, v in f.items()} for t, f in self.forecasts.items()},
-            truth={t: v[cells] for t, v in self.truth.items()}, regimes=self.regimes[cells],
+            forecasts={t: {n: q.select(places=places, origins=keep) for n, q in f.items()}
+                       for t, f in self.forecasts.items()},
+            truth={t: v.select(places=places, origins=keep) for t, v in self.truth.items()},
+            regimes=self.regimes[cells],
             weights=self.weights[o], paths=None if self.paths is None else self.paths[cells],
             reported=self.reported[o],
             failures={n: MemberFailure(f.cells[cells], f.why) for n, f in self.failures.items()})
@@ -148,7 +152,8 @@ class BacktestResult:
                   if failure.cells[:, index].any()}
         made = self.forecasts[self.panel.count_target]
         silent = {name: "no forecast for this round" for name in self.members
-                  if name in made and name not in failed and np.isnan(made[name][:, index]).all()}
+                  if name in made and name not in failed
+                  and np.isnan(made[name].values[:, index]).all()}
         return failed | silent
 
     # ------------------------------------------------------------------------ one cell's view
@@ -186,10 +191,9 @@ class BacktestResult:
         for target in self.targets:
             unit = self._unit(target)
             truth = self.truth[target]
-            masks = regime_masks(self.regimes, self.truth[self.panel.count_target],
+            masks = regime_masks(self.regimes, self.truth[self.panel.count_target].values,
                                  len(self.horizons))
-            scored = {name: score_cells(values, truth, self.levels, unit)
-                      for name, values in self.forecasts[target].items()}
+            scored = {name: q.score(truth, unit) for name, q in self.forecasts[target].items()}
             base = scored[HUB_BASELINE].wis
             by_target[target] = {
                 name: summarize_forecaster(s, base, self.horizons, self.places, masks)
@@ -253,9 +257,9 @@ class BacktestResult:
         frames = []
         origins = pd.DatetimeIndex(list(self.origins))
         for target in self.targets:
-            truth = self.truth[target]
-            for name, values in self.forecasts[target].items():
-                s = score_cells(values, truth, self.levels, self._unit(target))
+            truth = self.truth[target].values
+            for name, q in self.forecasts[target].items():
+                s = q.score(self.truth[target], self._unit(target))
                 c, o, h = np.nonzero(np.isfinite(s.wis))
                 horizon = np.asarray(self.horizons)[h]
                 frames.append(pd.DataFrame({

@@ -123,7 +123,7 @@ def derive_targets(result: HubRoundsResult, latest: Panel, population: Mapping[s
         rule = rate_change_rule(rnd.reference)
         paths = result.samples[:, r]                                          # (C, n, H)
         rate[:, r] = rate_change_pmf(paths, horizons, pops, rule, RATE_HORIZONS)
-        rate_obs[:, r] = observed_rate_change(result.truth[:, r], horizons, pops, rule,
+        rate_obs[:, r] = observed_rate_change(result.truth.values[:, r], horizons, pops, rule,
                                               RATE_HORIZONS)
         vintage = _series(rnd.panel, places)
         rate_clim[:, r] = _rate_climatology(vintage, dict(zip(places, pops)), rnd.reference)

@@ -26,6 +26,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.panels.history import EpiHistory, History, WeeklyHistory
+from pipeline.panels.quantiles import Observed
 from pipeline.panels.targets import DAYS_PER_WEEK, SATURDAY, TargetError
 
 NS_PER_DAY = 86_400 * 10**9
@@ -256,10 +257,10 @@ def weekly_origins(dates: pd.DatetimeIndex, *, min_history_weeks: int = 8,
     return origins
 
 
-def truth_arrays(panel: Panel, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
-                 ) -> dict[str, NDArray[np.float64]]:
-    """``truth[target] (C, O, H)`` from the panel's latest data (NaN where not observed; an
-    origin outside a place's dates has no truth)."""
+def observed_truth(panel: Panel, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
+                   ) -> dict[str, Observed]:
+    """``truth[target]``: each place's latest data at each origin's horizons (NaN where not
+    observed; an origin outside a place's dates has no truth)."""
     out = {t: np.full((len(panel.places), len(origins), len(horizons)), np.nan)
            for t in panel.targets}
     for c, history in enumerate(panel.histories.values()):
@@ -268,4 +269,4 @@ def truth_arrays(panel: Panel, origins: Sequence[pd.Timestamp], horizons: tuple[
                 continue
             for t, values in history.observed(origin, horizons).items():
                 out[t][c, o] = values
-    return out
+    return {t: Observed(v, panel.places, tuple(origins), horizons) for t, v in out.items()}

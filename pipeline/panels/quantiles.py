@@ -5,7 +5,8 @@ hubverse's long format).
 
 :class:`Quantiles` is what a backtest, a hub round and a report exchange: :meth:`Quantiles.at`
 one place, origin, horizon or level; :meth:`Quantiles.select` a sub-panel that keeps its labels;
-:meth:`Quantiles.median`; :meth:`Quantiles.frame` the long rows. :func:`long_frame` is the one
+:meth:`Quantiles.median`; :meth:`Quantiles.frame` the long rows; :meth:`Quantiles.score` its
+scores against :class:`Observed`, the truth of the same cells (labels checked, not assumed). :func:`long_frame` is the one
 place an array becomes rows (hub files, score tables, derived targets): one column per axis, in
 the array's order.
 """
@@ -20,6 +21,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from pipeline.evaluation.quantile_function import level_index, median_index
+from pipeline.evaluation.summary import CellScores, score_cells
 from pipeline.panels.targets import TargetError
 
 AXES = ("place", "origin", "horizon", "level")
@@ -94,19 +96,27 @@ class Quantiles:
                horizons: Sequence[int] | None = None) -> Quantiles:
         """The forecast of some places, origins (labels, or a mask over them) and horizons,
         with their labels."""
-        c = (list(range(len(self.places))) if places is None
-             else positions(self.places, list(places), "place"))
-        if origins is None:
-            o = list(range(len(self.origins)))
-        elif isinstance(origins, np.ndarray) and origins.dtype == bool:
-            o = [int(i) for i in np.flatnonzero(origins)]
-        else:
-            o = positions(self.origins, [pd.Timestamp(x) for x in origins], "origin")
-        h = (list(range(len(self.horizons))) if horizons is None
-             else positions(self.horizons, list(horizons), "horizon"))
+        c, o, h = _cell_positions(self.places, self.origins, self.horizons, places, origins,
+                                  horizons)
         return Quantiles(self.values[np.ix_(c, o, h, list(range(len(self.levels))))],
                          tuple(self.places[i] for i in c), tuple(self.origins[i] for i in o),
                          tuple(self.horizons[i] for i in h), self.levels)
+
+    def with_values(self, values: NDArray[np.float64]) -> Quantiles:
+        """Other quantiles of the same cells (rescaled, reconciled, held within bounds)."""
+        return Quantiles(values, self.places, self.origins, self.horizons, self.levels)
+
+    def score(self, truth: Observed, unit: NDArray[np.float64] | float = 1.0) -> CellScores:
+        """The scores ``(C, O, H)`` of every cell against ``truth`` of the same places,
+        origins and horizons (:func:`~pipeline.evaluation.summary.score_cells`; ``unit``
+        turns the target into counts for the PIT)."""
+        mine = (self.places, self.origins, self.horizons)
+        theirs = (truth.places, truth.origins, truth.horizons)
+        for axis, a, b in zip(AXES, mine, theirs):
+            if tuple(a) != tuple(b):
+                raise TargetError(f"the forecast's {axis}s {list(a)[:5]} … are not the "
+                                  f"truth's {list(b)[:5]} …")
+        return score_cells(self.values, truth.values, self.levels, unit)
 
     def median(self) -> NDArray[np.float64]:
         """``(C, O, H)`` the medians."""
@@ -117,3 +127,52 @@ class Quantiles:
         out = long_frame(self.values, dict(zip(AXES, (self.places, self.origins,
                                                      self.horizons, self.levels))))
         return out[np.isfinite(out["value"].to_numpy(dtype=np.float64))].reset_index(drop=True)
+
+
+@dataclass(frozen=True, eq=False)
+class Observed:
+    """What was observed ``values (C, O, H)`` at ``places`` × ``origins`` × ``horizons`` (the
+    week ending 7h days after the origin); NaN where not observed (yet)."""
+
+    values: NDArray[np.float64]
+    places: tuple[str, ...]
+    origins: tuple[pd.Timestamp, ...]
+    horizons: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        shape = (len(self.places), len(self.origins), len(self.horizons))
+        if self.values.shape != shape:
+            raise TargetError(f"observations of shape {self.values.shape} do not fit "
+                              f"{shape[0]} places × {shape[1]} origins × {shape[2]} horizons")
+
+    def select(self, *, places: Sequence[str] | None = None,
+               origins: Sequence[pd.Timestamp] | NDArray[np.bool_] | None = None,
+               horizons: Sequence[int] | None = None) -> Observed:
+        """The observations of some places, origins (labels, or a mask) and horizons."""
+        c, o, h = _cell_positions(self.places, self.origins, self.horizons, places, origins,
+                                  horizons)
+        return Observed(self.values[np.ix_(c, o, h)], tuple(self.places[i] for i in c),
+                        tuple(self.origins[i] for i in o), tuple(self.horizons[i] for i in h))
+
+    def with_values(self, values: NDArray[np.float64]) -> Observed:
+        """Other observations of the same cells (rescaled, some masked)."""
+        return Observed(values, self.places, self.origins, self.horizons)
+
+
+def _cell_positions(all_places: Sequence[str], all_origins: Sequence[pd.Timestamp],
+                    all_horizons: Sequence[int], places: Sequence[str] | None,
+                    origins: Sequence[pd.Timestamp] | NDArray[np.bool_] | None,
+                    horizons: Sequence[int] | None) -> tuple[list[int], list[int], list[int]]:
+    """The positions of the places, origins (labels, or a mask) and horizons asked for; all of
+    an axis where none is asked."""
+    c = (list(range(len(all_places))) if places is None
+         else positions(all_places, list(places), "place"))
+    if origins is None:
+        o = list(range(len(all_origins)))
+    elif isinstance(origins, np.ndarray) and origins.dtype == bool:
+        o = [int(i) for i in np.flatnonzero(origins)]
+    else:
+        o = positions(all_origins, [pd.Timestamp(x) for x in origins], "origin")
+    h = (list(range(len(all_horizons))) if horizons is None
+         else positions(all_horizons, list(horizons), "horizon"))
+    return c, o, h

@@ -32,10 +32,10 @@ from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.hub.locations import BY_LOCATION, US
 from pipeline.data.hub.nhsn_vintages import TARGETS
 from pipeline.evaluation.quantile_function import level_index, median_index
-from pipeline.evaluation.summary import score_cells
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.hub import is_share, target_scale
 from pipeline.panels.panel import weeks_ending
+from pipeline.panels.quantiles import Quantiles
 from pipeline.report.content import (FigureItem, Notice, NoticeKind, PageOne, Provenance,
                                      ReportContent, Section, TableItem)
 from pipeline.report.hub_figures import (relative_wis_by_round_figure, small_multiples_figure,
@@ -150,14 +150,15 @@ def last_reported(result: HubRoundsResult) -> NDArray[np.float64]:
                      for place in result.places], dtype=np.float64) / scale
 
 
-def hub_baseline_as_scored(result: HubRoundsResult) -> NDArray[np.float64]:
-    """``(C, R, H, Q)`` the hub's baseline as the hub scores it (module docstring): the
-    re-implemented baseline at horizons 0 … 3 and, at horizon −1, a point mass at the last
-    value reported (every quantile that value)."""
-    baseline = result.forecasts[HUB_BASELINE].copy()
+def hub_baseline_as_scored(result: HubRoundsResult) -> Quantiles:
+    """The hub's baseline as the hub scores it (module docstring): the re-implemented baseline
+    at horizons 0 … 3 and, at horizon −1, a point mass at the last value reported (every
+    quantile that value)."""
+    baseline = result.forecasts[HUB_BASELINE]
+    values = baseline.values.copy()
     if -1 in result.horizons:
-        baseline[:, :, result.horizon_index(-1), :] = last_reported(result)[..., None]
-    return baseline
+        values[:, :, result.horizon_index(-1), :] = last_reported(result)[..., None]
+    return baseline.with_values(values)
 
 
 def scored_rounds(result: HubRoundsResult) -> NDArray[np.bool_]:
@@ -189,9 +190,10 @@ class LikeWithLike:
 def like_with_like(result: HubRoundsResult, forecaster: str = PUBLISHED) -> LikeWithLike:
     """``forecaster`` and the hub's baseline as scored (:func:`hub_baseline_as_scored`) on the
     same cells of the rounds scored (:func:`scored_rounds`)."""
-    truth = np.where(scored_rounds(result)[None, :, None], result.truth, np.nan)
-    mine = score_cells(result.forecasts[forecaster], truth, result.levels)
-    base = score_cells(hub_baseline_as_scored(result), truth, result.levels).wis
+    truth = result.truth.with_values(
+        np.where(scored_rounds(result)[None, :, None], result.truth.values, np.nan))
+    mine = result.forecasts[forecaster].score(truth)
+    base = hub_baseline_as_scored(result).score(truth).wis
     both = np.isfinite(mine.wis) & np.isfinite(base)
 
     def only(x: NDArray[np.float64]) -> NDArray[np.float64]:
