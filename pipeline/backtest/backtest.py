@@ -9,10 +9,10 @@ whose target week had ended by t (:mod:`pipeline.combine.combiner`), beside the 
 forecaster is then scored per target × horizon against the latest data (the truth).
 
 The result holds labelled quantiles (places × origins × horizons × levels,
-:class:`~pipeline.panels.quantiles.Quantiles`) per target and forecaster; summaries, score tables and
-hub-format files come from it (:mod:`pipeline.backtest.result`, :mod:`pipeline.backtest.writers`).
-San Francisco's weekly track record, the cross-county design backtest and the hub rounds of NHSN
-are all this function on different panels.
+:class:`~pipeline.panels.quantiles.Quantiles`) per target and forecaster; summaries, score
+tables and hub-format files come from it (:mod:`pipeline.backtest.result`,
+:mod:`pipeline.backtest.writers`). San Francisco's weekly track record, the cross-county design
+backtest and the hub rounds of NHSN are all this function on different panels.
 """
 from __future__ import annotations
 

@@ -14,8 +14,8 @@ the data, whose forecast is its nowcast.
 
 The result holds every forecaster's quantiles (locations × rounds × hub horizons × levels,
 labelled by the rounds' reference dates) in the hub's units (counts, or the ED share as a
-proportion), the truth of the latest vintage, the
-published sample trajectories, and each round's hub file (:meth:`HubRoundsResult.round_frame`).
+proportion), the truth of the latest vintage, the published sample trajectories, and each
+round's hub file (:meth:`HubRoundsResult.round_frame`).
 """
 from __future__ import annotations
 
@@ -82,8 +82,9 @@ class HubBacktestConfig:
 @dataclass(frozen=True, eq=False)
 class HubRoundsResult:
     """Every round of one target (module docstring). ``forecasts[name]`` (locations × rounds ×
-    horizons × levels) and ``truth`` in the hub's units, labelled by reference date; ``samples`` ``(C, R, n, H)`` of the published
-    forecast; ``gap`` ``(R, S)``: log(US median / Σ states' medians) before reconciliation."""
+    horizons × levels) and ``truth`` in the hub's units, labelled by reference date;
+    ``samples`` ``(C, R, n, H)`` of the published forecast; ``gap`` ``(R, S)``: log(US median /
+    Σ states' medians) before reconciliation."""
 
     target: str
     rounds: tuple[HubRound, ...]
@@ -271,8 +272,8 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
                                             config.horizons, steps, levels) / scale,
                               places, reference_dates, tuple(config.horizons), levels)
               for name, q in count.items()}
-    samples = (_hub_samples(result, by_hub[PUBLISHED].values * scale, rounds, config.horizons, steps,
-                            levels) / scale if result.paths is not None else None)
+    samples = (_hub_samples(result, by_hub[PUBLISHED].values * scale, rounds, config.horizons,
+                            steps, levels) / scale if result.paths is not None else None)
     truth = Observed(_truth(latest, places, rounds, config.horizons) / scale, places,
                      reference_dates, tuple(config.horizons))
     seconds["total"] = time.perf_counter() - started

@@ -6,9 +6,9 @@ hubverse's long format).
 :class:`Quantiles` is what a backtest, a hub round and a report exchange: :meth:`Quantiles.at`
 one place, origin, horizon or level; :meth:`Quantiles.select` a sub-panel that keeps its labels;
 :meth:`Quantiles.median`; :meth:`Quantiles.frame` the long rows; :meth:`Quantiles.score` its
-scores against :class:`Observed`, the truth of the same cells (labels checked, not assumed). :func:`long_frame` is the one
-place an array becomes rows (hub files, score tables, derived targets): one column per axis, in
-the array's order.
+scores against :class:`Observed`, the truth of the same cells (labels checked, not assumed).
+:func:`long_frame` is the one place an array becomes rows (hub files, score tables, derived
+targets): one column per axis, in the array's order.
 """
 from __future__ import annotations
 
