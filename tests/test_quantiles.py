@@ -78,6 +78,8 @@ def test_a_forecast_is_scored_against_the_truth_of_its_own_cells_only() -> None:
         q.score(Observed(truth.values, ("NY", "CA"), ORIGINS[:1], (1,)))
     with pytest.raises(TargetError, match="horizon"):
         q.score(Observed(truth.values, ("CA", "NY"), ORIGINS[:1], (2,)))
+    with pytest.raises(TargetError, match=r"horizon \[2\] not in"):
+        truth.select(horizons=[2])
     with pytest.raises(TargetError, match="do not fit 2 places"):
         Observed(np.zeros((2, 1, 2)), ("CA", "NY"), ORIGINS[:1], (1,))
 

@@ -118,7 +118,8 @@ class HubRoundsResult:
         """The one summary of every backtest (:func:`~pipeline.evaluation.summary.
         summarize_forecaster`) of ``forecaster`` at the hub ``horizons`` (default: all),
         against the hub baseline, by the phase of the epidemic at each round's origin."""
-        steps = self._known_horizons(horizons)
+        # a horizon the rounds do not have is refused by name (Quantiles.select)
+        steps = list(self.horizons) if horizons is None else list(horizons)
         truth = self.truth.select(horizons=steps)
         scores = self.forecasts[forecaster].select(horizons=steps).score(truth)
         base = self.forecasts[HUB_BASELINE].select(horizons=steps).score(truth).wis
@@ -131,7 +132,7 @@ class HubRoundsResult:
         """Each of ``forecasters``' WIS over the published members' average uncalibrated at
         the hub ``horizons`` (default: all), over every round and in its worst window of
         consecutive rounds (:func:`~pipeline.evaluation.summary.calibration_cost`)."""
-        steps = self._known_horizons(horizons)
+        steps = list(horizons or self.horizons)
         truth = self.truth.select(horizons=steps)
 
         def wis(name: str) -> NDArray[np.float64]:
@@ -170,14 +171,6 @@ class HubRoundsResult:
         """``forecaster``'s quantiles, labelled: locations × rounds (reference dates) × hub
         horizons × levels."""
         return self.forecasts[forecaster]
-
-    def _known_horizons(self, horizons: Sequence[int] | None) -> list[int]:
-        """``horizons`` (None or empty: all), each one of the round's."""
-        steps = list(horizons or self.horizons)
-        unknown = [h for h in steps if h not in self.horizons]
-        if unknown:
-            raise EnsembleError(f"horizons {unknown} are not among the round's {self.horizons}")
-        return steps
 
     def horizon_index(self, horizon: int) -> int:
         """The position of hub ``horizon`` along the horizons' axis."""
