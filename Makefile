@@ -21,8 +21,12 @@ export OMP_WAIT_POLICY := PASSIVE
 unexport PYTHONDONTWRITEBYTECODE
 # --no-build-isolation: the package builds with the venv's own setuptools and wheel (installed
 # beside torch) instead of a throw-away build environment made on every install.
+# pip first: the pip that venv bundles (23.2.1 with Python 3.11.7) spends most of the install
+# weighing each of the 133,000 files the indexes list for the project's 180 packages; on this
+# 2-core VM the install after torch took 55 s and 40 s with it, 33 s and 25 s with pip 26.3.
 $(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --no-compile 'pip>=25.1'
 	$(PY) -m pip install --quiet --no-compile torch==2.13.0 'setuptools>=68' wheel
 	$(PY) -m pip install --quiet --no-compile --no-build-isolation -e '.[dev]'
 	touch $(STAMP)
