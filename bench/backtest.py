@@ -80,8 +80,9 @@ def design_variants() -> tuple[Any, ...]:
         Variant("growth-qr for gbqr (published until 2026-11-29)",
                 members=tuple("growth-qr" if n == "gbqr" else n for n in members)),
         Variant("with growth-qr", members=(*members, "growth-qr")),
-        # the published rule held within the changes the data have shown (issue 51)
-        Variant("published, bounded", CombineConfig(bounded=PlausibilityConfig())),
+        # the published rule's bound on falls (issue 51): left off, and put on rises too
+        Variant("published, unbounded", CombineConfig(bounded=None)),
+        Variant("published, rises bounded too", CombineConfig(bounded=PlausibilityConfig())),
     )
 
 

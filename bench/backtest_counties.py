@@ -82,8 +82,9 @@ def design_variants() -> tuple[Any, ...]:
         Variant("v-growth-qr for gbqr (published until 2026-11-29)",
                 members=tuple("growth-qr" if n == "gbqr" else n for n in MEMBERS)),
         Variant("v-with-growth-qr", members=(*MEMBERS, "growth-qr")),
-        # the published rule held within the changes the counties have shown (issue 51)
-        Variant("v-published, bounded", CombineConfig(bounded=PlausibilityConfig())),
+        # the published rule's bound on falls (issue 51): left off, and put on rises too
+        Variant("v-published, unbounded", CombineConfig(bounded=None)),
+        Variant("v-published, rises bounded too", CombineConfig(bounded=PlausibilityConfig())),
     )
 
 

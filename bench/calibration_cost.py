@@ -1,6 +1,6 @@
 """What the online interval calibration costs in WIS, on every panel →
-``bench/results/calibration.json`` (keys ``calibration_cost``, ``calibration_cost_worst_window``
-and ``coverage_by_phase``).
+``bench/results/calibration.json`` (keys ``calibration_cost``, ``calibration_cost_worst_window``,
+``coverage_by_phase`` and ``plausibility``).
 
 The cost is the published forecast's WIS over the same average's before the calibration (the
 backtests score both at every cell: ``published`` and ``ensemble-uncalibrated`` in
@@ -119,6 +119,24 @@ def coverage_by_phase() -> dict[str, dict[str, Any]]:
     return out
 
 
+def plausibility() -> dict[str, dict[str, Any]]:
+    """Each panel's published bound (pipeline.combine.plausibility: falls only) and the share
+    of its published quantiles beyond it (0: held within it), beside the share of the same
+    average unbounded and of each member, as its backtest measured them."""
+    out: dict[str, dict[str, Any]] = {}
+    for panel, results, source, target in _sections():
+        figures = results.get("plausibility")
+        if not figures:
+            out[panel] = {"value": None, "source": source, "why": "its results predate the "
+                          "figure: re-run its backtest"}
+            continue
+        shares = figures["share_beyond"]
+        out[panel] = {"value": shares.get("published"), "source": source,
+                      "bound": figures["bound"], "cells_bounded": figures["cells_bounded"],
+                      "share_beyond": shares}
+    return out
+
+
 def _holds(interval: list[float] | None, value: float) -> bool | None:
     return None if interval is None else bool(interval[0] <= value <= interval[1])
 
@@ -139,6 +157,9 @@ def main() -> int:
         **{p: f["value"] for p, f in windows.items()}}
     current["coverage_by_phase"] = {"panels": phases,
                                     "command": "python -m bench.calibration_cost"}
+    bounded = plausibility()
+    current["plausibility"] = {"panels": bounded, "command": "python -m bench.calibration_cost",
+                               **{p: f["value"] for p, f in bounded.items()}}
     atomic_write_json(path, current)
     for panel, figures in costs.items():
         detail = ", ".join(f"{t} {v:.4f}" for t, v in figures.get("by_target", {}).items())
@@ -151,6 +172,8 @@ def main() -> int:
         for name, v in figures.get("variants", {}).items():
             if v["all"] is not None and v["worst_window"] is not None:
                 print(f"{'':9s}   {name}: all {v['all']:.4f}, worst {v['worst_window']:.4f}")
+    for panel, figures in bounded.items():
+        print(f"{panel:9s} published quantiles beyond the bound: {figures['value']}")
     for panel, figures in phases.items():
         rising = figures.get("rising")
         print(f"{panel:9s} rising 50%: " + (f"{rising['coverage50']:.2f} "

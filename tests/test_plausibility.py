@@ -12,8 +12,8 @@ from pipeline.backtest.backtest import run_backtest
 from pipeline.backtest.config import BacktestConfig, Variant
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, CombineConfig
-from pipeline.combine.plausibility import (PlausibilityConfig, bounded, plausible_bands,
-                                           share_beyond)
+from pipeline.combine.plausibility import (FALLS_BOUND, PlausibilityConfig, bounded,
+                                           plausible_bands, share_beyond)
 from pipeline.members.base import MemberForecast
 from pipeline.panels.history import WeeklyHistory
 from pipeline.panels.panel import Cells, Panel, panel_cells
@@ -41,6 +41,24 @@ def test_a_panel_of_steady_growth_bounds_every_horizon_to_that_growth() -> None:
         expected = np.expm1(np.log1p(last) + h * np.log(1.1))
         np.testing.assert_allclose(bands[:, k, 0], expected, rtol=1e-9)
         np.testing.assert_allclose(bands[:, k, 1], expected, rtol=1e-9)
+
+
+def test_a_bound_on_falls_only_lifts_the_low_quantiles_and_leaves_the_rises() -> None:
+    """The steady-growth panel bounded on falls alone: the lower band is that growth exactly,
+    the upper band is open, so a quantile below the growth is lifted onto it and one far above
+    it stays."""
+    weeks = np.arange(60)
+    counts = np.expm1(np.log(50.0 + 10 * np.arange(10))[:, None] + np.log(1.1) * weeks)
+    cells = panel_cells(_panel(counts), [_panel(counts).dates[40]], seed=0)
+    bands = plausible_bands(cells, (1, 3), PlausibilityConfig(min_rows=5, bound_rises=False))
+    expected = np.expm1(np.log1p(counts[:, 40])[:, None] + np.array([1, 3]) * np.log(1.1))
+    np.testing.assert_allclose(bands[..., 0], expected, rtol=1e-9)
+    assert np.isnan(bands[..., 1]).all()
+    q = np.stack([0.5 * expected, 10.0 * expected], axis=-1)        # (10, 2, 2)
+    held = bounded(q, bands)
+    np.testing.assert_allclose(held[..., 0], expected, rtol=1e-9)
+    np.testing.assert_array_equal(held[..., 1], q[..., 1])
+    assert share_beyond(q, bands) == 0.5 and share_beyond(held, bands) == 0.0
 
 
 def test_the_bound_reads_only_the_past_and_weeks_at_the_cells_level() -> None:
@@ -106,7 +124,8 @@ def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so()
 
     bound = CombineConfig(scale="log", calibration="none", bounded=PlausibilityConfig(min_rows=20))
     config = BacktestConfig(horizons=(1, 2), levels=(0.05, 0.5, 0.95), seed=0,
-                            combine=CombineConfig(scale="log", calibration="none"),
+                            combine=CombineConfig(scale="log", calibration="none",
+                                                  bounded=None),
                             variants=(Variant("bounded", bound),))
     result = run_backtest(Whole(), [Collapsing()], origins, config)
     free = result.forecasts[TARGET][PUBLISHED].values
@@ -117,6 +136,25 @@ def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so()
     assert share_beyond(free, bands) > 0.3
     assert share_beyond(held, bands) == 0.0
     np.testing.assert_array_equal(held, bounded(free, bands))
+    assert "plausibility" not in result.summary()            # the published was not bounded
+
+    # the published default: falls bounded (FALLS_BOUND), rises open; the summary says how far
+    # beyond that bound each forecaster went, the published forecast nowhere
+    falls = dataclasses.replace(bound.bounded, bound_rises=False)
+    published = run_backtest(Whole(), [Collapsing()], origins, dataclasses.replace(
+        config, combine=CombineConfig(scale="log", calibration="none", bounded=falls),
+        variants=()))
+    lower = plausible_bands(panel_cells(panel, origins, 0), (1, 2), falls
+                            ).reshape(*free.shape[:3], 2)
+    np.testing.assert_array_equal(published.bounds, lower)
+    np.testing.assert_array_equal(published.forecasts[TARGET][PUBLISHED].values,
+                                  np.maximum(free, lower[..., :1]))
+    report = published.summary()["plausibility"]
+    assert report["bound"]["bound_rises"] is False and report["cells_bounded"] == 1.0
+    assert report["share_beyond"][PUBLISHED] == 0.0
+    assert report["share_beyond"]["collapsing"] == pytest.approx(share_beyond(free, lower))
+    assert report["share_beyond"]["collapsing"] > 0.3
+    assert CombineConfig().bounded == FALLS_BOUND and not FALLS_BOUND.bound_rises
 
 
 def test_skill_weights_pass_over_a_member_without_past_forecasts() -> None:

@@ -194,7 +194,9 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
                           references=tuple(r.name for r in references), forecasts=forecasts,
                           truth=truth, regimes=regimes, weights=combined.weights, paths=paths,
                           reported=keep, seconds=seconds, config=config,
-                          failures=failures).reported_only()
+                          failures=failures,
+                          bounds=(None if config.combine.bounded is None
+                                  else bands[config.combine.bounded])).reported_only()
 
 
 def _add(forecasts: dict[str, dict[str, Quantiles]], name: str, count: Quantiles,

@@ -24,6 +24,7 @@ from pipeline.members.isolation import MemberFailure
 from pipeline.combine.average import EnsembleError
 from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED
 from pipeline.combine.paths import InvalidCounts, add_counts, count_invalid
+from pipeline.combine.plausibility import share_beyond
 from pipeline.evaluation.summary import calibration_cost, regime_masks, summarize_forecaster
 from pipeline.members.hub_baseline import HUB_BASELINE
 from pipeline.panels.history import EpiHistory, History
@@ -89,6 +90,9 @@ class BacktestResult:
     config: BacktestConfig
     # the members the guard left out, and where (pipeline.members.isolation)
     failures: dict[str, MemberFailure] = dataclasses.field(default_factory=dict)
+    # (C, O, H, 2) the published bound on the count target's quantiles (None: not bounded;
+    # pipeline.combine.plausibility)
+    bounds: NDArray[np.float64] | None = None
 
     @property
     def places(self) -> tuple[str, ...]:
@@ -142,6 +146,7 @@ class BacktestResult:
             regimes=self.regimes[cells],
             weights=self.weights[o], paths=None if self.paths is None else self.paths[cells],
             reported=self.reported[o],
+            bounds=None if self.bounds is None else self.bounds[cells],
             failures={n: MemberFailure(f.cells[cells], f.why) for n, f in self.failures.items()})
 
     def dropped_members(self, index: int = -1) -> dict[str, str]:
@@ -223,11 +228,26 @@ class BacktestResult:
             "config": _config_dict(self.config),
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
+        if self.bounds is not None:
+            out["plausibility"] = self.plausibility()
         if self.paths is not None:
             invalid = self.invalid_counts()
             out["invalid_values"] = invalid.total
             out["invalid_values_detail"] = invalid.to_dict()
         return out
+
+    def plausibility(self) -> dict[str, Any]:
+        """The published bound (:mod:`pipeline.combine.plausibility`) and, for every
+        forecaster of the count target, the share of its quantiles beyond it (the published
+        forecast's is 0: it is held within it)."""
+        if self.bounds is None:
+            raise EnsembleError("this backtest's published forecast was not bounded")
+        count = self.forecasts[self.panel.count_target]
+        bound = self.config.combine.bounded
+        return {"bound": None if bound is None else dataclasses.asdict(bound),
+                "cells_bounded": float(np.isfinite(self.bounds).any(axis=-1).mean()),
+                "share_beyond": {name: share_beyond(q.values, self.bounds)
+                                 for name, q in count.items()}}
 
     def _unit(self, target: str) -> NDArray[np.float64]:
         """Turns the target into counts for the PIT: N for I, 1 for a count."""

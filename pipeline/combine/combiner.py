@@ -12,8 +12,11 @@ average of their CDFs: wider where the members disagree, at the turns); then the
 calibration of the intervals' widths per phase of the epidemic, which leaves the median alone:
 adaptive conformal trackers at η = 0, 0.05, 0.15 and 0.3, each interval's misses in units of
 their own standard deviation, aggregated by their skill among those whose intervals cover
-(``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`). One tracker
-at η = 0.15 (``"regime-aci"``) was published until 2026-11-29: it cost up to 1.3 % of WIS where
+(``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`). Last,
+every quantile is held at or above the lowest count the panel's own history allows: no fall
+faster than its places had shown from weeks at that level (``FALLS_BOUND``,
+:mod:`pipeline.combine.plausibility`; rises are left open: a new variant may outgrow them
+all). One tracker at η = 0.15 (``"regime-aci"``) was published until 2026-11-29: it cost up to 1.3 % of WIS where
 the average already covered (the counties) and its 95 % interval moved too slowly where it did
 not (hub admissions). Designed on California's counties and checked on San Francisco and the
 hub's rounds (``bench/results/calibration.json``): the average alone (log scale, no
@@ -28,7 +31,7 @@ daily source is the count over N: the published I and count are one forecast.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -42,7 +45,7 @@ from pipeline.combine.recalibration import (ONLINE_METHODS, RECALIBRATION_METHOD
                                             TRACKING_STEPS, AggregatedTracker, IntervalTracker,
                                             RecalibrationMethod, TrackingStep,
                                             calibrated_levels, fit_recalibration)
-from pipeline.combine.plausibility import PlausibilityConfig
+from pipeline.combine.plausibility import FALLS_BOUND, PlausibilityConfig
 from pipeline.evaluation.regimes import N_REGIMES
 from pipeline.members.base import Member, MemberForecast, forecast_within_reach
 from pipeline.panels.panel import Cells
@@ -81,8 +84,8 @@ class CombineConfig:
     # the same average over the members that reach it — a different forecaster, to be named so
     beyond_reach: BeyondReach = "missing"
     # quantiles held within the changes the panel's history has shown (None: not held;
-    # pipeline.combine.plausibility)
-    bounded: PlausibilityConfig | None = None
+    # pipeline.combine.plausibility): published, falls only (FALLS_BOUND)
+    bounded: PlausibilityConfig | None = field(default_factory=lambda: FALLS_BOUND)
 
     def __post_init__(self) -> None:
         if self.beyond_reach not in ("missing", "reachable-members"):
@@ -111,7 +114,7 @@ class CombineConfig:
 
 
 # The published rule until 2026-11: the log-scale average alone (scored beside the published).
-LOG_AVERAGE = CombineConfig(scale="log", calibration="none")
+LOG_AVERAGE = CombineConfig(scale="log", calibration="none", bounded=None)
 
 
 @dataclass(frozen=True, eq=False)
