@@ -184,6 +184,9 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
     covered = result.forecasts[PUBLISHED].select(horizons=(0, 1)).score(
         result.truth.select(horizons=(0, 1))).covered[0.5]
     assert summary["coverage50"] == pytest.approx(float(np.nanmean(covered)), abs=1e-12)
+    # the published forecast is held within the bound on falls; the baseline alone goes below
+    beyond = result.backtest.plausibility()["share_beyond"]
+    assert beyond[PUBLISHED] == 0.0 and beyond["hub-baseline"] > 0.01
     frame = compound_sample_ids(result.round_frame(len(rounds) - 1))
     root = tmp_path / "hub"
     shutil.copytree(NHSN / "hub-config", root / "hub-config")
@@ -204,6 +207,34 @@ def test_real_rounds_in_real_time_and_the_round_file(real_vintages, tmp_path):
     assert sorted(every["reference_date"].astype(str).unique()) == [
         str(r.reference.date()) for r in rounds]
     assert len(every) == 8 * 53 * 5 * (23 + 200)
+
+
+def test_the_reconciled_forecast_is_held_within_the_bound_on_falls(real_vintages, monkeypatch):
+    """A reconciliation that pulls every state's quantiles down to a tenth (as a national
+    forecast far below the states' sum would): the published forecast is held at its bound
+    again after it, where the same reconciliation without the bound goes below it."""
+    import pipeline.backtest.hub_rounds as engine
+
+    def collapsing(values, places, national, levels):
+        states = np.array([p != national for p in places])
+        return np.where(states[:, None, None, None], 0.1 * values, values)
+
+    monkeypatch.setattr(engine, "top_down", collapsing)
+    rounds = hub_rounds(real_vintages[:3])
+    result = run_hub_rounds(rounds, real_vintages[-1][1],
+                            [HubBaseline(HubBaselineConfig(n_samples=200))],
+                            HubBacktestConfig(burn_in_weeks=0, n_samples=0))
+    held = result.backtest
+    lower = np.nan_to_num(held.bounds[..., 0], nan=-np.inf)     # NaN: no bound there
+    published = held.forecasts[held.panel.count_target][PUBLISHED].values
+    unreconciled = held.forecasts[held.panel.count_target]["published-unreconciled"].values
+    assert held.plausibility()["share_beyond"][PUBLISHED] == 0.0
+    assert (published >= lower[..., None]).all()
+    pulled = 0.1 * unreconciled
+    assert (pulled < lower[..., None]).mean() > 0.1          # the reconciliation went below
+    np.testing.assert_array_equal(published, np.maximum(np.where(
+        np.array([p != "US" for p in held.places])[:, None, None, None], pulled, unreconciled),
+        lower[..., None]))
 
 
 def test_each_hub_target_averages_its_own_members():
