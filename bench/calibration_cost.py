@@ -126,9 +126,10 @@ def plausibility() -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for panel, results, source, target in _sections():
         figures = results.get("plausibility")
-        if not figures:
-            out[panel] = {"value": None, "source": source, "why": "its results predate the "
-                          "figure: re-run its backtest"}
+        if not figures or figures.get("bound") is None:
+            out[panel] = {"value": None, "source": source,
+                          "why": (figures or {}).get("why", "its results predate the figure: "
+                                                     "re-run its backtest")}
             continue
         shares = figures["share_beyond"]
         out[panel] = {"value": shares.get("published"), "source": source,

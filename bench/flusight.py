@@ -345,7 +345,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "calibration_cost_variants": {n: c for n, c in costs.items() if n != PUBLISHED},
         # the published bound on falls, and each forecaster's share of quantiles beyond it
         # (the rounds' weekly steps; the published forecast after its reconciliation)
-        "plausibility": result.backtest.plausibility(),
+        "plausibility": (result.backtest.plausibility() if result.backtest.bounds is not None
+                         else {"bound": None, "why": "a proportion: not bounded"}),
         "rank": [r["model_id"] for r in published["all"]].index(PUBLISHED) + 1,
         "n_models": len(published["all"]),
         "teams": {r["model_id"]: {"relative_wis": float(r["relative_wis"]),

@@ -417,7 +417,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "calibration_cost_variants": {n: c for n, c in costs.items() if n != PUBLISHED},
         # the published bound on falls, and each forecaster's share of quantiles beyond it
         # (the rounds' weekly steps; the published forecast after its reconciliation)
-        "plausibility": result.backtest.plausibility(),
+        "plausibility": (result.backtest.plausibility() if result.backtest.bounds is not None
+                         else {"bound": None, "why": "a proportion: not bounded"}),
         "coverage_by_horizon": coverage,
         "ablations": ablations,
         "n_rounds": len(rounds), "n_locations": len(result.places),

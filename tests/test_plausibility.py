@@ -157,6 +157,34 @@ def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so()
     assert CombineConfig().bounded == FALLS_BOUND and not FALLS_BOUND.bound_rises
 
 
+def test_a_proportion_is_not_bounded() -> None:
+    """The ED share (a proportion) is left open: held to its falls, its 95 % interval missed
+    (bench/results/nhsn.json); the backtest has no bound and publishes what it combined."""
+    rng = np.random.default_rng(1)
+    counts = np.round(np.exp(np.log(500.0) + np.cumsum(rng.normal(0, 0.1, (8, 70)), axis=1)))
+    dates = pd.date_range("2023-01-07", periods=70, freq="7D")
+    share = "wk inc covid prop ed visits"
+    panel = Panel({f"p{i}": WeeklyHistory(dates, c, 1_000_000, share)
+                   for i, c in enumerate(counts)}, name="synthetic-share")
+
+    class Whole:
+        latest = panel
+
+        def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
+            return panel
+
+    origins = list(panel.dates[30:60:3])
+    config = BacktestConfig(horizons=(1, 2), levels=(0.05, 0.5, 0.95), seed=0,
+                            combine=CombineConfig(scale="log", calibration="none"))
+    assert config.combine.bounded == FALLS_BOUND
+    result = run_backtest(Whole(), [Collapsing()], origins, config)
+    free = run_backtest(Whole(), [Collapsing()], origins, dataclasses.replace(
+        config, combine=dataclasses.replace(config.combine, bounded=None)))
+    assert result.bounds is None and "plausibility" not in result.summary()
+    np.testing.assert_array_equal(result.forecasts[share][PUBLISHED].values,
+                                  free.forecasts[share][PUBLISHED].values)
+
+
 def test_skill_weights_pass_over_a_member_without_past_forecasts() -> None:
     """A member with no forecast at some past cells (NaN there) is weighted on the cells it
     forecast: finite weights that sum to one, the better member weighted more."""
