@@ -159,7 +159,7 @@ def run_backtest(data: DataAtOrigins, members: Sequence[Member],
     def held(values: NDArray[np.float64], combiner: CombineConfig) -> NDArray[np.float64]:
         """``values`` within the changes the panel has shown, where ``combiner`` says so and
         the target is a count (a proportion such as the ED share is not bounded: held to its
-        falls, the share's 95 % interval covered 0.936 [0.921, 0.946], nhsn.json 2026-11-30)."""
+        falls, the share's 95 % interval covered 0.936 [0.921, 0.946]: bench.nhsn at f3da0a0)."""
         if combiner.bounded is None or is_share(count):
             return values
         if combiner.bounded not in bands:

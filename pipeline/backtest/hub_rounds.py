@@ -262,7 +262,7 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
                                                            levels))
         if result.bounds is not None:
             # a state's quantiles move with the nation's: held within its bound again (1.3 %
-            # of COVID-19 admissions' published quantiles fell below it, nhsn.json 2026-11-30)
+            # of COVID-19 admissions' published quantiles fell below it: bench.nhsn at f3da0a0)
             count[PUBLISHED] = count[PUBLISHED].with_values(bounded(count[PUBLISHED].values,
                                                                     result.bounds))
     scale = target_scale(target)

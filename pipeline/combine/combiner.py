@@ -13,16 +13,16 @@ calibration of the intervals' widths per phase of the epidemic, which leaves the
 adaptive conformal trackers at η = 0, 0.05, 0.15 and 0.3, each interval's misses in units of
 their own standard deviation, aggregated by their skill among those whose intervals cover
 (``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`). Last,
-every quantile is held at or above the lowest count the panel's own history allows: no fall
-faster than its places had shown from weeks at that level (``FALLS_BOUND``,
+every quantile of a count is held at or above the lowest count the panel's own history allows:
+no fall faster than its places had shown from weeks at that level (``FALLS_BOUND``,
 :mod:`pipeline.combine.plausibility`; rises are left open: a new variant may outgrow them
-all). One tracker at η = 0.15 (``"regime-aci"``) was published until 2026-11-29: it cost up to 1.3 % of WIS where
-the average already covered (the counties) and its 95 % interval moved too slowly where it did
-not (hub admissions). Designed on California's counties and checked on San Francisco and the
-hub's rounds (``bench/results/calibration.json``): the average alone (log scale, no
-recalibration: the published rule until 2026-11) held its intervals on average but not at the
-turns; every weight learnt from recent scores and every recalibration from a window of past
-PITs made it worse.
+all). One tracker at η = 0.15 (``"regime-aci"``) was published until 2026-11-29: it cost up to
+1.3 % of WIS where the average already covered (the counties) and its 95 % interval moved too
+slowly where it did not (hub admissions). Designed on California's counties and checked on San
+Francisco and the hub's rounds (``bench/results/calibration.json``): the average alone (log
+scale, no recalibration: the published rule until 2026-11) held its intervals on average but
+not at the turns; every weight learnt from recent scores and every recalibration from a window
+of past PITs made it worse.
 They are kept as the variants every backtest reports beside it: weights
 (:mod:`pipeline.combine.average`: ``inverse-wis``, ``stacking``), the log and linear averages,
 the mixture, and the window recalibrations (:mod:`pipeline.combine.recalibration`). The I of a
