@@ -51,10 +51,9 @@ def design_variants() -> tuple[Any, ...]:
     """The published forecast's design choices against their alternatives, scored on the same
     origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
     weights and widen-only recalibration are its ``inverse-wis`` and ``widen-only`` options)."""
-    from pipeline.backtest.config import (Variant, letting_go_variants,
+    from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
                                           tracking_rate_variants)
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
-    from pipeline.combine.plausibility import PlausibilityConfig
 
     members = ("hub-baseline", "gbqr", "nf-growth", "nf-real")
     return (
@@ -81,8 +80,7 @@ def design_variants() -> tuple[Any, ...]:
                 members=tuple("growth-qr" if n == "gbqr" else n for n in members)),
         Variant("with growth-qr", members=(*members, "growth-qr")),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
-        Variant("published, unbounded", CombineConfig(bounded=None)),
-        Variant("published, rises bounded too", CombineConfig(bounded=PlausibilityConfig())),
+        *bound_variants(CombineConfig(), prefix=""),
     )
 
 

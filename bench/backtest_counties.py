@@ -48,10 +48,9 @@ MEMBERS = ("hub-baseline", "gbqr", "nf-growth", "nf-real")     # the published a
 
 def design_variants() -> tuple[Any, ...]:
     """The alternatives scored beside the published combiner (docs/forecasting.md)."""
-    from pipeline.backtest.config import (Variant, letting_go_variants,
+    from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
                                           tracking_rate_variants)
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
-    from pipeline.combine.plausibility import PlausibilityConfig
 
     long = 1_000                       # every past scored origin
     uncalibrated = CombineConfig(calibration="none")
@@ -83,8 +82,7 @@ def design_variants() -> tuple[Any, ...]:
                 members=tuple("growth-qr" if n == "gbqr" else n for n in MEMBERS)),
         Variant("v-with-growth-qr", members=(*MEMBERS, "growth-qr")),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
-        Variant("v-published, unbounded", CombineConfig(bounded=None)),
-        Variant("v-published, rises bounded too", CombineConfig(bounded=PlausibilityConfig())),
+        *bound_variants(CombineConfig()),
     )
 
 

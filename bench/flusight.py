@@ -211,8 +211,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     forecast."""
     import dataclasses
 
-    from pipeline.combine.plausibility import PlausibilityConfig
-    from pipeline.backtest.config import (Variant, letting_go_variants,
+    from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
                                           skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
@@ -252,9 +251,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                 *skill_weighted_variants(reach, ("nf-context", "nf-weekly", "gbqr", "growth-qr",
                                                  "seasonal"), ("inverse-wis",)),
                 # the published rule's bound on falls (issue 51): off, and on rises too
-                Variant("v-published, unbounded", dataclasses.replace(reach, bounded=None)),
-                Variant("v-published, rises bounded too", dataclasses.replace(
-                    reach, bounded=PlausibilityConfig())),
+                *bound_variants(reach),
                 *tracking_rate_variants(reach),
                 *letting_go_variants(reach),
                 Variant("v-log-mixture, no online calibration",

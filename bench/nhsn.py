@@ -292,8 +292,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     import numpy as np
     import pandas as pd
 
-    from pipeline.combine.plausibility import PlausibilityConfig
-    from pipeline.backtest.config import (Variant, letting_go_variants,
+    from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
                                           skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
                                               summary_by_horizon)
@@ -342,9 +341,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-log-mixture, no online calibration",
                 dataclasses.replace(reach, calibration="none")),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
-        Variant("v-published, unbounded", dataclasses.replace(reach, bounded=None)),
-        Variant("v-published, rises bounded too", dataclasses.replace(
-            reach, bounded=PlausibilityConfig())),
+        *bound_variants(reach),
         *tracking_rate_variants(reach),
         *letting_go_variants(reach),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),

@@ -21,10 +21,27 @@ from pipeline.panels.panel import Cells, Panel, panel_cells
 TARGET = "wk inc flu hosp"
 
 
-def _panel(counts: np.ndarray) -> Panel:
+def _panel(counts: np.ndarray, target: str = TARGET) -> Panel:
     dates = pd.date_range("2023-01-07", periods=counts.shape[1], freq="7D")
-    return Panel({f"p{i}": WeeklyHistory(dates, c, 1_000_000, TARGET)
+    return Panel({f"p{i}": WeeklyHistory(dates, c, 1_000_000, target)
                   for i, c in enumerate(counts)}, name="synthetic")
+
+
+def _walk(target: str = TARGET) -> Panel:
+    """Eight places on random walks of σ = 0.1 a week in log, from 500, over 70 weeks."""
+    rng = np.random.default_rng(1)
+    counts = np.exp(np.log(500.0) + np.cumsum(rng.normal(0, 0.1, (8, 70)), axis=1))
+    return _panel(np.round(counts), target)
+
+
+@dataclasses.dataclass(frozen=True)
+class Whole:
+    """The backtest's data (``DataAtOrigins``): the same panel at every origin."""
+
+    latest: Panel
+
+    def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
+        return self.latest
 
 
 def test_a_panel_of_steady_growth_bounds_every_horizon_to_that_growth() -> None:
@@ -109,28 +126,18 @@ class Collapsing:
 
 
 def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so() -> None:
-    from pipeline.backtest.backtest import DataAtOrigins  # noqa: F401 - the protocol it takes
-
-    rng = np.random.default_rng(1)
-    counts = np.exp(np.log(500.0) + np.cumsum(rng.normal(0, 0.1, (8, 70)), axis=1))
-    panel = _panel(np.round(counts))
+    panel = _walk()
     origins = list(panel.dates[30:60:3])
-
-    class Whole:
-        latest = panel
-
-        def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
-            return panel
-
-    bound = CombineConfig(scale="log", calibration="none", bounded=PlausibilityConfig(min_rows=20))
+    both_ways = PlausibilityConfig(min_rows=20)
+    bound = CombineConfig(scale="log", calibration="none", bounded=both_ways)
     config = BacktestConfig(horizons=(1, 2), levels=(0.05, 0.5, 0.95), seed=0,
                             combine=CombineConfig(scale="log", calibration="none",
                                                   bounded=None),
                             variants=(Variant("bounded", bound),))
-    result = run_backtest(Whole(), [Collapsing()], origins, config)
+    result = run_backtest(Whole(panel), [Collapsing()], origins, config)
     free = result.forecasts[TARGET][PUBLISHED].values
     held = result.forecasts[TARGET]["bounded"].values
-    bands = plausible_bands(panel_cells(panel, origins, 0), (1, 2), bound.bounded
+    bands = plausible_bands(panel_cells(panel, origins, 0), (1, 2), both_ways
                             ).reshape(*free.shape[:3], 2)
     # the member's 5 % quantile falls by 95 %, far beyond a walk of σ = 0.1 a week
     assert share_beyond(free, bands) > 0.3
@@ -140,8 +147,8 @@ def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so()
 
     # the published default: falls bounded (FALLS_BOUND), rises open; the summary says how far
     # beyond that bound each forecaster went, the published forecast nowhere
-    falls = dataclasses.replace(bound.bounded, bound_rises=False)
-    published = run_backtest(Whole(), [Collapsing()], origins, dataclasses.replace(
+    falls = dataclasses.replace(both_ways, bound_rises=False)
+    published = run_backtest(Whole(panel), [Collapsing()], origins, dataclasses.replace(
         config, combine=CombineConfig(scale="log", calibration="none", bounded=falls),
         variants=()))
     lower = plausible_bands(panel_cells(panel, origins, 0), (1, 2), falls
@@ -160,25 +167,14 @@ def test_the_backtest_bounds_the_published_forecast_where_its_combiner_says_so()
 def test_a_proportion_is_not_bounded() -> None:
     """The ED share (a proportion) is left open: held to its falls, its 95 % interval missed
     (bench/results/nhsn.json); the backtest has no bound and publishes what it combined."""
-    rng = np.random.default_rng(1)
-    counts = np.round(np.exp(np.log(500.0) + np.cumsum(rng.normal(0, 0.1, (8, 70)), axis=1)))
-    dates = pd.date_range("2023-01-07", periods=70, freq="7D")
     share = "wk inc covid prop ed visits"
-    panel = Panel({f"p{i}": WeeklyHistory(dates, c, 1_000_000, share)
-                   for i, c in enumerate(counts)}, name="synthetic-share")
-
-    class Whole:
-        latest = panel
-
-        def known_at(self, index: int, origin: pd.Timestamp) -> Panel:
-            return panel
-
+    panel = _walk(share)
     origins = list(panel.dates[30:60:3])
     config = BacktestConfig(horizons=(1, 2), levels=(0.05, 0.5, 0.95), seed=0,
                             combine=CombineConfig(scale="log", calibration="none"))
     assert config.combine.bounded == FALLS_BOUND
-    result = run_backtest(Whole(), [Collapsing()], origins, config)
-    free = run_backtest(Whole(), [Collapsing()], origins, dataclasses.replace(
+    result = run_backtest(Whole(panel), [Collapsing()], origins, config)
+    free = run_backtest(Whole(panel), [Collapsing()], origins, dataclasses.replace(
         config, combine=dataclasses.replace(config.combine, bounded=None)))
     assert result.bounds is None and "plausibility" not in result.summary()
     np.testing.assert_array_equal(result.forecasts[share][PUBLISHED].values,

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from pipeline.combine.average import EnsembleError, WeightMethod
 from pipeline.combine.combiner import CombineConfig
+from pipeline.combine.plausibility import PlausibilityConfig
 from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
 
 
@@ -50,6 +51,16 @@ def letting_go_variants(published: CombineConfig, prefix: str = "v-") -> tuple[V
                         published, aggregation_memory_origins=FORGETTING_HALF_LIFE_ORIGINS)),
             Variant(f"{prefix}calibration letting go ({STRETCH_LEAK:.0%} of a stretch a week)",
                     dataclasses.replace(published, tracking_leak=STRETCH_LEAK)))
+
+
+def bound_variants(published: CombineConfig, prefix: str = "v-") -> tuple[Variant, ...]:
+    """The published combiner without its bound on falls, and with the rises bounded too
+    (:mod:`pipeline.combine.plausibility`), named ``<prefix>published, …`` (every panel's
+    backtest scores them beside it)."""
+    return (Variant(f"{prefix}published, unbounded", dataclasses.replace(published,
+                                                                         bounded=None)),
+            Variant(f"{prefix}published, rises bounded too",
+                    dataclasses.replace(published, bounded=PlausibilityConfig())))
 
 
 def skill_weighted_variants(published: CombineConfig, members: tuple[str, ...],

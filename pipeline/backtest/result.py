@@ -240,11 +240,11 @@ class BacktestResult:
         """The published bound (:mod:`pipeline.combine.plausibility`) and, for every
         forecaster of the count target, the share of its quantiles beyond it (the published
         forecast's is 0: it is held within it)."""
-        if self.bounds is None:
+        bound = self.config.combine.bounded
+        if self.bounds is None or bound is None:
             raise EnsembleError("this backtest's published forecast was not bounded")
         count = self.forecasts[self.panel.count_target]
-        bound = self.config.combine.bounded
-        return {"bound": None if bound is None else dataclasses.asdict(bound),
+        return {"bound": dataclasses.asdict(bound),
                 "cells_bounded": float(np.isfinite(self.bounds).any(axis=-1).mean()),
                 "share_beyond": {name: share_beyond(q.values, self.bounds)
                                  for name, q in count.items()}}
