@@ -215,14 +215,13 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                                           skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
-    from pipeline.members.boosting import BoostingConfig
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.training.model_store import default_store_root
 
     started = time.perf_counter()
     # no ED-share vintage of influenza in the shared data: the seasonal member reads the
     # admissions' own earlier seasons (its climatology left empty)
-    members = build_hub_members(HubMembersConfig(boosting=BoostingConfig()),
+    members = build_hub_members(HubMembersConfig(boosting_beside=True),
                                 default_store_root(), vintages, (),
                                 target=HOSP_FLU, seasonal_own_seasons=True)
     t_members = time.perf_counter() - started

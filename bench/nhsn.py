@@ -284,6 +284,19 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
     return out
 
 
+def gbqr_variants(reach: Any, names: list[str], own_signal: str) -> list[Any]:
+    """gbqr beside the published members ``names``: left out of them (published for admissions
+    until 2026-11-30) or put in, and on the target's own signal alone (``own_signal``)."""
+    from pipeline.backtest.config import Variant
+
+    without = [n for n in names if n != "gbqr"]
+    own = Variant("v-published, gbqr on its own signal", reach, (*without, own_signal))
+    if "gbqr" in names:
+        return [Variant("v-published without gbqr (admissions until 2026-11-30)", reach,
+                        tuple(without)), own]
+    return [Variant("v-published+gbqr", reach, (*names, "gbqr")), own]
+
+
 def run_target(target: str, args: argparse.Namespace, climatology: list[Any], teams: Any,
                exclusions: Any) -> tuple[dict[str, Any], Any]:
     """The target's figures, and its rounds' result (the files of ``--files``)."""
@@ -298,7 +311,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                                               summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
-    from pipeline.members.boosting import BoostingConfig
+    from pipeline.members.boosting import BoostingConfig, PooledBoostingMember
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
     from pipeline.panels.hub import HOSP_COVID, hub_rounds, is_share
@@ -309,13 +322,15 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     rounds = hub_rounds(vintages)
     latest = vintages[-1][1]
     other = load_vintages(HOSP_COVID) if is_share(target) else climatology
-    members = build_hub_members(HubMembersConfig(boosting=BoostingConfig()),
+    members = build_hub_members(HubMembersConfig(boosting_beside=True),
                                 default_store_root(), vintages,
                                 climatology, target=target, other_signal=other)
     t_members = time.perf_counter() - started
     ablated = [] if args.no_ablations else ablation_members(target, vintages, climatology,
                                                            other, args)
     t_ablations = time.perf_counter() - started - t_members
+    # gbqr on the target's own signal alone (issue 51: the published gbqr reads both)
+    own_signal = PooledBoostingMember(BoostingConfig(), name="gbqr-own-signal")
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")
@@ -347,24 +362,29 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
         Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
                 (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
-        # the pooled gradient-boosted member (issue 51) beside the published members, equally
-        # weighted, and the members weighted by their skill on the rounds already scored
-        Variant("v-published+gbqr", reach, (*names, "gbqr")),
+        # the pooled gradient-boosted member (issue 51): in the published average of admissions
+        # since 2026-11-30 (left out, and on the target's own signal alone), beside the share's
+        # (and on its own signal); equally weighted, and the members weighted by their skill on
+        # the rounds already scored
+        *gbqr_variants(reach, names, own_signal.name),
         Variant("v-nf-context+gbqr", reach, ("nf-context", "gbqr")),
         Variant("v-nf-context+seasonal+gbqr", reach, ("nf-context", "seasonal", "gbqr")),
         *skill_weighted_variants(reach, ("nf-context", "seasonal", "gbqr")),
-        *skill_weighted_variants(reach, (*names, "gbqr", "growth-qr"), ("inverse-wis",)),
+        *skill_weighted_variants(reach, tuple(dict.fromkeys((*names, "gbqr", "growth-qr"))),
+                                 ("inverse-wis",)),
     )
-    built = {m.name for m in (*members.published, *members.references)} | {pseudo.name}
+    built = {m.name for m in (*members.published, *members.references)} | {
+        pseudo.name, own_signal.name}
     variants = tuple(v for v in variants if set(v.members or ()) <= built)
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
-                            references=(*members.references, pseudo,
+                            references=(*members.references, pseudo, own_signal,
                                         *[m for _, m in ablated]))
     t_backtest = time.perf_counter() - started - t_members - t_ablations
     ours = ours_all = result.scores()
     board_names = [PUBLISHED, UNRECONCILED, *[m.name for m in members.published],
-                   *[m.name for m in (*members.references, pseudo)], *[v.name for v in variants]]
+                   *[m.name for m in (*members.references, pseudo, own_signal)],
+                   *[v.name for v in variants]]
     ours = ours[ours["model_id"].isin(board_names)]
     per_model = {}
     for name in board_names:

@@ -1,6 +1,8 @@
 """The pooled gradient-boosted quantile member (``gbqr``) against known answers: its scale is
 exactly invertible, its local fit recovers a quadratic, it extrapolates a panel whose fourth-root
-rates rise in straight lines, and on random walks its quantiles are the walk's normal ones."""
+rates rise in straight lines, on random walks its quantiles are the walk's normal ones, and
+with another signal that leads the target by a week it reads the target's next week from it,
+from the other signal's vintage released by the panel's date only."""
 from __future__ import annotations
 
 import numpy as np
@@ -15,10 +17,12 @@ from pipeline.panels.panel import Panel, panel_cells
 CONFIG = BoostingConfig()
 
 
-def _panel(counts: np.ndarray, population: np.ndarray) -> Panel:
-    dates = pd.date_range("2022-01-08", periods=counts.shape[1], freq="7D")
+def _panel(counts: np.ndarray, population: np.ndarray, *, start: str = "2022-01-08",
+           as_of: pd.Timestamp | None = None) -> Panel:
+    dates = pd.date_range(start, periods=counts.shape[1], freq="7D")
     return Panel({f"p{i}": WeeklyHistory(dates, c, int(n), "wk inc flu hosp")
-                  for i, (c, n) in enumerate(zip(counts, population))}, name="synthetic")
+                  for i, (c, n) in enumerate(zip(counts, population))}, name="synthetic",
+                 as_of=as_of)
 
 
 def _counts_of_z(z: np.ndarray, population: np.ndarray) -> np.ndarray:
@@ -88,3 +92,56 @@ def test_random_walks_give_the_walks_normal_quantiles() -> None:
         np.testing.assert_allclose(half_width, expected, rtol=0.15)
         assert abs(np.median(change[:, k, 1])) < 0.25 * expected
     assert block.u.shape == (n_p, n_w)
+
+
+def _leading_signal() -> tuple[Panel, Panel, pd.Timestamp, np.ndarray, np.ndarray]:
+    """Sixty places whose other signal is a Gaussian random walk on z (σ = 0.03 a week, 160
+    weeks) and whose target is that walk a week later, reported for its last 60 weeks only
+    (the hub's admissions beside the ED share's longer history); both released on their last
+    week; the target's next week on z."""
+    rng = np.random.default_rng(2)
+    n_p, n_w, n_target, sigma = 60, 160, 60, 0.03
+    population = np.geomspace(1e6, 1e7, n_p)
+    walk = 1.0 + np.cumsum(rng.normal(0.0, sigma, size=(n_p, n_w + 1)), axis=1)
+    leading, lagged = walk[:, 1:], walk[:, :-1]     # the target at week t: the other at t - 1
+    end = pd.Timestamp("2022-01-08") + pd.Timedelta(weeks=n_w - 1)
+    other = _panel(_counts_of_z(leading, population), population, as_of=end)
+    target = _panel(_counts_of_z(lagged[:, -n_target:], population), population,
+                    start=str((end - pd.Timedelta(weeks=n_target - 1)).date()), as_of=end)
+    return target, other, end, walk[:, -1], population
+
+
+def test_a_signal_leading_by_a_week_gives_the_next_week() -> None:
+    """With the other signal the one-week-ahead median is its last week (median error over
+    places within 0.1 σ of the walk's weekly step; 0.035 σ measured); without it the forecast
+    can only continue the target's own walk, off by about 0.67 σ (0.72 σ measured)."""
+    target, other, end, next_z, population = _leading_signal()
+    cells = panel_cells(target, [target.last_date], seed=0)
+    levels = np.array([0.25, 0.5, 0.75])
+    config = BoostingConfig(n_estimators=200)
+    sigma = 0.03
+
+    def error(member: PooledBoostingMember) -> float:
+        q = member.forecast(cells, (1,), levels).count[:, 0, 1]
+        z = (q / population * 1e5 + CONFIG.rate_offset) ** 0.25
+        return float(np.median(np.abs(z - next_z)))
+
+    assert error(PooledBoostingMember(config, other=((end, other),))) < 0.1 * sigma
+    assert error(PooledBoostingMember(config)) > 0.5 * sigma
+
+
+def test_the_other_signal_is_read_as_released_by_the_panels_date() -> None:
+    """A vintage of the other signal released after the cells' panel is not read: the forecast
+    is the member's without it, and the memo's identity of a cell says which vintage it read."""
+    target, other, end, _, _ = _leading_signal()
+    cells = panel_cells(target, [target.last_date], seed=0)
+    levels = np.array([0.1, 0.5, 0.9])
+    config = BoostingConfig(n_estimators=20)
+    later = PooledBoostingMember(config, other=((end + pd.Timedelta(days=1), other),))
+    alone = PooledBoostingMember(config)
+    np.testing.assert_array_equal(later.forecast(cells, (1, 2), levels).count,
+                                  alone.forecast(cells, (1, 2), levels).count)
+    assert later.other_for(target) is None
+    released = PooledBoostingMember(config, other=((end, other),))
+    identity = released.cell_identity(target.last_date, target)
+    assert isinstance(identity, tuple) and identity[2] is other

@@ -242,7 +242,10 @@ def test_each_hub_target_averages_its_own_members():
     from pipeline.panels.hub import ED_COVID, HOSP_COVID
     config = HubMembersConfig()
     assert published_names(config, HOSP_COVID, refitted=True) == ("nf-context", "nf-weekly",
-                                                                   "seasonal")
+                                                                   "seasonal", "gbqr")
+    # influenza's admissions: the two flows (gbqr and the seasonal member scored beside them)
+    assert published_names(config, HOSP_COVID, refitted=True, own_seasons=True) == (
+        "nf-context", "nf-weekly")
     # the share's average takes the context flow (its pre-trained model serves before a refit)
     assert published_names(config, ED_COVID, refitted=True) == ("nf-context", "seasonal")
     assert published_names(config, ED_COVID, refitted=False) == ("nf-context", "seasonal")
@@ -251,6 +254,19 @@ def test_each_hub_target_averages_its_own_members():
     assert published_names(real, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
     both = HubMembersConfig(published_share=("nf-real", "nf-weekly", "seasonal"))
     assert published_names(both, ED_COVID, refitted=False) == ("nf-weekly", "seasonal")
+
+
+def test_gbqr_reads_the_other_signal_of_its_target():
+    """Admissions' gbqr reads the ED share (the climatology), the share's reads admissions (the
+    other signal given), influenza's (its own seasons, no ED vintage) none."""
+    from pipeline.members.published import other_signal_of
+    from pipeline.panels.hub import ED_COVID, HOSP_COVID
+    ed = ((pd.Timestamp("2025-06-18"), Panel({"01": _weekly([1.0, 2.0])}, name="ed")),)
+    hosp = ((pd.Timestamp("2025-06-18"), Panel({"01": _weekly([3.0, 4.0])}, name="hosp")),)
+    assert other_signal_of(HOSP_COVID, ed, None, own_seasons=False) == ed
+    assert other_signal_of(ED_COVID, ed, hosp, own_seasons=False) == hosp
+    assert other_signal_of(ED_COVID, ed, None, own_seasons=False) == ()
+    assert other_signal_of(HOSP_COVID, (), None, own_seasons=True) == ()
 
 
 @dataclasses.dataclass

@@ -37,6 +37,7 @@ from pipeline.data.core.cache import data_dir
 from pipeline.data.hub.nhsn import NHSNConfig, NHSNProvenance, load_nhsn
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages, disease_targets
 from pipeline.errors import ConfigError, OfflineError
+from pipeline.members.boosting import BoostingConfig
 from pipeline.members.nf.real import FineTuneConfig
 from pipeline.members.nf.context import TINY_CONTEXT_FLOW, TINY_CONTEXT_REFIT
 from pipeline.members.published import HubMembersConfig, build_hub_members
@@ -91,6 +92,7 @@ HUB_PRESETS: dict[str, HubPresetConfig] = {
             finetune=FineTuneConfig(revision_days=14, min_windows=50, iterations=20,
                                     batch_size=128),
             context=TINY_CONTEXT_FLOW, context_refit=TINY_CONTEXT_REFIT, context_seeds=1,
+            boosting=BoostingConfig(n_estimators=10),
             flow_samples=200, baseline_samples=2000, background_training=False),
         HubBacktestConfig(burn_in_weeks=8)),
 }

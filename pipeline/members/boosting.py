@@ -20,9 +20,17 @@ its vintage held then, with the quantile loss.
 
 The places' own histories at the origin (the nowcast's median where the engine nowcasts) give
 the rows predicted; the pool's rows train. Nothing after the origin enters, in any place.
+
+**The other signal** (``other``: the hub's ED share beside admissions, admissions beside the
+share; Flusion's several sources): its vintage as released by the cell's panel's release date
+(``as_of``) adds (a) its level and changes over 1 and 2 weeks at the same place and week as
+features (missing where it has no such week), and (b) its own series as training rows, with an
+indicator of the signal, each signal's row weights averaging 1: admissions, reported since
+2024-11, learn from the share's curves since 2022-10.
 """
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -34,7 +42,8 @@ from numpy.typing import NDArray
 from pipeline.errors import ConfigError
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.members.base import ForecastsByPool, PoolGroup
-from pipeline.panels.targets import DAYS_PER_WEEK
+from pipeline.panels.panel import Panel, known_by
+from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 
 GBQR = "gbqr"
 PER_100K = 1e5
@@ -95,7 +104,8 @@ def scaled(weekly: NDArray[np.float64], population: NDArray[np.float64],
     """``weekly (P, W)`` counts on the member's scale (module docstring)."""
     rate = np.maximum(weekly, 0.0) / population[:, None] * PER_100K
     z = (rate + config.rate_offset) ** 0.25
-    with np.errstate(all="ignore"):                  # a place with no week observed: NaN scale
+    with warnings.catch_warnings():                  # a place with no week observed: NaN scale
+        warnings.simplefilter("ignore", RuntimeWarning)
         scale = np.nanquantile(np.where(np.isfinite(z), z, np.nan), config.scale_quantile,
                                axis=1, keepdims=True)
     floor = config.rate_offset ** 0.25               # a place never above the offset
@@ -132,6 +142,10 @@ def _local_fit(u: NDArray[np.float64], weeks: int) -> NDArray[np.float64]:
 
 FEATURES = ("u", "z", "change_1", "change_2", "change_4", "slope", "curvature", "season_sin",
             "season_cos", "log_population", "horizon")
+# with another signal, before the horizon: which signal the row is (0 the target's own), and
+# the other signal's u and its changes over 1 and 2 weeks at the same place and week
+OTHER_FEATURES = ("signal", "other_u", "other_change_1", "other_change_2")
+_READ_BY_THE_OTHER = [FEATURES.index(n) for n in ("u", "change_1", "change_2")]
 
 
 def features(block: Scaled, week_ends: pd.DatetimeIndex, config: BoostingConfig
@@ -178,7 +192,8 @@ def training_rows(block: Scaled, x: NDArray[np.float64], horizons: Sequence[int]
     if not xs:
         return TrainingRows(np.empty((0, x.shape[-1] + 1)), np.empty(0), np.empty(0))
     weight = np.concatenate(ws)
-    return TrainingRows(np.concatenate(xs), np.concatenate(ys), weight / weight.mean())
+    return TrainingRows(np.concatenate(xs), np.concatenate(ys),
+                        weight / weight.mean() if weight.size else weight)
 
 
 def fit_predict(rows: TrainingRows, x_now: NDArray[np.float64], levels: NDArray[np.float64],
@@ -223,32 +238,123 @@ def _week_ends(origin: pd.Timestamp, n_weeks: int) -> pd.DatetimeIndex:
                              for i in range(n_weeks)])
 
 
+def right_aligned(values: NDArray[np.float64], n_weeks: int) -> NDArray[np.float64]:
+    """``values (P, W, ...)`` over the weeks ending the origin, as the last ``n_weeks`` of
+    them: cut on the left, or NaN before its first week."""
+    if values.shape[1] >= n_weeks:
+        return values[:, values.shape[1] - n_weeks:]
+    pad = np.full((values.shape[0], n_weeks - values.shape[1], *values.shape[2:]), np.nan)
+    return np.concatenate([pad, values], axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class Signal:
+    """One signal's places on the member's scale over the weeks ending the origin, with their
+    :func:`features`."""
+
+    places: list[str]
+    block: Scaled
+    x: NDArray[np.float64]
+
+    @classmethod
+    def of(cls, weekly: NDArray[np.float64], places: list[str],
+           population: NDArray[np.float64], origin: pd.Timestamp, config: BoostingConfig
+           ) -> Signal:
+        block = scaled(weekly, population, config)
+        return cls(places, block, features(block, _week_ends(origin, weekly.shape[1]), config))
+
+    def levels_at(self, places: Sequence[str], n_weeks: int) -> NDArray[np.float64]:
+        """``(len(places), n_weeks, 3)``: this signal's u and its changes over 1 and 2 weeks
+        at ``places`` over the last ``n_weeks`` weeks (NaN at a place it does not have)."""
+        row = {p: i for i, p in enumerate(self.places)}
+        mine = right_aligned(self.x[..., _READ_BY_THE_OTHER], n_weeks)
+        out = np.full((len(places), n_weeks, 3), np.nan)
+        found = [k for k, p in enumerate(places) if p in row]
+        out[found] = mine[[row[places[k]] for k in found]]
+        return out
+
+
+def with_other(x: NDArray[np.float64], signal: float, other: NDArray[np.float64]
+               ) -> NDArray[np.float64]:
+    """``x (P, W, F0)`` with :data:`OTHER_FEATURES`: the row's ``signal`` and ``other``."""
+    return np.concatenate([x, np.full(x.shape[:2] + (1,), signal), other], axis=-1)
+
+
+def both_signals_rows(own: Signal, other: Signal, horizons: Sequence[int],
+                      config: BoostingConfig) -> TrainingRows:
+    """The training rows of the target's pool and of the other signal's (module docstring),
+    each reading the other at the same place and week; each signal's weights average 1."""
+    n_own, n_other = own.x.shape[1], other.x.shape[1]
+    parts = [training_rows(own.block, with_other(own.x, 0.0, other.levels_at(own.places, n_own)),
+                           horizons, config),
+             training_rows(other.block,
+                           with_other(other.x, 1.0, own.levels_at(other.places, n_other)),
+                           horizons, config)]
+    parts = [p for p in parts if len(p.y)]
+    if not parts:
+        return TrainingRows(np.empty((0, own.x.shape[-1] + len(OTHER_FEATURES) + 1)),
+                            np.empty(0), np.empty(0))
+    return TrainingRows(np.concatenate([p.x for p in parts]),
+                        np.concatenate([p.y for p in parts]),
+                        np.concatenate([p.weight for p in parts]))
+
+
+def weeks_since_first(panel: Panel, origin: pd.Timestamp) -> int:
+    """The weeks ending ``origin`` back to ``panel``'s first day (at least 1)."""
+    return max((origin - panel.first_date).days // DAYS_PER_WEEK + 1, 1)
+
+
 @dataclass(frozen=True, eq=False)
 class PooledBoostingMember(ForecastsByPool):
     """``gbqr`` (module docstring): one set of quantile models per panel and origin, trained
-    on the panel's pool as known at the origin, predicting every cell from its own history."""
+    on the panel's pool as known at the origin, predicting every cell from its own history;
+    with ``other`` (the other signal's vintages by release date), on both signals."""
 
     config: BoostingConfig = BoostingConfig()
     name: str = GBQR
+    other: Sequence[tuple[pd.Timestamp, Panel]] = ()
     pools: ClassVar[bool] = True          # learns from the cell's panel (the memo keys on it)
+
+    def other_for(self, panel: Panel) -> Panel | None:
+        """The other signal as released by ``panel``'s release date (none before its first)."""
+        if not self.other:
+            return None
+        if panel.as_of is None:
+            raise TargetError(f"{self.name}: the cell's panel has no release date to choose "
+                              "the other signal known then")
+        return known_by(sorted(self.other, key=lambda v: v[0]), panel.as_of)
+
+    def cell_identity(self, origin: pd.Timestamp, panel: Panel) -> object:
+        """What a cell reads beyond its panel (:class:`~pipeline.members.base.KeyedByCell`):
+        the settings and the other signal as released by the panel's date."""
+        return (self.name, self.config, self.other_for(panel))
 
     def group_forecast(self, group: PoolGroup, horizons: tuple[int, ...],
                        levels: NDArray[np.float64]) -> NDArray[np.float64]:
         """``(B, H, Q)`` counts of the group's cells."""
         origin, n_weeks, own = group.origin, group.n_weeks, group.own
-        week_ends = _week_ends(origin, n_weeks)
-        pool = scaled(group.pool, group.panel.pool_populations(group.places[0]), self.config)
-        rows = training_rows(pool, features(pool, week_ends, self.config), horizons,
-                             self.config)
-        mine = scaled(np.stack(own), group.populations, self.config)
-        now = features(mine, week_ends, self.config)[:, -1]                # (B, F-1)
+        pool = Signal.of(group.pool, group.panel.pool_places(group.places[0]),
+                         group.panel.pool_populations(group.places[0]), origin, self.config)
+        mine = Signal.of(np.stack(own), list(group.places), group.populations, origin,
+                         self.config)
+        now = mine.x[:, -1]                                                # (B, F0)
+        source = self.other_for(group.panel)
+        if source is None:
+            rows = training_rows(pool.block, pool.x, horizons, self.config)
+        else:
+            place = group.places[0]
+            weeks = max(weeks_since_first(source, origin), n_weeks)
+            other = Signal.of(source.pool(place, origin, weeks), source.pool_places(place),
+                              source.pool_populations(place), origin, self.config)
+            rows = both_signals_rows(pool, other, horizons, self.config)
+            now = with_other(mine.x[:, -1:], 0.0, other.levels_at(mine.places, 1))[:, 0]
         n_b, n_h = len(own), len(horizons)
         x_now = np.column_stack([np.repeat(now, n_h, axis=0),
                                  np.tile(np.asarray(horizons, dtype=np.float64), n_b)])
         fitted = np.asarray(self.config.fitted_levels, dtype=np.float64)
         change = fit_predict(rows, x_now, fitted, self.config,
                              boosting_seed(self.config, origin))
-        u_now = last_finite(mine.u)
+        u_now = last_finite(mine.block.u)
         u = u_now[:, None, None] + change.reshape(n_b, n_h, len(fitted))
-        return np.maximum.accumulate(quantiles_at(fitted, counts_of(u, mine, self.config),
+        return np.maximum.accumulate(quantiles_at(fitted, counts_of(u, mine.block, self.config),
                                                   levels), axis=-1)

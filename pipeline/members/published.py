@@ -188,20 +188,22 @@ class HubMembersConfig:
         revision_days=14, min_windows=200, lr=1e-3))
     seasonal: SeasonalConfig = field(default_factory=SeasonalConfig)
     regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
-    # the pooled gradient-boosted quantile member, scored beside the others where given (the
-    # benches); None: not built (a live round, until it joins an average: its first round from
-    # an empty store would forecast the burn-in's 52 weeks with it, about 3.5 s an origin)
-    boosting: BoostingConfig | None = None
-    # Admissions: the context flow (its seeds mixed), the weekly flow and the seasonal member.
-    # Over COVID-19's 44 design rounds the three scored 0.783 against 0.795 for the pair
-    # without the context flow (published until 2026-11), 0.540 against 0.576 on the 15
-    # rounds with the ED climatology (the rounds to come) and 0.879 against 0.878 before it,
-    # with coverage 0.47 / 0.91 against 0.46 / 0.90 (bench/results/nhsn.json).
-    published: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL)
+    # gbqr on both signals (other_signal_of), None: not built; built where an average takes
+    # it, and with ``boosting_beside`` everywhere (the benches)
+    boosting: BoostingConfig | None = field(default_factory=BoostingConfig)
+    boosting_beside: bool = False
+    # Admissions: the context flow (its seeds mixed), the weekly flow, the seasonal member and
+    # gbqr (since 2026-11-30). Over COVID-19's 44 design rounds 0.775 against 0.785 without
+    # gbqr (0.520 against 0.549 with the ED climatology, 0.873 against 0.878 before it; h0
+    # 0.769 against 0.767), coverage 0.47 / 0.92 (the same); gbqr reading admissions alone:
+    # 0.782 (bench/results/nhsn.json; docs/forecasting.md "The pooled gradient-boosted member")
+    published: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL, GBQR)
     # A share (the ED visits): the context flow, refitted globally on the share's own windows
     # since 2022-10 with admissions and the climatology as context, with the seasonal member:
     # 0.618 over the 15 ED rounds, against nf-real + seasonal's 0.647 (0.612 while the flow
-    # read the season, whose flow alone scored 0.677 against 0.635 now)
+    # read the season, whose flow alone scored 0.677 against 0.635 now). With gbqr 0.601 (on
+    # its own signal 0.586), but the 95 % interval then covers 0.926 [0.906, 0.937] (0.931
+    # [0.914, 0.939]) against 0.947 [0.933, 0.958]: skill bought with coverage, not taken
     published_share: tuple[str, ...] = (NF_CONTEXT, SEASONAL)
     # Admissions whose seasonal member reads their own earlier seasons (influenza: no ED
     # vintage): the context flow reads those same seasons as its climatology, and the seasonal
@@ -264,6 +266,17 @@ def context_sources(target: str, climatology: Sequence[tuple[pd.Timestamp, Panel
     return ContextSources(tuple(other_signal), tuple(climatology), POPULATION)
 
 
+def other_signal_of(target: str, climatology: Sequence[tuple[pd.Timestamp, Panel]],
+                    other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None,
+                    own_seasons: bool) -> tuple[tuple[pd.Timestamp, Panel], ...]:
+    """The other signal's vintages the members read beside ``target`` (the ED share beside
+    admissions, admissions beside the share; ``other_signal`` where given, none by default
+    where the climatology is the target's own seasons)."""
+    if own_seasons:
+        return tuple(other_signal or ())
+    return tuple(context_sources(target, climatology, other_signal).other)
+
+
 def context_pool(target: str, vintages: Sequence[tuple[pd.Timestamp, Panel]],
                  climatology: Sequence[tuple[pd.Timestamp, Panel]],
                  other_signal: Sequence[tuple[pd.Timestamp, Panel]] | None,
@@ -308,7 +321,9 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     the same calendar (``nf-context``, :mod:`pipeline.members.nf.context`: its other signal is
     ``other_signal``, by default the ``climatology`` for admissions and none for the share),
     the seasonal member on the ``climatology`` vintages (the ED-visit share), the hub baseline
-    and growth-qr pooled over the 53 locations (and gbqr where ``config.boosting`` is given); :func:`published_names` chooses the average's
+    and growth-qr pooled over the 53 locations (and gbqr on both signals,
+    :func:`other_signal_of`, where ``config.boosting`` is given); :func:`published_names`
+    chooses the average's
     members for ``target``. ``seasonal_own_seasons``: the seasonal member reads the target's own
     earlier seasons instead of the ``climatology`` (influenza: no ED vintage in FluSight's
     data). ``newest_first``: the refits latest first (:mod:`pipeline.hub_round.
@@ -334,8 +349,10 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
                                     climatology_required=True)),
         HubBaseline(HubBaselineConfig(n_samples=config.baseline_samples)),
         PooledGrowthMember(config.regression)]
-    if config.boosting is not None:
-        members.append(PooledBoostingMember(config.boosting))
+    planned = published_names(config, target, refitted=True, own_seasons=seasonal_own_seasons)
+    if config.boosting is not None and (config.boosting_beside or GBQR in planned):
+        members.append(PooledBoostingMember(config.boosting, other=other_signal_of(
+            target, climatology, other_signal, seasonal_own_seasons)))
     dropped: list[Dropped] = []
     started = time.perf_counter()
     try:
@@ -380,5 +397,4 @@ def build_hub_members(config: HubMembersConfig, store_root: Path,
     return HubMembers([m for m in members if m.name in published],
                       [m for m in members if m.name not in published], stored.key,
                       stored.reused, tuple(dropped), seconds,
-                      planned=published_names(config, target, refitted=True,
-                                              own_seasons=seasonal_own_seasons))
+                      planned=planned)

@@ -26,7 +26,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline.members.base import MemberForecast
-from pipeline.panels.panel import Cells, Panel, weeks_ending
+from pipeline.panels.panel import Cells, Panel, known_by, weeks_ending
 from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 
 SEASONAL = "seasonal"
@@ -92,8 +92,7 @@ class SeasonalGrowthMember:
         if panel.as_of is None:
             raise TargetError(f"{self.name}: the cell's panel has no release date to choose "
                               "the climatology known then")
-        known = [p for as_of, p in self.climatology if as_of <= panel.as_of]
-        return known[-1] if known else None
+        return known_by(self.climatology, panel.as_of)
 
     def cell_identity(self, origin: pd.Timestamp, panel: Panel) -> object:
         """What a cell from ``panel`` reads (:class:`~pipeline.members.base.KeyedByCell`):

@@ -134,23 +134,39 @@ class Panel:
                                             if p not in places}}, self.skipped, self.name,
                      self.as_of)
 
+    def pool_places(self, place: str) -> list[str]:
+        """The places of :meth:`pool`'s rows, in its order: the references other than
+        ``place``, then every place of the panel."""
+        return [p for p in self.references if p != place] + list(self.histories)
+
+    def _history(self, place: str) -> History:
+        return self.histories[place] if place in self.histories else self.references[place]
+
     def pool(self, place: str, origin: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
-        """``(P, n_weeks)`` weekly counts a pooled member learns from for a cell of ``place``:
-        the references other than ``place``, then every place of the panel, each over the weeks
-        ending ``origin`` (NaN where not observed). The cell's own series is its panel row."""
-        rows = [h for p, h in self.references.items() if p != place]
-        rows += list(self.histories.values())
-        return np.stack([weeks_ending(h, origin, n_weeks) for h in rows])
+        """``(P, n_weeks)`` weekly counts a pooled member learns from for a cell of ``place``
+        (the rows of :meth:`pool_places`), each over the weeks ending ``origin`` (NaN where not
+        observed). The cell's own series is its panel row."""
+        return np.stack([weeks_ending(self._history(p), origin, n_weeks)
+                         for p in self.pool_places(place)])
 
     def pool_populations(self, place: str) -> NDArray[np.float64]:
         """``(P,)`` the populations of :meth:`pool`'s rows, in its order."""
-        rows = [h for p, h in self.references.items() if p != place]
-        rows += list(self.histories.values())
-        return np.array([h.population for h in rows], dtype=np.float64)
+        return np.array([self._history(p).population for p in self.pool_places(place)],
+                        dtype=np.float64)
 
     def own_row(self, place: str) -> int:
         """The row of ``place`` in :meth:`pool`'s matrix."""
         return sum(1 for p in self.references if p != place) + self.places.index(place)
+
+
+def known_by(vintages: Sequence[tuple[pd.Timestamp, Panel]], as_of: pd.Timestamp | None
+             ) -> Panel | None:
+    """The newest of ``vintages`` (by release date, oldest first) released by ``as_of`` (None:
+    none was; or ``as_of`` unknown): a source as a panel released then reads it."""
+    if as_of is None:
+        return None
+    released = [panel for released_on, panel in vintages if released_on <= as_of]
+    return released[-1] if released else None
 
 
 class PoolKey(NamedTuple):

@@ -39,7 +39,7 @@ from pipeline.members.nf.flow import HALF_CASE, LEVEL_SCALE, RealWindows
 from pipeline.members.nf.weekly import context_rows, cut_windows
 from pipeline.members.seasonal import SeasonalConfig, seasonal_growth, week_of_year
 from pipeline.panels.history import WeeklyHistory
-from pipeline.panels.panel import Panel, weeks_ending
+from pipeline.panels.panel import Panel, known_by, weeks_ending
 from pipeline.panels.targets import DAYS_PER_WEEK, TargetError
 
 TARGET_CHANNELS = 3
@@ -149,15 +149,6 @@ def _climatology_rows(quartiles: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 # ----------------------------------------------------------------------- the real-time sources
-
-
-def known_by(vintages: Sequence[tuple[pd.Timestamp, Panel]], as_of: pd.Timestamp | None
-             ) -> Panel | None:
-    """The newest vintage released by ``as_of`` (None: none was; or ``as_of`` unknown)."""
-    if as_of is None:
-        return None
-    released = [panel for released_on, panel in vintages if released_on <= as_of]
-    return released[-1] if released else None
 
 
 @dataclass(frozen=True, eq=False)
