@@ -134,25 +134,25 @@ class Panel:
                                             if p not in places}}, self.skipped, self.name,
                      self.as_of)
 
-    def pool_places(self, place: str) -> list[str]:
-        """The places of :meth:`pool`'s rows, in its order: the references other than
-        ``place``, then every place of the panel."""
-        return [p for p in self.references if p != place] + list(self.histories)
+    def _pool_rows(self, place: str) -> list[tuple[str, History]]:
+        """:meth:`pool`'s rows: the references other than ``place``, then every place of the
+        panel (a reference may share a name with a place: SF's CDPH series beside DataSF's)."""
+        return ([(p, h) for p, h in self.references.items() if p != place]
+                + list(self.histories.items()))
 
-    def _history(self, place: str) -> History:
-        return self.histories[place] if place in self.histories else self.references[place]
+    def pool_places(self, place: str) -> list[str]:
+        """The places of :meth:`pool`'s rows, in its order."""
+        return [p for p, _ in self._pool_rows(place)]
 
     def pool(self, place: str, origin: pd.Timestamp, n_weeks: int) -> NDArray[np.float64]:
-        """``(P, n_weeks)`` weekly counts a pooled member learns from for a cell of ``place``
-        (the rows of :meth:`pool_places`), each over the weeks ending ``origin`` (NaN where not
-        observed). The cell's own series is its panel row."""
-        return np.stack([weeks_ending(self._history(p), origin, n_weeks)
-                         for p in self.pool_places(place)])
+        """``(P, n_weeks)`` weekly counts a pooled member learns from for a cell of ``place``:
+        the references other than ``place``, then every place of the panel, each over the weeks
+        ending ``origin`` (NaN where not observed). The cell's own series is its panel row."""
+        return np.stack([weeks_ending(h, origin, n_weeks) for _, h in self._pool_rows(place)])
 
     def pool_populations(self, place: str) -> NDArray[np.float64]:
         """``(P,)`` the populations of :meth:`pool`'s rows, in its order."""
-        return np.array([self._history(p).population for p in self.pool_places(place)],
-                        dtype=np.float64)
+        return np.array([h.population for _, h in self._pool_rows(place)], dtype=np.float64)
 
     def own_row(self, place: str) -> int:
         """The row of ``place`` in :meth:`pool`'s matrix."""
