@@ -237,6 +237,36 @@ def test_the_reconciled_forecast_is_held_within_the_bound_on_falls(real_vintages
         lower[..., None]))
 
 
+def test_the_combiner_learns_from_each_rounds_vintage_not_later_revisions(real_vintages):
+    """Ten admissions rounds scored against two later releases that revised their weeks: each
+    round's weights and calibration come from the outcomes its own vintage held (its newest
+    weeks at their nowcast), so every round's published forecast is the same whichever release
+    is the truth (learning from the final values, it was not: the backtest's leak)."""
+    from pipeline.backtest.backtest import Vintages
+    from pipeline.combine.combiner import UNCALIBRATED
+
+    rounds = hub_rounds(real_vintages[:10])
+    members = [HubBaseline(HubBaselineConfig(n_samples=1000)),
+               HubBaseline(HubBaselineConfig(n_samples=500), name="other")]
+    config = HubBacktestConfig(burn_in_weeks=0, n_samples=0)
+    early, final = (run_hub_rounds(rounds, real_vintages[k][1], members, config)
+                    for k in (10, -1))
+    revised = np.isfinite(early.truth.values) & (early.truth.values != final.truth.values)
+    assert revised.sum() > 50                              # the releases disagree on the truth
+    for name in (PUBLISHED, UNCALIBRATED):
+        np.testing.assert_array_equal(early.forecasts[name].values, final.forecasts[name].values)
+    learnt = final.forecasts[PUBLISHED].values[:, -1, 2:] - final.forecasts[UNCALIBRATED].values[
+        :, -1, 2:]
+    assert np.abs(learnt).max() > 0                        # the calibration did move them
+    # origin j's truth: its vintage's values before j, nothing at or after it
+    vintages = Vintages(Panel({p: real_vintages[-1][1].histories[p] for p in ("01", "US")}),
+                        [rounds[0].panel, rounds[1].panel])
+    at = vintages.truth_known([rounds[0].origin, rounds[1].origin], (1,))
+    assert np.isnan(at(0)).all() and np.isnan(at(1)[:, 1]).all()
+    np.testing.assert_array_equal(at(1)[:, 0, 0], [rounds[1].panel.histories[p].cases[-1]
+                                                   for p in ("01", "US")])
+
+
 def test_each_hub_target_averages_its_own_members():
     from pipeline.members.published import HubMembersConfig, published_names
     from pipeline.panels.hub import ED_COVID, HOSP_COVID

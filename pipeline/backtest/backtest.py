@@ -17,6 +17,7 @@ backtest and the hub rounds of NHSN are all this function on different panels.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import time
 from collections.abc import Sequence
@@ -80,6 +81,29 @@ class Vintages:
             raise EnsembleError(f"the vintage of origin {origin.date()} holds data up to "
                                 f"{panel.last_date.date()}, after its origin")
         return panel
+
+    def truth_known(self, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
+                    ) -> KnownTruth:
+        """The count target's truth ``(C, O, H)`` as origin j's vintage holds it (the latest
+        panel's places; NaN where that vintage has no value): the combiner learns at origin j
+        from the outcomes then known, as a forecaster did (NHSN's newest week is revised by a
+        median of +7 % after its first release)."""
+        places, target = self.latest.places, self.latest.count_target
+        origins = list(origins)
+
+        @functools.cache
+        def at(j: int) -> NDArray[np.float64]:
+            vintage = self.known[j]
+            out = np.full((len(places), len(origins), len(horizons)), np.nan)
+            for c, place in enumerate(places):
+                history = vintage.histories.get(place)
+                if history is None:
+                    continue
+                for o, origin in enumerate(origins[:j]):
+                    if history.dates[0] <= origin <= history.origin:
+                        out[c, o] = history.observed(origin, horizons)[target]
+            return out
+        return at
 
 
 def backtest_cells(data: DataAtOrigins, origins: Sequence[pd.Timestamp], seed: int) -> Cells:

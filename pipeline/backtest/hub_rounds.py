@@ -6,7 +6,9 @@ nowcast from the revision pattern of the vintages released before it
 (:mod:`pipeline.nowcast.revisions`); the members forecast every location from the nowcast's
 median history, steps 1 … S after the vintage's last week, all rounds and locations as the one
 backtest's cells (:func:`~pipeline.backtest.backtest.run_backtest`, a vintage per origin); the
-combiner's average (its online calibration burnt in on the year before the first round,
+combiner's average (its weights and online calibration learnt at each round from the outcomes
+its vintage held, the newest weeks at their nowcast's median — a later revision does not move a
+past round —, the calibration burnt in on the year before the first round,
 :func:`burn_in_origins`) is reconciled top-down (:mod:`pipeline.combine.reconcile`: the states'
 medians sum to the national one). Each round's hub horizons −1 … 3 are then the steps
 ``h + lag`` (the vintage is ``lag`` weeks behind the reference date): a step ≤ 0 is a week in
@@ -242,15 +244,17 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
                         name=latest.name, as_of=latest.as_of)
     steps = tuple(range(1, max(config.horizons) + max(r.lag_weeks for r in rounds) + 1))
     burn_in = burn_in_origins(known[0], config.burn_in_weeks)
+    data = Vintages(_aligned(truth_panel, places, known),
+                    [*(known[0].up_to(o) for o in burn_in), *known])
+    origins = [*burn_in, *(r.origin for r in rounds)]
     result = run_backtest(
-        Vintages(_aligned(truth_panel, places, known),
-                 [*(known[0].up_to(o) for o in burn_in), *known]), members,
-        [*burn_in, *(r.origin for r in rounds)],
+        data, members, origins,
         BacktestConfig(horizons=steps, levels=config.levels, seed=config.seed,
                        combine=config.combine, variants=config.variants,
                        n_paths=config.n_samples,
                        member_time_limit_s=config.member_time_limit_s),
-        references=references, reported=[r.origin for r in rounds], progress=progress)
+        references=references, reported=[r.origin for r in rounds],
+        truth_at=data.truth_known(origins, steps), progress=progress)
     seconds = {"nowcast_and_backtest": time.perf_counter() - started}
     count = result.forecasts[target]
     gap = None
