@@ -350,6 +350,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                   "n_rounds": int(r["n_rounds"])} for r in published["all"]},
         "teams_by_season": published["by_season"],
         "members_and_variants": per_model,
+        "reconciliation": result.reconciliation(),
         "rate_change": derived["rate_change"],
         "peak": derived["peak"],
         "validation": validation,

@@ -195,7 +195,7 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
                                    name="nf-context-no-season", n_seeds=config.context_seeds)
     rounds = hub_rounds(vintages)
     result = run_hub_rounds(rounds, vintages[-1][1], [member],
-                            HubBacktestConfig(seed=args.seed, reconcile=False),
+                            HubBacktestConfig(seed=args.seed, reconcile="never"),
                             references=[HubBaseline(HubBaselineConfig(n_samples=10_000)),
                                         no_season])
     truth = read_target_data(flusight / "time-series.parquet", target)
@@ -307,8 +307,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
 
     from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
                                           skill_weighted_variants, tracking_rate_variants)
-    from pipeline.backtest.hub_rounds import (HubBacktestConfig, UNRECONCILED, run_hub_rounds,
-                                              summary_by_horizon)
+    from pipeline.backtest.hub_rounds import (HubBacktestConfig, RECONCILED, UNRECONCILED,
+                                              run_hub_rounds, summary_by_horizon)
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.boosting import BoostingConfig, PooledBoostingMember
@@ -382,7 +382,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                                         *[m for _, m in ablated]))
     t_backtest = time.perf_counter() - started - t_members - t_ablations
     ours = ours_all = result.scores()
-    board_names = [PUBLISHED, UNRECONCILED, *[m.name for m in members.published],
+    board_names = [PUBLISHED, UNRECONCILED, RECONCILED, *[m.name for m in members.published],
                    *[m.name for m in (*members.references, pseudo, own_signal)],
                    *[v.name for v in variants]]
     ours = ours[ours["model_id"].isin(board_names)]
@@ -399,7 +399,6 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
             "coverage95_interval": scored_h["coverage95_interval"]}
     published = leaderboards(ours[ours["model_id"] == PUBLISHED], teams, target, exclusions,
                              first_ed[0])
-    gap = result.gap
     coverage = per_model[PUBLISHED]["coverage"]
     scored = result.summary(PUBLISHED, [h for h in result.horizons if h >= 0])
     wis = ours_all[ours_all["horizon"] >= 0].groupby("model_id")["wis"].sum()
@@ -449,9 +448,9 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         "climatology_from": str(pd.Timestamp(first_ed[0]).date()),
         "teams_by_period": published["by_period"],
         "members_and_variants": per_model,
-        "reconciliation": None if gap is None else {
-            "median_abs_log_gap_before": float(np.nanmedian(np.abs(gap))),
-            "p90_abs_log_gap_before": float(np.nanquantile(np.abs(gap), 0.9))},
+        # the gap before reconciling; where the published forecast was reconciled (where
+        # that scored better on the outcomes known at the round), beside both ways
+        "reconciliation": result.reconciliation(),
         "seconds": {"members": round(t_members, 1), "ablation_members": round(t_ablations, 1),
                     "backtest_rounds": round(t_backtest, 1),
                     "parts": {k: round(v, 1) for k, v in result.seconds.items()}},

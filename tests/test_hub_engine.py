@@ -143,6 +143,31 @@ def test_top_down_makes_the_states_medians_sum_to_the_national_one():
     np.testing.assert_allclose(median_gap(out, places, "US", LEVELS), 0.0, atol=1e-12)
 
 
+def test_the_states_are_reconciled_only_where_that_scored_better_then():
+    """Two versions of a forecast of 10 at every place: at step 1 the plain one is exact and
+    the reconciled one off by 10; at step 2 which is exact depends on the truth as known at the
+    origin (10 before the fifth origin, revised to 20 from it). Each origin takes the one that
+    scored better on the outcomes its own truth held, the reconciled one while none was known."""
+    from pipeline.combine.reconcile import reconciled_where_better
+
+    origins = list(pd.date_range("2025-01-04", periods=6, freq="7D"))
+    levels = np.array([0.25, 0.5, 0.75])
+    plain = np.full((3, 6, 2, 3), 10.0)
+    reconciled = plain.copy()
+    reconciled[1:, :, 0] = 20.0                    # step 1: the states pulled off the truth
+    reconciled[1:, :, 1] = 20.0                    # step 2: exact once the truth is revised
+    baseline = np.full_like(plain, 10.0) + np.array([-5.0, 0.0, 5.0])
+
+    def truth_at(j: int) -> np.ndarray:
+        return np.full((3, 6, 2), 10.0 if j < 4 else 20.0)
+    out, chosen = reconciled_where_better(plain, reconciled, baseline, truth_at, origins,
+                                          (1, 2), levels)
+    assert chosen[:, 0].tolist() == [True, False, False, False, True, True]
+    assert chosen[:, 1].tolist() == [True, True, False, False, True, True]
+    np.testing.assert_array_equal(out[:, 2, 0], plain[:, 2, 0])
+    np.testing.assert_array_equal(out[:, 5, 1], reconciled[:, 5, 1])
+
+
 @pytest.fixture(scope="module")
 def real_vintages(tmp_path_factory) -> list:
     if not (NHSN / "time-series.parquet").exists():
@@ -223,7 +248,8 @@ def test_the_reconciled_forecast_is_held_within_the_bound_on_falls(real_vintages
     rounds = hub_rounds(real_vintages[:3])
     result = run_hub_rounds(rounds, real_vintages[-1][1],
                             [HubBaseline(HubBaselineConfig(n_samples=200))],
-                            HubBacktestConfig(burn_in_weeks=0, n_samples=0))
+                            HubBacktestConfig(burn_in_weeks=0, n_samples=0,
+                                              reconcile="always"))
     held = result.backtest
     lower = np.nan_to_num(held.bounds[..., 0], nan=-np.inf)     # NaN: no bound there
     published = held.forecasts[held.panel.count_target][PUBLISHED].values
@@ -235,6 +261,13 @@ def test_the_reconciled_forecast_is_held_within_the_bound_on_falls(real_vintages
     np.testing.assert_array_equal(published, np.maximum(np.where(
         np.array([p != "US" for p in held.places])[:, None, None, None], pulled, unreconciled),
         lower[..., None]))
+    # reconciled only where that scored better: the first round (nothing scored yet) and the
+    # steps not yet scored; not once its first step has been scored
+    better = run_hub_rounds(rounds, real_vintages[-1][1],
+                            [HubBaseline(HubBaselineConfig(n_samples=200))],
+                            HubBacktestConfig(burn_in_weeks=0, n_samples=0))
+    assert better.reconciled is not None
+    np.testing.assert_array_equal(better.reconciled, np.triu(np.ones((3, 4), dtype=bool)))
 
 
 def test_the_combiner_learns_from_each_rounds_vintage_not_later_revisions(real_vintages):

@@ -10,7 +10,8 @@ combiner's average (its weights and online calibration learnt at each round from
 its vintage held, the newest weeks at their nowcast's median — a later revision does not move a
 past round —, the calibration burnt in on the year before the first round,
 :func:`burn_in_origins`) is reconciled top-down (:mod:`pipeline.combine.reconcile`: the states'
-medians sum to the national one). Each round's hub horizons −1 … 3 are then the steps
+medians sum to the national one) at each round and step where that scored better on the
+outcomes then known. Each round's hub horizons −1 … 3 are then the steps
 ``h + lag`` (the vintage is ``lag`` weeks behind the reference date): a step ≤ 0 is a week in
 the data, whose forecast is its nowcast.
 
@@ -24,7 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 import pandas as pd
@@ -35,9 +36,10 @@ from pipeline.backtest.config import BacktestConfig, Variant
 from pipeline.backtest.backtest import Vintages, run_backtest
 from pipeline.backtest.result import BacktestResult
 from pipeline.combine.average import EnsembleError
-from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig
+from pipeline.combine.combiner import PUBLISHED, UNCALIBRATED, CombineConfig, KnownTruth
 from pipeline.combine.plausibility import bounded
-from pipeline.combine.reconcile import median_gap, reconcilable, top_down
+from pipeline.combine.reconcile import (median_gap, reconcilable, reconciled_where_better,
+                                        top_down)
 from pipeline.evaluation.hub_leaderboard import SCORED_HORIZONS
 from pipeline.evaluation.quantile_function import quantiles_at
 from pipeline.evaluation.summary import calibration_cost, regime_masks, summarize_forecaster
@@ -52,6 +54,11 @@ from pipeline.panels.targets import DAYS_PER_WEEK, HUB_QUANTILE_LEVELS, format_l
 from pipeline.progress import ProgressReporter
 
 UNRECONCILED = "published-unreconciled"
+RECONCILED = "published-reconciled"
+# when the states are scaled to the national median: at every round; at the rounds and steps
+# where that scored better on the outcomes known then (:func:`~pipeline.combine.reconcile.
+# reconciled_where_better`); never
+ReconcileRule = Literal["always", "where-better", "never"]
 # the history a place needs at a burn-in origin (the hub baseline and the flows read 8 weeks)
 BURN_IN_MIN_HISTORY_WEEKS = 8
 
@@ -60,7 +67,7 @@ BURN_IN_MIN_HISTORY_WEEKS = 8
 class HubBacktestConfig:
     """The hub's horizons and levels, the members' seed, the published combiner (a member
     without a forecast — the seasonal one before its data existed — is left out of a cell's
-    average), the variants, the nowcast, top-down reconciliation (counts with a national total),
+    average), the variants, the nowcast, when to reconcile top-down (counts with a national total),
     the sample trajectories per location and target, and the weeks of the online calibration's
     burn-in before the first round (:func:`burn_in_origins`)."""
 
@@ -71,7 +78,7 @@ class HubBacktestConfig:
         beyond_reach="reachable-members", outer_interval=0.95))
     variants: tuple[Variant, ...] = ()
     nowcast: RevisionNowcastConfig = field(default_factory=RevisionNowcastConfig)
-    reconcile: bool = True
+    reconcile: ReconcileRule = "where-better"
     n_samples: int = 200
     member_time_limit_s: float | None = 1800.0
     # the online calibration's burn-in: weeks before the first round (:func:`burn_in_origins`)
@@ -80,6 +87,9 @@ class HubBacktestConfig:
     def __post_init__(self) -> None:
         if self.burn_in_weeks < 0:
             raise EnsembleError(f"burn_in_weeks={self.burn_in_weeks} must be >= 0")
+        if self.reconcile not in get_args(ReconcileRule):
+            raise EnsembleError(f"reconcile={self.reconcile!r} is not one of "
+                                f"{get_args(ReconcileRule)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,7 +97,8 @@ class HubRoundsResult:
     """Every round of one target (module docstring). ``forecasts[name]`` (locations × rounds ×
     horizons × levels) and ``truth`` in the hub's units, labelled by reference date;
     ``samples`` ``(C, R, n, H)`` of the published forecast; ``gap`` ``(R, S)``: log(US median /
-    Σ states' medians) before reconciliation."""
+    Σ states' medians) before reconciliation; ``reconciled`` ``(R, S)``: the rounds and steps
+    where the published forecast was reconciled (None: never, a share or no national total)."""
 
     target: str
     rounds: tuple[HubRound, ...]
@@ -100,6 +111,7 @@ class HubRoundsResult:
     backtest: BacktestResult
     nowcasts: tuple[WeekNowcast, ...]
     gap: NDArray[np.float64] | None
+    reconciled: NDArray[np.bool_] | None
     seconds: dict[str, float]
 
     @property
@@ -143,6 +155,21 @@ class HubRoundsResult:
         uncalibrated = wis(UNCALIBRATED)
         return {name: calibration_cost(wis(name), uncalibrated, self.references)
                 for name in forecasters}
+
+    def reconciliation(self) -> dict[str, Any] | None:
+        """How far apart the national median and the states' sum were before reconciling, and
+        the share of rounds at each weekly step where the published forecast was reconciled
+        (None: no national total to reconcile to)."""
+        if self.gap is None:
+            return None
+        out: dict[str, Any] = {"median_abs_log_gap_before": float(np.nanmedian(np.abs(self.gap))),
+                               "p90_abs_log_gap_before": float(np.nanquantile(np.abs(self.gap),
+                                                                              0.9))}
+        if self.reconciled is not None:
+            out["share_of_rounds_reconciled_by_step"] = {
+                str(step): float(self.reconciled[:, k].mean())
+                for k, step in enumerate(self.backtest.horizons)}
+        return out
 
     def variants_of_members(self) -> tuple[str, ...]:
         """The variants of the published members (another calibration, another average)."""
@@ -247,6 +274,7 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
     data = Vintages(_aligned(truth_panel, places, known),
                     [*(known[0].up_to(o) for o in burn_in), *known])
     origins = [*burn_in, *(r.origin for r in rounds)]
+    truth_at = data.truth_known(origins, steps)
     result = run_backtest(
         data, members, origins,
         BacktestConfig(horizons=steps, levels=config.levels, seed=config.seed,
@@ -254,21 +282,16 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
                        n_paths=config.n_samples,
                        member_time_limit_s=config.member_time_limit_s),
         references=references, reported=[r.origin for r in rounds],
-        truth_at=data.truth_known(origins, steps), progress=progress)
+        truth_at=truth_at, progress=progress)
     seconds = {"nowcast_and_backtest": time.perf_counter() - started}
     count = result.forecasts[target]
-    gap = None
-    if config.reconcile and not is_share(target) and reconcilable(places, US, POPULATION):
+    gap, reconciled = None, None
+    if (config.reconcile != "never" and not is_share(target)
+            and reconcilable(places, US, POPULATION)):
         gap = median_gap(count[PUBLISHED].values, places, US, levels)
-        count[UNRECONCILED] = count[PUBLISHED]
-        for name in (PUBLISHED, UNCALIBRATED, *(v.name for v in config.variants)):
-            count[name] = count[name].with_values(top_down(count[name].values, places, US,
-                                                           levels))
-        if result.bounds is not None:
-            # a state's quantiles move with the nation's: held within its bound again (1.3 %
-            # of COVID-19 admissions' published quantiles fell below it: bench.nhsn at f3da0a0)
-            count[PUBLISHED] = count[PUBLISHED].with_values(bounded(count[PUBLISHED].values,
-                                                                    result.bounds))
+        reconciled = _reconcile(count, result.bounds, config, places, steps,
+                                lambda r: truth_at(len(burn_in) + r)[:, len(burn_in):],
+                                [r.origin for r in rounds])
     scale = target_scale(target)
     reference_dates = tuple(r.reference for r in rounds)
     by_hub = {name: Quantiles(_hub_horizons(q.values, rounds, nowcasts, places,
@@ -283,7 +306,36 @@ def run_hub_rounds(rounds: Sequence[HubRound], latest: Panel, members: Sequence[
     return HubRoundsResult(target=target, rounds=tuple(rounds), places=places,
                            horizons=tuple(config.horizons), levels=levels, forecasts=by_hub,
                            truth=truth, samples=samples, backtest=result, nowcasts=nowcasts,
-                           gap=gap, seconds=seconds)
+                           gap=gap, reconciled=reconciled, seconds=seconds)
+
+
+def _reconcile(count: dict[str, Quantiles], bounds: NDArray[np.float64] | None,
+               config: HubBacktestConfig, places: Sequence[str], steps: tuple[int, ...],
+               truth_at: KnownTruth, origins: Sequence[pd.Timestamp]) -> NDArray[np.bool_]:
+    """The published forecast, its average uncalibrated and the variants reconciled top-down
+    in place, each where ``config.reconcile`` says (``where-better``: by its own record on the
+    outcomes known at each round), with the two ways beside them (:data:`UNRECONCILED`,
+    :data:`RECONCILED`); returns ``(R, S)`` where the published one was reconciled."""
+    levels = np.asarray(config.levels, dtype=np.float64)
+    baseline = count[HUB_BASELINE].values
+    count[UNRECONCILED] = count[PUBLISHED]
+    chosen = np.ones(count[PUBLISHED].values.shape[1:3], dtype=bool)
+    for name in (PUBLISHED, UNCALIBRATED, *(v.name for v in config.variants)):
+        plain = count[name].values
+        whole = top_down(plain, places, US, levels)
+        if name == PUBLISHED:
+            count[RECONCILED] = count[name].with_values(whole)
+        if config.reconcile == "where-better":
+            whole, where = reconciled_where_better(plain, whole, baseline, truth_at, origins,
+                                                   steps, levels)
+            chosen = where if name == PUBLISHED else chosen
+        count[name] = count[name].with_values(whole)
+    if bounds is not None:
+        # a state's quantiles move with the nation's: held within its bound again (1.3 % of
+        # COVID-19 admissions' published quantiles fell below it: bench.nhsn at f3da0a0)
+        for name in (PUBLISHED, RECONCILED):
+            count[name] = count[name].with_values(bounded(count[name].values, bounds))
+    return chosen
 
 
 def burn_in_origins(first: Panel, weeks: int,
