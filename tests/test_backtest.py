@@ -227,3 +227,26 @@ def test_a_short_track_record_keeps_the_latest_origins_and_reports_among_them(sf
     assert TrackRecordConfig(recent_origins=10_000).origins(sf) == every
     with pytest.raises(ConfigError, match="recent_origins=0 must be >= 1"):
         TrackRecordConfig(recent_origins=0)
+
+
+def test_the_truth_at_many_origins_is_the_truth_at_each(sf):
+    """``observed_at`` (the hub backtests' truth per round, at once) equals ``observed`` at each
+    origin, on San Francisco's daily history and on a weekly count series; an origin that is
+    not a date of the history (or after it) has no truth."""
+    from pipeline.panels.history import WeeklyHistory
+
+    weekly = WeeklyHistory(pd.date_range("2024-11-02", periods=30, freq="7D"),
+                           np.arange(30.0) ** 1.5, 1_000_000, "wk inc covid hosp")
+    for history, step in ((sf, "1D"), (weekly, "7D")):
+        n = len(history)
+        origins = list(history.dates[[n // 4, n // 2, 3 * n // 4, n - 2]])
+        horizons = (-1, 0, 1, 2)
+        many = history.observed_at([*origins, history.dates[-1] + pd.Timedelta(step),
+                                    history.dates[3] + pd.Timedelta(hours=12)], horizons)
+        for target, values in many.items():
+            assert values.shape == (6, 4)
+            for o, origin in enumerate(origins):
+                np.testing.assert_array_equal(values[o],
+                                              history.observed(origin, horizons)[target])
+            assert np.isnan(values[4:]).all()
+            assert np.isfinite(values[:3]).all() and np.isnan(values[3, -1])

@@ -96,12 +96,9 @@ class Vintages:
             vintage = self.known[j]
             out = np.full((len(places), len(origins), len(horizons)), np.nan)
             for c, place in enumerate(places):
-                history = vintage.histories.get(place)
-                if history is None:
-                    continue
-                for o, origin in enumerate(origins[:j]):
-                    if history.dates[0] <= origin <= history.origin:
-                        out[c, o] = history.observed(origin, horizons)[target]
+                if place in vintage.histories:
+                    out[c, :j] = vintage.histories[place].observed_at(origins[:j],
+                                                                      horizons)[target]
             return out
         return at
 

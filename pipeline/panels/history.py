@@ -16,6 +16,7 @@ first) and the susceptible share S the flows' coordinates are bounded by.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -57,6 +58,9 @@ class History(Protocol):
     def observed(self, origin: pd.Timestamp, horizons: tuple[int, ...]
                  ) -> dict[str, NDArray[np.float64]]: ...
 
+    def observed_at(self, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
+                    ) -> dict[str, NDArray[np.float64]]: ...
+
     def fingerprint(self) -> str: ...
 
 
@@ -69,6 +73,15 @@ def history_length_up_to(dates: pd.DatetimeIndex, date: pd.Timestamp) -> int:
     """How many of ``dates`` (ascending) fall on or before ``date``."""
     return int(np.searchsorted(dates.as_unit("ns").to_numpy(dtype=np.int64),
                                pd.Timestamp(date).as_unit("ns").value, side="right"))
+
+
+def _positions(dates: pd.DatetimeIndex, origins: Sequence[pd.Timestamp]) -> NDArray[np.intp]:
+    """Each origin's index in ``dates`` (ascending); −1 where it is not one of them."""
+    days = dates.as_unit("ns").to_numpy(dtype=np.int64)
+    wanted = pd.DatetimeIndex(list(origins)).as_unit("ns").to_numpy(dtype=np.int64)
+    pos = np.searchsorted(days, wanted)
+    found = (pos < len(days)) & (days[np.minimum(pos, len(days) - 1)] == wanted)
+    return np.where(found, pos, -1).astype(np.intp)
 
 
 def _position(dates: pd.DatetimeIndex, origin: pd.Timestamp) -> int:
@@ -182,6 +195,16 @@ class EpiHistory(DailySIR):
                 out[CASES][k] = float(cumulative[end + 1] - cumulative[end + 1 - DAYS_PER_WEEK])
         return out
 
+    def observed_at(self, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
+                    ) -> dict[str, NDArray[np.float64]]:
+        """:meth:`observed` at each of ``origins``, ``(O, H)`` per target; NaN rows where an
+        origin is not a day of this history."""
+        out = {t: np.full((len(origins), len(horizons)), np.nan) for t in self.targets}
+        for o in np.flatnonzero(_positions(self.dates, origins) >= 0):
+            for t, values in self.observed(origins[int(o)], horizons).items():
+                out[t][o] = values
+        return out
+
 
 @dataclass(frozen=True, eq=False)
 class WeeklyHistory:
@@ -264,6 +287,16 @@ class WeeklyHistory:
         pos = _position(self.dates, origin)
         ends = pos + np.asarray(horizons, dtype=np.intp)
         inside = (ends >= 0) & (ends < len(self))
+        values = np.where(inside, self.cases[np.clip(ends, 0, len(self) - 1)], np.nan)
+        return {self.target: values.astype(np.float64)}
+
+    def observed_at(self, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
+                    ) -> dict[str, NDArray[np.float64]]:
+        """:meth:`observed` at each of ``origins`` at once, ``(O, H)``; NaN rows where an
+        origin is not a week of this history (the hub backtests read a truth per round)."""
+        pos = _positions(self.dates, origins)
+        ends = pos[:, None] + np.asarray(horizons, dtype=np.intp)[None, :]
+        inside = (pos[:, None] >= 0) & (ends >= 0) & (ends < len(self))
         values = np.where(inside, self.cases[np.clip(ends, 0, len(self) - 1)], np.nan)
         return {self.target: values.astype(np.float64)}
 
