@@ -314,6 +314,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     published = boards(pd.concat([teams, ours[ours["model_id"] == PUBLISHED]],
                                  ignore_index=True), HOSP_FLU)
     coverage = summary_by_horizon(result, PUBLISHED)
+    scored = result.summary(PUBLISHED, [h for h in result.horizons if h >= 0])
 
     locations = pd.read_csv(hub / "locations.csv", dtype={"location": str})
     population = {str(p): float(n) for p, n in zip(locations["location"],
@@ -331,10 +332,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "ensemble_relative_wis": relative(published, ENSEMBLE),
         "coverage50": coverage["h0-3"]["coverage50"],
         "coverage95": coverage["h0-3"]["coverage95"],
+        # their 95 % moving-block bootstrap intervals over the rounds (horizons 0-3)
+        "coverage50_interval": scored["coverage50_interval"],
+        "coverage95_interval": scored["coverage95_interval"],
         "coverage_by_horizon": coverage,
         # coverage (with its bootstrap interval) by the phase of the epidemic at each origin
-        "by_phase": result.summary(PUBLISHED, [h for h in result.horizons if h >= 0]
-                                   )["by_regime"],
+        "by_phase": scored["by_regime"],
         # the online calibration's cost: published WIS over the same average uncalibrated
         # (horizons 0-3), over every round and in the worst window of 15 consecutive rounds
         "calibration_cost_by_window": costs[PUBLISHED],
@@ -369,7 +372,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     print(f"published pairwise relative WIS {out['pairwise_relative_wis']} (rank "
           f"{out['rank']} of {out['n_models']}); ensemble {out['ensemble_relative_wis']}")
-    print(f"coverage {out['coverage50']:.3f}/{out['coverage95']:.3f}; validation "
+    print(f"coverage {out['coverage50']:.3f} {out['coverage50_interval']}/"
+          f"{out['coverage95']:.3f} {out['coverage95_interval']}; validation "
           f"{validation['n_files']} files, {validation['n_errors']} errors, hubdata "
           f"{validation['hubdata']['rows_read']} rows")
     for name in ("rate_change", "peak"):
