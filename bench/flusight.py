@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = _parse(argv)
     import pandas as pd
 
-    from pipeline.backtest.hub_rounds import summary_by_horizon
+    from pipeline.backtest.hub_result import summary_by_horizon
     from pipeline.combine.combiner import PUBLISHED
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
     from pipeline.data.hub.target_import import import_hub_time_series

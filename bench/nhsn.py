@@ -307,8 +307,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
 
     from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
                                           skill_weighted_variants, tracking_rate_variants)
-    from pipeline.backtest.hub_rounds import (HubBacktestConfig, RECONCILED, UNRECONCILED,
-                                              run_hub_rounds, summary_by_horizon)
+    from pipeline.backtest.hub_result import RECONCILED, UNRECONCILED, summary_by_horizon
+    from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
     from pipeline.members.boosting import BoostingConfig, PooledBoostingMember

@@ -14,7 +14,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.backtest.hub_rounds import HubBacktestConfig, HubRoundsResult, run_hub_rounds
+from pipeline.backtest.hub_result import HubRoundsResult
+from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.data.hub.nhsn_vintages import cached_weekly_vintages
 from pipeline.data.hub.target_import import import_hub_time_series

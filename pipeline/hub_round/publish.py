@@ -23,7 +23,7 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.backtest.hub_rounds import HubRoundsResult
+from pipeline.backtest.hub_result import HubRoundsResult
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.core.cache import utc_now
 from pipeline.data.hub.locations import POPULATION

@@ -31,7 +31,8 @@ from typing import Any, Literal
 
 import pandas as pd
 
-from pipeline.backtest.hub_rounds import HubBacktestConfig, HubRoundsResult, run_hub_rounds
+from pipeline.backtest.hub_result import HubRoundsResult
+from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
 from pipeline.backtest.memo import ForecastMemo
 from pipeline.data.core.cache import data_dir
 from pipeline.data.hub.nhsn import NHSNConfig, NHSNProvenance, load_nhsn

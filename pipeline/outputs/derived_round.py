@@ -1,5 +1,5 @@
 """FluSight's derived targets of every round of a weekly-admissions backtest
-(:class:`~pipeline.backtest.hub_rounds.HubRoundsResult`): the rate-change pmf and the peak,
+(:class:`~pipeline.backtest.hub_result.HubRoundsResult`): the rate-change pmf and the peak,
 each from the round's joint sample paths and its vintage (:mod:`pipeline.outputs.derived_
 targets`), beside a climatology of the earlier seasons in the same vintage (real time), with
 what was observed in the latest vintage; and a round's rows of them in the hubverse format.
@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from pipeline.backtest.hub_rounds import HubRoundsResult
+from pipeline.backtest.hub_result import HubRoundsResult
 from pipeline.outputs.derived_targets import (PER, RATE_CHANGE_CATEGORIES, SEASON_WEEKS,
                                               SeasonTails, category_edges, categorize,
                                               observed_peak, observed_rate_change,

@@ -27,7 +27,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from pipeline import __version__
-from pipeline.backtest.hub_rounds import HubRoundsResult
+from pipeline.backtest.hub_result import HubRoundsResult
 from pipeline.combine.combiner import PUBLISHED
 from pipeline.data.hub.locations import BY_LOCATION, US
 from pipeline.data.hub.nhsn_vintages import TARGETS
