@@ -91,14 +91,14 @@ class Vintages:
         places, target = self.latest.places, self.latest.count_target
         origins = list(origins)
 
+        row = {place: c for c, place in enumerate(places)}
+
         @functools.cache
         def at(j: int) -> NDArray[np.float64]:
-            vintage = self.known[j]
+            known = observed_truth(self.known[j], origins[:j], horizons)[target]
+            held = [c for c, p in enumerate(known.places) if p in row]
             out = np.full((len(places), len(origins), len(horizons)), np.nan)
-            for c, place in enumerate(places):
-                if place in vintage.histories:
-                    out[c, :j] = vintage.histories[place].observed_at(origins[:j],
-                                                                      horizons)[target]
+            out[[row[known.places[c]] for c in held], :j] = known.values[held]
             return out
         return at
 

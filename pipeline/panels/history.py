@@ -284,11 +284,8 @@ class WeeklyHistory:
     def observed(self, origin: pd.Timestamp, horizons: tuple[int, ...]
                  ) -> dict[str, NDArray[np.float64]]:
         """The count of the week ending ``origin`` + 7h (h may be ≤ 0); NaN where not held."""
-        pos = _position(self.dates, origin)
-        ends = pos + np.asarray(horizons, dtype=np.intp)
-        inside = (ends >= 0) & (ends < len(self))
-        values = np.where(inside, self.cases[np.clip(ends, 0, len(self) - 1)], np.nan)
-        return {self.target: values.astype(np.float64)}
+        _position(self.dates, origin)            # an origin that is not a week is refused
+        return {t: values[0] for t, values in self.observed_at([origin], horizons).items()}
 
     def observed_at(self, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
                     ) -> dict[str, NDArray[np.float64]]:

@@ -276,13 +276,10 @@ def weekly_origins(dates: pd.DatetimeIndex, *, min_history_weeks: int = 8,
 def observed_truth(panel: Panel, origins: Sequence[pd.Timestamp], horizons: tuple[int, ...]
                    ) -> dict[str, Observed]:
     """``truth[target]``: each place's latest data at each origin's horizons (NaN where not
-    observed; an origin outside a place's dates has no truth)."""
+    observed; an origin that is not one of a place's dates has no truth)."""
     out = {t: np.full((len(panel.places), len(origins), len(horizons)), np.nan)
            for t in panel.targets}
     for c, history in enumerate(panel.histories.values()):
-        for o, origin in enumerate(origins):
-            if not history.dates[0] <= origin <= history.origin:
-                continue
-            for t, values in history.observed(origin, horizons).items():
-                out[t][c, o] = values
+        for t, values in history.observed_at(origins, horizons).items():
+            out[t][c] = values
     return {t: Observed(v, panel.places, tuple(origins), horizons) for t, v in out.items()}
