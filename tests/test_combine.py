@@ -340,6 +340,42 @@ def test_a_calibration_that_forgets_halves_old_losses_and_lets_a_stretch_fade() 
         np.testing.assert_allclose(tracker.stretch, 0.5 * expected)
 
 
+def test_the_published_weights_follow_the_rules_with_a_half_life() -> None:
+    """Hand-computed: two experts that both cover (half of their 50 % and one in ten of their
+    90 % intervals missed). The first origin's WIS favours the first, the second origin's the
+    second: with a half-life of one origin the published weights move half way from the first
+    rule's weights to the second's, and a quarter of the remaining way after two more origins
+    without outcomes; without smoothing they are the rule's at once."""
+    levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
+    truth = np.array([3.5] * 5 + [4.5] * 4 + [7.0])
+    quantiles = np.stack([np.tile(q, (10, 1)) for q in ([1.0, 2.0, 3.0, 4.0, 5.0],
+                                                        [0.0, 1.5, 3.0, 4.4, 6.0])])
+    regimes = np.zeros(10, dtype=np.intp)
+    first_wins = np.stack([np.full(10, 1.0), np.full(10, 1.01)])
+    second_wins = np.stack([np.full(10, 1.3), np.full(10, 1.0)])
+
+    def tracker(half_life: float | None) -> AggregatedTracker:
+        return AggregatedTracker(tuple(IntervalTracker(levels, r, 0.9) for r in (0.0, 0.1)),
+                                 smoothing_origins=half_life)
+    followed, at_once = tracker(1.0), tracker(None)
+    for agg in (followed, at_once):
+        agg.update(quantiles, truth, regimes, first_wins)
+    before = followed.rule_weights
+    assert before[0] > 0.6                                   # the first expert leads
+    np.testing.assert_allclose(followed.weights, before)     # the first weights: the rule's
+    for agg in (followed, at_once):
+        agg.update(quantiles, truth, regimes, second_wins)
+    after = followed.rule_weights
+    assert after[1] > 0.99                                   # the second leads now
+    np.testing.assert_allclose(at_once.weights, after)
+    np.testing.assert_allclose(followed.weights, (before + after) / 2)
+    for _ in range(2):
+        followed.update(quantiles, np.full(10, np.nan), regimes, np.full((2, 10), np.nan))
+    np.testing.assert_allclose(followed.weights, after + (before - after) / 8)
+    np.testing.assert_allclose(followed.combine(quantiles[:, :1])[0],
+                               followed.weights @ quantiles[:, 0])
+
+
 def test_while_no_expert_covers_the_nearest_to_covering_are_published() -> None:
     """Every outcome far outside every interval: no expert is within the tolerance, and the
     published forecast is the one whose intervals missed least (in units of the tolerance: the

@@ -12,7 +12,9 @@ average of their CDFs: wider where the members disagree, at the turns); then the
 calibration of the intervals' widths per phase of the epidemic, which leaves the median alone:
 adaptive conformal trackers at η = 0, 0.05, 0.15 and 0.3, each interval's misses in units of
 their own standard deviation, aggregated by their skill among those whose intervals cover
-(``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`). Last,
+(``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`; since
+2026-11-30 its published weights follow that choice with a half-life of 3 origins instead of
+jumping when an expert's coverage crosses the tolerance). Last,
 every quantile of a count is held at or above the lowest count the panel's own history allows:
 no fall faster than its places had shown from weeks at that level (``FALLS_BOUND``,
 :mod:`pipeline.combine.plausibility`; rises are left open: a new variant may outgrow them
@@ -79,6 +81,8 @@ class CombineConfig:
     aggregation_temperature: float = 0.01
     # the half-life in origins of the outcomes that choose among them (None: all alike)
     aggregation_memory_origins: float | None = None
+    # the half-life in origins with which the published weights follow the rule's (None: at once)
+    aggregation_smoothing_origins: float | None = 3.0
     outer_interval: float = 0.9         # the outer interval it holds (the hub's: 0.95)
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
@@ -109,7 +113,9 @@ class CombineConfig:
                 or not self.tracking_rates or min(self.tracking_rates) < 0
                 or self.aggregation_temperature <= 0 or not 0 <= self.tracking_leak < 1
                 or (self.aggregation_memory_origins is not None
-                    and self.aggregation_memory_origins <= 0)):
+                    and self.aggregation_memory_origins <= 0)
+                or (self.aggregation_smoothing_origins is not None
+                    and self.aggregation_smoothing_origins <= 0)):
             raise EnsembleError(f"invalid CombineConfig {self}")
 
 
@@ -233,7 +239,8 @@ def _online_tracker(config: CombineConfig, levels: NDArray[np.float64]
         IntervalTracker(levels, rate, config.outer_interval, step=config.tracking_step,
                         standardized=config.tracking_standardized, leak=config.tracking_leak)
         for rate in rates),
-        config.aggregation_temperature, memory_origins=config.aggregation_memory_origins)
+        config.aggregation_temperature, memory_origins=config.aggregation_memory_origins,
+        smoothing_origins=config.aggregation_smoothing_origins)
 
 
 def _pits(levels: NDArray[np.float64], quantiles: NDArray[np.float64],

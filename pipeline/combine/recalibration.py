@@ -185,7 +185,13 @@ class AggregatedTracker:
     They are weighted by exp(−(L_e / min L − 1) / ``temperature``), L_e the expert's WIS summed
     over every outcome known so far, each outcome's WIS over the experts' mean WIS of it, so that
     every place and week counts alike whatever its size. A temperature of 0.01: an expert 1 %
-    worse (the bound a calibration may cost) weighs e⁻¹ of the best."""
+    worse (the bound a calibration may cost) weighs e⁻¹ of the best.
+
+    The published weights follow the rule's with a half-life of ``smoothing_origins`` origins
+    (None: at once): when an expert's coverage crosses the tolerance, the rule's weights jump
+    (on San Francisco's 2021-03-27 the fastest expert alone became admissible, and the week
+    was published at 2.7 times the uncalibrated WIS); followed, the change is spread over a
+    few origins, and the rule's long-run choice is unchanged."""
 
     experts: tuple[IntervalTracker, ...]
     temperature: float = 0.01
@@ -193,12 +199,16 @@ class AggregatedTracker:
     # the half-life, in origins, of what an outcome counts towards the experts' losses and
     # coverage (None: every outcome counts alike for ever)
     memory_origins: float | None = None
+    smoothing_origins: float | None = None
 
     def __post_init__(self) -> None:
         self.loss = np.zeros(len(self.experts))
         self.missed = np.zeros((len(self.experts), 2))
         self.scored = 0.0
         self._decay = 1.0 if self.memory_origins is None else 0.5 ** (1.0 / self.memory_origins)
+        self._follow = (1.0 if self.smoothing_origins is None
+                        else 1.0 - 0.5 ** (1.0 / self.smoothing_origins))
+        self._published: NDArray[np.float64] | None = None
 
     @property
     def admissible(self) -> NDArray[np.bool_]:
@@ -216,6 +226,13 @@ class AggregatedTracker:
 
     @property
     def weights(self) -> NDArray[np.float64]:
+        """The published weights: the rule's (:attr:`rule_weights`), followed with a half-life
+        of ``smoothing_origins`` origins."""
+        return self.rule_weights if self._published is None else self._published
+
+    @property
+    def rule_weights(self) -> NDArray[np.float64]:
+        """The skill weights among the admissible experts, from the outcomes known now."""
         allowed = self.admissible
         if self.scored == 0:
             return allowed / allowed.sum()
@@ -235,7 +252,16 @@ class AggregatedTracker:
     def update(self, experts: NDArray[np.float64], truth: NDArray[np.float64],
                regimes: NDArray[np.intp], wis: NDArray[np.float64]) -> None:
         """The newly known forecasts of one origin: each expert's quantiles ``(E, N, Q)``, truth
-        ``(N,)``, regimes ``(N,)`` and each expert's WIS of them ``(E, N)`` (NaN: unscored)."""
+        ``(N,)``, regimes ``(N,)`` and each expert's WIS of them ``(E, N)`` (NaN: unscored).
+        Called once per origin, also when nothing became known: the published weights move
+        towards the rule's at every origin."""
+        self._learn(experts, truth, regimes, wis)
+        rule = self.rule_weights
+        self._published = (rule if self._published is None or self.scored == 0
+                           else (1.0 - self._follow) * self._published + self._follow * rule)
+
+    def _learn(self, experts: NDArray[np.float64], truth: NDArray[np.float64],
+               regimes: NDArray[np.intp], wis: NDArray[np.float64]) -> None:
         for expert, quantiles in zip(self.experts, experts):
             expert.update(quantiles, truth, regimes)
         self.loss *= self._decay
