@@ -13,7 +13,7 @@ calibration of the intervals' widths per phase of the epidemic, which leaves the
 adaptive conformal trackers at η = 0, 0.05, 0.15 and 0.3, each interval's misses in units of
 their own standard deviation, aggregated by their skill among those whose intervals cover
 (``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`; since
-2026-11-30 its published weights follow that choice with a half-life of 3 origins instead of
+2026-11-30 its published weights follow that choice with a half-life of 2 origins instead of
 jumping when an expert's coverage crosses the tolerance). Last,
 every quantile of a count is held at or above the lowest count the panel's own history allows:
 no fall faster than its places had shown from weeks at that level (``FALLS_BOUND``,
@@ -82,7 +82,7 @@ class CombineConfig:
     # the half-life in origins of the outcomes that choose among them (None: all alike)
     aggregation_memory_origins: float | None = None
     # the half-life in origins with which the published weights follow the rule's (None: at once)
-    aggregation_smoothing_origins: float | None = 3.0
+    aggregation_smoothing_origins: float | None = 2.0
     outer_interval: float = 0.9         # the outer interval it holds (the hub's: 0.95)
     # where a member has no forecast (beyond a flow's four weeks): no published forecast, or
     # the same average over the members that reach it — a different forecaster, to be named so
