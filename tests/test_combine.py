@@ -344,8 +344,8 @@ def test_the_published_weights_follow_the_rules_with_a_half_life() -> None:
     """Hand-computed: two experts that both cover (half of their 50 % and one in ten of their
     90 % intervals missed). The first origin's WIS favours the first, the second origin's the
     second: with a half-life of one origin the published weights move half way from the first
-    rule's weights to the second's, and a quarter of the remaining way after two more origins
-    without outcomes; without smoothing they are the rule's at once."""
+    rule's weights to the second's, and three quarters of the rest of the way after two more
+    origins without outcomes; without smoothing they are the rule's at once."""
     levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
     truth = np.array([3.5] * 5 + [4.5] * 4 + [7.0])
     quantiles = np.stack([np.tile(q, (10, 1)) for q in ([1.0, 2.0, 3.0, 4.0, 5.0],
