@@ -9,7 +9,8 @@ from scipy.stats import norm
 
 import pandas as pd
 
-from pipeline.combine.average import fit_weights, mix_quantiles, scored_wis, vincentize
+from pipeline.combine.average import (EnsembleError, fit_weights, mix_quantiles, scored_wis,
+                                      vincentize)
 from pipeline.combine.combiner import (LOG_AVERAGE, CombineConfig, Ensemble, combine,
                                        scored_before)
 from pipeline.combine.paths import count_invalid, sample_paths
@@ -374,6 +375,27 @@ def test_the_published_weights_follow_the_rules_with_a_half_life() -> None:
     np.testing.assert_allclose(followed.weights, after + (before - after) / 8)
     np.testing.assert_allclose(followed.combine(quantiles[:, :1])[0],
                                followed.weights @ quantiles[:, 0])
+
+
+def test_a_stretch_in_value_space_scales_the_distances_from_the_median() -> None:
+    """Hand-computed: an inner stretch of log 2 and an outer one of log 3. In value space each
+    quantile's distance from the median is multiplied by e^f: 2 within the 50 % interval, 3 at
+    and beyond the 90 % one, the median kept; in level space the same stretch reads the quantile
+    function at other levels instead (beyond 95 %: its extrapolated tail), which on this long
+    right tail moves the upper end from 30 to over 500. An unknown space is refused by name."""
+    levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
+    quantiles = np.array([[8.0, 9.0, 10.0, 12.0, 30.0]])
+    regimes = np.zeros(1, dtype=np.intp)
+    values = IntervalTracker(levels, 0.1, 0.9, space="values")
+    values.stretch[:] = np.log([2.0, 3.0])
+    np.testing.assert_allclose(values.apply(quantiles, regimes), [[4.0, 8.0, 10.0, 14.0, 70.0]])
+    on_levels = IntervalTracker(levels, 0.1, 0.9)
+    on_levels.stretch[:] = np.log([2.0, 3.0])
+    stretched = on_levels.apply(quantiles, regimes)[0]
+    assert stretched[2] == pytest.approx(10.0)
+    assert stretched[4] > 500.0 and 5.0 < stretched[0] < 8.0
+    with pytest.raises(EnsembleError, match="tracking_space"):
+        CombineConfig(tracking_space="quantiles")  # type: ignore[arg-type]
 
 
 def test_while_no_expert_covers_the_nearest_to_covering_are_published() -> None:

@@ -44,9 +44,9 @@ from pipeline.combine.average import (AverageScale, EnsembleError, GridAverages,
                                       fit_weights, scored_wis, vincentize)
 from pipeline.evaluation.quantile_function import pit_from_quantiles, quantiles_at
 from pipeline.combine.recalibration import (ONLINE_METHODS, RECALIBRATION_METHODS,
-                                            TRACKING_STEPS, AggregatedTracker, IntervalTracker,
-                                            RecalibrationMethod, TrackingStep,
-                                            calibrated_levels, fit_recalibration)
+                                            STRETCH_SPACES, TRACKING_STEPS, AggregatedTracker,
+                                            IntervalTracker, RecalibrationMethod, StretchSpace,
+                                            TrackingStep, calibrated_levels, fit_recalibration)
 from pipeline.combine.plausibility import FALLS_BOUND, PlausibilityConfig
 from pipeline.evaluation.regimes import N_REGIMES
 from pipeline.members.base import Member, MemberForecast, forecast_within_reach
@@ -76,6 +76,9 @@ class CombineConfig:
     tracking_step: TrackingStep = "pooled"
     tracking_standardized: bool = True    # each interval's misses in their own units
     tracking_leak: float = 0.0          # the share of a stretch let go at every origin
+    # where the online calibration's stretch acts: on levels (published) or on values about
+    # the median (recalibration.StretchSpace; a lead of 2026-11-30, not yet benched)
+    tracking_space: StretchSpace = "levels"
     # the experts' η of "aggregated-aci" (0: the average uncalibrated) and their temperature
     tracking_rates: tuple[float, ...] = (0.0, 0.05, 0.15, 0.3)
     aggregation_temperature: float = 0.01
@@ -101,6 +104,9 @@ class CombineConfig:
         if self.scale not in ("log", "linear", "mixture", "log-mixture"):
             raise EnsembleError(f"CombineConfig.scale={self.scale!r}: use log, linear, "
                                 "mixture or log-mixture")
+        if self.tracking_space not in STRETCH_SPACES:
+            raise EnsembleError(f"CombineConfig.tracking_space={self.tracking_space!r}: use one "
+                                f"of {STRETCH_SPACES}")
         if self.tracking_step not in TRACKING_STEPS:
             raise EnsembleError(f"CombineConfig.tracking_step={self.tracking_step!r}: use one "
                                 f"of {TRACKING_STEPS}")
@@ -237,7 +243,8 @@ def _online_tracker(config: CombineConfig, levels: NDArray[np.float64]
              else (config.tracking_rate,))
     return AggregatedTracker(tuple(
         IntervalTracker(levels, rate, config.outer_interval, step=config.tracking_step,
-                        standardized=config.tracking_standardized, leak=config.tracking_leak)
+                        standardized=config.tracking_standardized, leak=config.tracking_leak,
+                        space=config.tracking_space)
         for rate in rates),
         config.aggregation_temperature, memory_origins=config.aggregation_memory_origins,
         smoothing_origins=config.aggregation_smoothing_origins)

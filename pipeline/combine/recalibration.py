@@ -42,6 +42,12 @@ ONLINE_METHODS: tuple[str, ...] = ("regime-aci", "aggregated-aci")
 # is its own adaptive conformal inference)
 TrackingStep = Literal["pooled", "per-regime"]
 TRACKING_STEPS: tuple[str, ...] = ("pooled", "per-regime")
+# Where a stretch acts: on the levels at which the average's quantile function is read
+# ("levels", published), or on the quantiles' distances from the median ("values": q' = m +
+# e^f (q − m)). On long-tailed quantile functions a small stretch of levels is a large widening
+# of values (the RSV ED share's 90 % interval 52 % wider for 1.3 points of coverage).
+StretchSpace = Literal["levels", "values"]
+STRETCH_SPACES: tuple[str, ...] = ("levels", "values")
 
 
 def fit_bias_scale(probits: NDArray[np.float64], shrinkage: float, with_bias: bool
@@ -122,6 +128,7 @@ class IntervalTracker:
     # the share of its stretch each phase lets go of at every origin (0: it keeps it until
     # outcomes move it back): a surge's widening fades when nothing renews it
     leak: float = 0.0
+    space: StretchSpace = "levels"
 
     def __post_init__(self) -> None:
         self.stretch = np.zeros((N_REGIMES, 2))
@@ -166,10 +173,15 @@ class IntervalTracker:
 
     def apply(self, quantiles: NDArray[np.float64], regimes: NDArray[np.intp]
               ) -> NDArray[np.float64]:
-        """Quantiles ``(C, Q)`` read at each place's regime's stretched levels."""
+        """Quantiles ``(C, Q)`` read at each place's regime's stretched levels (``space``
+        "levels"), or their distances from the median stretched by the same factor ("values")."""
         phi = self.stretch[regimes]                                              # (C, 2)
         f = (1.0 - self._outer_weight) * phi[:, :1] + self._outer_weight * phi[:, 1:]
-        out = quantiles_at(self.levels, quantiles, ndtr(np.exp(f) * self._z))
+        if self.space == "values":
+            median = quantiles[:, level_index(self.levels, 0.5)][:, None]
+            out = median + np.exp(f) * (quantiles - median)
+        else:
+            out = quantiles_at(self.levels, quantiles, ndtr(np.exp(f) * self._z))
         return np.maximum.accumulate(np.maximum(out, 0.0), axis=-1)
 
 
