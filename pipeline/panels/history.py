@@ -85,8 +85,9 @@ def _positions(dates: pd.DatetimeIndex, origins: Sequence[pd.Timestamp]) -> NDAr
 
 
 def _position(dates: pd.DatetimeIndex, origin: pd.Timestamp) -> int:
-    pos = int(np.searchsorted(dates.to_numpy(dtype=np.int64), pd.Timestamp(origin).value))
-    if pos >= len(dates) or dates[pos] != pd.Timestamp(origin):
+    """``origin``'s index in ``dates``; an origin that is not one of them is refused."""
+    pos = int(_positions(dates, [origin])[0])
+    if pos < 0:
         raise TargetError(f"origin {pd.Timestamp(origin).date()} is not a date of the history")
     return pos
 
