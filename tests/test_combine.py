@@ -382,7 +382,8 @@ def test_a_stretch_in_value_space_scales_the_distances_from_the_median() -> None
     quantile's distance from the median is multiplied by e^f: 2 within the 50 % interval, 3 at
     and beyond the 90 % one, the median kept; in level space the same stretch reads the quantile
     function at other levels instead (beyond 95 %: its extrapolated tail), which on this long
-    right tail moves the upper end from 30 to over 500. An unknown space is refused by name."""
+    right tail moves the upper end from 30 to over 500. The published reading ("lesser") moves
+    each quantile by the lesser of the two. An unknown space is refused by name."""
     levels = np.array([0.05, 0.25, 0.5, 0.75, 0.95])
     quantiles = np.array([[8.0, 9.0, 10.0, 12.0, 30.0]])
     regimes = np.zeros(1, dtype=np.intp)
@@ -394,6 +395,14 @@ def test_a_stretch_in_value_space_scales_the_distances_from_the_median() -> None
     stretched = on_levels.apply(quantiles, regimes)[0]
     assert stretched[2] == pytest.approx(10.0)
     assert stretched[4] > 500.0 and 5.0 < stretched[0] < 8.0
+    lesser = IntervalTracker(levels, 0.1, 0.9, space="lesser")
+    lesser.stretch[:] = np.log([2.0, 3.0])
+    # each quantile moved by the lesser of the two: on this long right tail the upper side by
+    # values (12 → 14 and 30 → 70, where levels give about 23 and 589), the lower side by levels
+    # (9 → 8.29 and 8 → 5.30, where values give 8 and 4), the median kept
+    np.testing.assert_allclose(lesser.apply(quantiles, regimes),
+                               [[stretched[0], stretched[1], 10.0, 14.0, 70.0]])
+    assert stretched[1] == pytest.approx(8.29, abs=0.01)
     with pytest.raises(EnsembleError, match="tracking_space"):
         CombineConfig(tracking_space="quantiles")  # type: ignore[arg-type]
 

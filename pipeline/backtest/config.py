@@ -44,15 +44,18 @@ def letting_go_variants(published: CombineConfig, prefix: str = "v-") -> tuple[V
     """The published combiner with a calibration that forgets: the aggregate's experts chosen
     on the outcomes of the last origins more than the older ones
     (:data:`FORGETTING_HALF_LIFE_ORIGINS`), and each expert's stretch fading when nothing renews
-    it (:data:`STRETCH_LEAK`); and the two rules published before it: the stretch acting on
-    levels of the quantile function (published until 4f1f7d6), and on levels with the
-    aggregate's published weights jumping with its choice (published until 2026-11-30, 66a41c0),
-    named ``<prefix>calibration …`` (every panel's backtest scores them beside it)."""
+    it (:data:`STRETCH_LEAK`); the stretch acting on values about the median alone; and the two
+    rules published before it: the stretch acting on levels of the quantile function (published
+    until 4f1f7d6), and on levels with the aggregate's published weights jumping with its
+    choice (published until 2026-11-30, 66a41c0), named ``<prefix>calibration …`` (every
+    panel's backtest scores them beside it)."""
     on_levels = dataclasses.replace(published, tracking_space="levels")
     return (Variant(f"{prefix}calibration switching at once (published until 2026-11-30)",
                     dataclasses.replace(on_levels, aggregation_smoothing_origins=None)),
             Variant(f"{prefix}calibration stretching levels (published until 4f1f7d6)",
                     on_levels),
+            Variant(f"{prefix}calibration stretching values about the median",
+                    dataclasses.replace(published, tracking_space="values")),
             Variant(f"{prefix}calibration forgetting (half-life "
                     f"{FORGETTING_HALF_LIFE_ORIGINS:g} origins)", dataclasses.replace(
                         published, aggregation_memory_origins=FORGETTING_HALF_LIFE_ORIGINS)),

@@ -76,9 +76,10 @@ class CombineConfig:
     tracking_step: TrackingStep = "pooled"
     tracking_standardized: bool = True    # each interval's misses in their own units
     tracking_leak: float = 0.0          # the share of a stretch let go at every origin
-    # where the online calibration's stretch acts: on values about the median (published since
-    # 2026-11-30) or on levels (recalibration.StretchSpace; published until then)
-    tracking_space: StretchSpace = "values"
+    # where the online calibration's stretch acts (recalibration.StretchSpace): each quantile
+    # moved by the lesser of its reading on levels and on values about the median (published
+    # since 2026-11-30); on levels alone, published until then
+    tracking_space: StretchSpace = "lesser"
     # the experts' η of "aggregated-aci" (0: the average uncalibrated) and their temperature
     tracking_rates: tuple[float, ...] = (0.0, 0.05, 0.15, 0.3)
     aggregation_temperature: float = 0.01
