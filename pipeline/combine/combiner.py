@@ -14,7 +14,9 @@ adaptive conformal trackers at η = 0, 0.05, 0.15 and 0.3, each interval's misse
 their own standard deviation, aggregated by their skill among those whose intervals cover
 (``"aggregated-aci"``, :class:`~pipeline.combine.recalibration.AggregatedTracker`; since
 2026-11-30 its published weights follow that choice with a half-life of 2 origins instead of
-jumping when an expert's coverage crosses the tolerance). Last,
+jumping when an expert's coverage crosses the tolerance; and each quantile is moved by the
+lesser of the stretch's two readings, on the levels of the average's quantile function and on
+the quantile's distance from the median: ``tracking_space="lesser"``). Last,
 every quantile of a count is held at or above the lowest count the panel's own history allows:
 no fall faster than its places had shown from weeks at that level (``FALLS_BOUND``,
 :mod:`pipeline.combine.plausibility`; rises are left open: a new variant may outgrow them
