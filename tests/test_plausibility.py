@@ -101,6 +101,35 @@ def test_the_bound_reads_only_the_past_and_weeks_at_the_cells_level() -> None:
     np.testing.assert_array_equal(again, bands)
 
 
+def test_a_level_seen_only_on_the_way_up_does_not_forbid_a_fall() -> None:
+    """Six places swing by e^±1 a week near 20; four climb by 5 % a week through 1,000 and
+    have never fallen. A cell at 1,000 has 40 rising weeks at its level and no fall: its lower
+    band is read from the whole panel (the swings' fall of about e^-1), not from the climb,
+    which would forbid any fall at all. Its upper band is the climb's rise. Once the climbers
+    have fallen from that level as often, the lower band is read at the level again."""
+    rng = np.random.default_rng(3)
+    swing = np.log(20.0) + 0.5 * np.tile([1.0, -1.0], 30)[None, :] + rng.normal(0, 1e-3, (6, 60))
+    climb = np.log(1000.0) + np.log(1.05) * (np.arange(60) - 59)[None, :] + np.zeros((4, 1))
+    counts = np.expm1(np.concatenate([swing, climb]))
+    panel = _panel(counts)
+    config = PlausibilityConfig(tail=0.0, level_ratio=2.0, min_rows=20)
+    bands = plausible_bands(panel_cells(panel, [panel.dates[59]], seed=0), (1,), config)
+    change = np.log1p(bands[6:, 0]) - np.log1p(counts[6:, 59])[:, None]
+    whole_panel_fall = np.diff(np.log1p(counts), axis=1).min()
+    assert whole_panel_fall < -0.95
+    np.testing.assert_allclose(change[:, 0], whole_panel_fall, rtol=1e-12)
+    np.testing.assert_allclose(change[:, 1], np.log(1.05), rtol=1e-3)
+    # the climbers turn and fall 3 % a week from 1,000 for 20 weeks: falls seen at the level
+    fall = np.log(1000.0) + np.log(0.97) * np.arange(1, 21)[None, :] + np.zeros((4, 1))
+    turned = np.concatenate([counts, np.expm1(np.concatenate(
+        [np.log(20.0) + 0.5 * np.tile([1.0, -1.0], 10)[None, :] + np.zeros((6, 1)), fall]))],
+        axis=1)
+    later = _panel(turned)
+    again = plausible_bands(panel_cells(later, [later.dates[79]], seed=0), (1,), config)
+    held = np.log1p(again[6:, 0, 0]) - np.log1p(turned[6:, 79])
+    assert (held > -0.2).all() and (held < 0).all()        # the fall seen at the level, 3 %
+
+
 def test_bounded_quantiles_stay_ordered_and_within() -> None:
     q = np.array([[1.0, 5.0, 9.0, 30.0], [2.0, 3.0, 4.0, 5.0]])
     bands = np.array([[4.0, 20.0], [np.nan, np.nan]])

@@ -4,12 +4,21 @@ A quantile q at h weeks from a cell whose last week counted x₀ implies the cha
 log(1 + q) − log(1 + x₀) over h weeks. The bound of a cell at horizon h is the ``tail`` and
 1 − ``tail`` quantiles of the h-week changes of log(1 + x) its panel had shown by the cell's
 origin, over every place and every week that started within a factor ``level_ratio`` of x₀
-(small counts swing more than large ones, so a cell is held only to weeks at its own level);
-with fewer than ``min_rows`` such weeks, every week of the panel. Quantiles beyond the bound are
-moved onto it (:func:`bounded`), which keeps them ordered.
+(small counts swing more than large ones, so a cell is held only to weeks at its own level).
+Each side asks for evidence of its own kind: the lower band reads the weeks at the level only
+where at least ``min_rows`` of them were followed by a fall over h weeks, the upper band only
+where as many were followed by a rise; otherwise every week of the panel. Quantiles beyond the
+bound are moved onto it (:func:`bounded`), which keeps them ordered.
 
 Why: the weekly SF forecast of 2022-03-12 (589 cases) put its 5 % quantile at 10 cases four
 weeks on, a fall of 98 % in a month that no place of California had shown at that level.
+
+Why each side counts its own kind: a level first reached in a surge has been seen only on the
+way up. Its weeks' slowest change is then a rise, and a bound read from them forbade any fall
+at all. California's counties first stood that high in the winter of 2020-21; their falls after
+it were held to the changes of the surge's last weeks. In the worst window of the counties'
+backtest (2021-01-23 … 05-01) this cost 2.8 points of WIS (bench/results/backtest_counties.json,
+``published, unbounded``).
 """
 from __future__ import annotations
 
@@ -29,7 +38,8 @@ from pipeline.panels.panel import Cells, Panel
 class PlausibilityConfig:
     """``tail``: the share of the panel's changes at a cell's level left beyond the bound on
     each side; ``level_ratio``: how far a past week's count may be from the cell's (a factor);
-    ``min_rows``: fewer past weeks at the level than this and the whole panel's count;
+    ``min_rows``: fewer past falls (for the lower band; rises for the upper) at the level than
+    this and the whole panel's weeks count;
     ``bound_rises``: False bounds falls only (a new variant may grow faster than any week
     before it: San Francisco's cases did at Omicron's onset, December 2021)."""
 
@@ -67,17 +77,18 @@ def _group_bands(panel: Panel, place: str, origin: pd.Timestamp, n_weeks: int,
     """``(B, H, 2)`` bounds on log(1 + q) − log(1 + x₀) of cells at one origin of one panel."""
     pool = panel.pool(place, origin, n_weeks)
     level = np.log1p(np.maximum(last, 0.0))
-    levels = np.array([config.tail, 1.0 - config.tail])
     out = np.full((len(last), len(horizons), 2), np.nan)
     for k, h in enumerate(horizons):
         start, change = _changes(pool, h)
         if change.size < config.min_rows:
             continue                      # too little history to say what is implausible
         near = np.abs(start[None, :] - level[:, None]) <= np.log(config.level_ratio)
-        enough = near.sum(axis=1) >= config.min_rows
-        rows = np.where(enough[:, None], near, True)
-        values = np.broadcast_to(change, rows.shape)
-        out[:, k] = masked_quantiles(values, rows, levels)
+        values = np.broadcast_to(change, near.shape)
+        for side, (tail, seen) in enumerate(((config.tail, change < 0),
+                                             (1.0 - config.tail, change > 0))):
+            enough = (near & seen).sum(axis=1) >= config.min_rows
+            rows = np.where(enough[:, None], near, True)
+            out[:, k, side] = masked_quantiles(values, rows, np.array([tail]))[:, 0]
     if not config.bound_rises:
         out[..., 1] = np.nan
     return out
