@@ -204,11 +204,11 @@ def derived_scores(targets: Any) -> dict[str, Any]:
 
 
 def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, float, float]:
-    """Every round in real time: the published members (the context flow, the weekly flow and
-    the seasonal member), and as variants the weekly flow alone, with the seasonal member (the
-    rule published until 2026-11) and with the hub baseline or growth-qr, and the context flow
-    alone, with the seasonal member and with growth-qr; seconds to build the members and to
-    forecast."""
+    """Every round in real time: the published members (the context flow and gbqr), and as
+    variants the weekly flow alone, with the seasonal member (the rule published until 2026-11)
+    and with the hub baseline or growth-qr, the two flows (published until 2026-12-01), the
+    context flow alone and with the other members, and skill-weighted averages; seconds to
+    build the members and to forecast."""
     import dataclasses
 
     from pipeline.backtest.config import (Variant, bound_variants, letting_go_variants,
@@ -239,13 +239,16 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                 Variant("v-nf-context+growth-qr", reach, ("nf-context", "growth-qr")),
                 Variant("v-nf-context+nf-weekly+seasonal", reach,
                         ("nf-context", "nf-weekly", "seasonal")),
-                # the pooled gradient-boosted member (issue 51) beside the flows, equally
-                # weighted, and the members weighted by their skill on the rounds already scored
-                Variant("v-nf-context+gbqr", reach, ("nf-context", "gbqr")),
+                # the pooled gradient-boosted member (issue 51) beside the flows (the published
+                # pair, nf-context + gbqr, since 2026-12-01), equally weighted, and the members
+                # weighted by their skill on the rounds already scored
+                Variant("v-nf-context+nf-weekly (published for influenza until 2026-12-01)",
+                        reach, ("nf-context", "nf-weekly")),
                 Variant("v-nf-context+nf-weekly+gbqr", reach,
                         ("nf-context", "nf-weekly", "gbqr")),
                 Variant("v-nf-context+nf-weekly+gbqr+growth-qr", reach,
                         ("nf-context", "nf-weekly", "gbqr", "growth-qr")),
+                *skill_weighted_variants(reach, ("nf-context", "gbqr")),
                 *skill_weighted_variants(reach, ("nf-context", "nf-weekly", "gbqr")),
                 *skill_weighted_variants(reach, ("nf-context", "nf-weekly", "gbqr", "growth-qr",
                                                  "seasonal"), ("inverse-wis",)),

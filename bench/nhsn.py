@@ -7,9 +7,9 @@ released by its due date only, nowcast, forecast by the members, combined, recon
 vintage, and ranked among every team of the hub by pairwise relative WIS (Cramer et al. 2022;
 ``CovidHub-baseline`` = 1) on the forecasts both made, horizons 0–3, with the hub's exclusions;
 also by period (``teams_by_period``): the rounds due before the first ED vintage, where the
-seasonal member has no climatology and the published forecast is the flow's alone, and those
-from it on. Coverage (``coverage50``, ``coverage95``) is over horizons 0–3, the ones the hub
-scores; ``coverage_by_horizon`` has −1 too.
+seasonal member and gbqr have no ED share to read, and those from it on. Coverage
+(``coverage50``, ``coverage95``) is over horizons 0–3, the ones the hub scores;
+``coverage_by_horizon`` has −1 too.
 
 Beside the published forecast: every member alone, the variants (the members the issue named —
 hub baseline, growth-qr, the flows — and others), and the published design with the seasonal
@@ -167,8 +167,8 @@ def influenza_figure(args: argparse.Namespace) -> dict[str, Any]:
     import pandas as pd
 
     from bench.flusight import boards
-    from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds, \
-        summary_by_horizon
+    from pipeline.backtest.hub_result import summary_by_horizon
+    from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.locations import POPULATION
     from pipeline.data.hub.team_forecasts import quantile_table, read_hub_forecasts, \
         read_target_data
@@ -285,15 +285,15 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
 
 
 def gbqr_variants(reach: Any, names: list[str], own_signal: str) -> list[Any]:
-    """gbqr beside the published members ``names``: left out of them (published for admissions
-    until 2026-11-30) or put in, and on the target's own signal alone (``own_signal``)."""
+    """gbqr beside the published members ``names``: on the target's own signal alone
+    (``own_signal``) in place of the published gbqr, or put in where the average leaves it out
+    (the ED share)."""
     from pipeline.backtest.config import Variant
 
     without = [n for n in names if n != "gbqr"]
     own = Variant("v-published, gbqr on its own signal", reach, (*without, own_signal))
     if "gbqr" in names:
-        return [Variant("v-published without gbqr (admissions until 2026-11-30)", reach,
-                        tuple(without)), own]
+        return [own]
     return [Variant("v-published+gbqr", reach, (*names, "gbqr")), own]
 
 
@@ -340,8 +340,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         Variant("v-flow-alone", reach, ("nf-weekly",)),
         Variant("v-issue-members (baseline, growth-qr, flows)", reach,
                 ("hub-baseline", "growth-qr", "nf-weekly", "nf-real")),
-        Variant("v-flow+seasonal+baseline", reach, (*names, "hub-baseline")),
-        Variant("v-flow+seasonal+growth-qr", reach, (*names, "growth-qr")),
+        Variant("v-published+hub-baseline", reach, (*names, "hub-baseline")),
+        Variant("v-published+growth-qr", reach, (*names, "growth-qr")),
         Variant("v-nf-real+seasonal (published for the ED share)", reach,
                 ("nf-real", "seasonal")),
         Variant("v-nf-weekly+seasonal (published for admissions until 2026-11)", reach,
@@ -360,22 +360,29 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
         *tracking_rate_variants(reach),
         *letting_go_variants(reach),
         Variant("v-linear-average", dataclasses.replace(reach, scale="linear")),
-        Variant("v-published-pseudo (ED climatology from a later vintage)", reach,
-                (*[n for n in names if n != "seasonal"], "seasonal-pseudo")),
-        # the pooled gradient-boosted member (issue 51): in the published average of admissions
-        # since 2026-11-30 (left out, and on the target's own signal alone), beside the share's
-        # (and on its own signal); equally weighted, and the members weighted by their skill on
-        # the rounds already scored
+        # the seasonal member's climatology from a later vintage, in the four-member average
+        # published for admissions until 2026-12-01 (the pair has no seasonal member)
+        Variant("v-nf-context+nf-weekly+seasonal-pseudo+gbqr (ED climatology from a later "
+                "vintage)", reach, ("nf-context", "nf-weekly", "seasonal-pseudo", "gbqr")),
+        # the pooled gradient-boosted member (issue 51): on the target's own signal alone, and
+        # beside the share's members; the admissions' averages published before the pair
+        # (nf-context + gbqr since 2026-12-01) and the pair for the share; equally weighted,
+        # and the members weighted by their skill on the rounds already scored
         *gbqr_variants(reach, names, own_signal.name),
+        Variant("v-nf-context+nf-weekly+seasonal+gbqr (published for admissions until "
+                "2026-12-01)", reach, ("nf-context", "nf-weekly", "seasonal", "gbqr")),
         Variant("v-nf-context+gbqr", reach, ("nf-context", "gbqr")),
+        Variant("v-nf-context+nf-weekly+gbqr", reach, ("nf-context", "nf-weekly", "gbqr")),
         Variant("v-nf-context+seasonal+gbqr", reach, ("nf-context", "seasonal", "gbqr")),
+        *skill_weighted_variants(reach, ("nf-context", "gbqr")),
         *skill_weighted_variants(reach, ("nf-context", "seasonal", "gbqr")),
-        *skill_weighted_variants(reach, tuple(dict.fromkeys((*names, "gbqr", "growth-qr"))),
-                                 ("inverse-wis",)),
+        *skill_weighted_variants(reach, ("nf-weekly", "seasonal", "gbqr", "nf-context",
+                                         "growth-qr"), ("inverse-wis",)),
     )
     built = {m.name for m in (*members.published, *members.references)} | {
         pseudo.name, own_signal.name}
-    variants = tuple(v for v in variants if set(v.members or ()) <= built)
+    variants = tuple(v for v in variants if set(v.members or ()) <= built
+                     and not (v.combine == reach and set(v.members or ()) == set(names)))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
                             references=(*members.references, pseudo, own_signal,

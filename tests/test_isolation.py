@@ -228,11 +228,14 @@ def test_only_what_changes_the_submission_degrades_a_round():
     beside = Dropped("refit", hosp, "nf-real 2025-09-20", "diverged; the refit of 2025-08-23 "
                      "instead")
     gate = Dropped("location", ed, "72", "no week in the last 8")
-    assert not run(beside, gate).degraded and run(beside, gate).degraded_message() == ""
+    # the weekly flow is scored beside admissions' average (nf-context + gbqr), not in it
     flow = Dropped("member", hosp, "nf-weekly", "raised RuntimeError: injected failure")
+    quiet = run(beside, gate, flow)
+    assert not quiet.degraded and quiet.degraded_message() == ""
+    boosting = Dropped("member", hosp, "gbqr", "raised RuntimeError: injected failure")
     stale = Dropped("target", ed, ed, "no current release")
-    degraded = run(beside, flow, gate, stale)
+    degraded = run(beside, boosting, gate, stale)
     assert degraded.degraded
     assert degraded.degraded_message() == (
-        f"target {ed}: no current release; member nf-weekly ({hosp}): raised RuntimeError: "
+        f"target {ed}: no current release; member gbqr ({hosp}): raised RuntimeError: "
         "injected failure")

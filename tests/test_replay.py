@@ -83,13 +83,15 @@ def _dropped(summary, what: str) -> dict[tuple[str, str], str]:  # noqa: ANN001
 def test_members_that_fail_and_a_refit_that_diverges_are_dropped_and_named(
         prefect_harness, tmp_path, releases, monkeypatch):
     """One round meets three failures at once: admissions' two published members both fail
-    (nf-weekly raises, seasonal returns a NaN median) and every nf-real fine-tune diverges. The
-    round is still published, naming each; its admissions are the hub baseline's (the floor),
-    and the refits fall back to the base flow."""
+    (nf-context raises, gbqr returns a NaN median), the ED share's other member too (seasonal
+    returns a NaN median), and every nf-real fine-tune diverges. The round is still published,
+    naming each; its admissions and shares are the hub baseline's (the floor), and the refits
+    fall back to the base flow."""
     from pipeline.errors import TrainingDivergedError
     from pipeline.members.base import MemberForecast
+    from pipeline.members.boosting import PooledBoostingMember
     from pipeline.members.nf import real
-    from pipeline.members.nf.weekly import WeeklyFlowMember
+    from pipeline.members.nf.context import ContextFlowMember
     from pipeline.members.seasonal import SeasonalGrowthMember
 
     def broken(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
@@ -98,24 +100,28 @@ def test_members_that_fail_and_a_refit_that_diverges_are_dropped_and_named(
     def diverge(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         raise TrainingDivergedError("injected: validation NLL 30.64 at iteration 240")
 
-    forecast = SeasonalGrowthMember.forecast
+    def nan_median(member_class):  # noqa: ANN001, ANN202
+        forecast = member_class.forecast
 
-    def nan(self, cells, horizons, levels):  # noqa: ANN001, ANN202
-        count = forecast(self, cells, horizons, levels).count.copy()
-        count[:, :, len(levels) // 2] = np.nan         # a numerical blow-up at the median
-        return MemberForecast(count)
+        def nan(self, cells, horizons, levels):  # noqa: ANN001, ANN202
+            count = forecast(self, cells, horizons, levels).count.copy()
+            count[:, :, len(levels) // 2] = np.nan         # a numerical blow-up at the median
+            return MemberForecast(count)
+        return nan
 
-    monkeypatch.setattr(WeeklyFlowMember, "forecast", broken)
-    monkeypatch.setattr(SeasonalGrowthMember, "forecast", nan)
+    monkeypatch.setattr(ContextFlowMember, "forecast", broken)
+    monkeypatch.setattr(PooledBoostingMember, "forecast", nan_median(PooledBoostingMember))
+    monkeypatch.setattr(SeasonalGrowthMember, "forecast", nan_median(SeasonalGrowthMember))
     monkeypatch.setattr(real, "stored_refit", diverge)
     out, summary = _replay(tmp_path, releases)
     last = _last(summary)
     assert summary["rounds_failed"] == 0 and last["state"] == "Completed (degraded)"
     dropped = _dropped(summary, "member")
-    assert dropped[(HOSP, "nf-weekly")] == "raised RuntimeError: injected failure"
-    assert dropped[(HOSP, "seasonal")].startswith("non-finite quantiles in ")
+    assert dropped[(HOSP, "nf-context")] == "raised RuntimeError: injected failure"
+    assert dropped[(HOSP, "gbqr")].startswith("non-finite quantiles in ")
+    assert dropped[(ED, "nf-context")] == "raised RuntimeError: injected failure"
     assert dropped[(ED, "seasonal")].startswith("non-finite quantiles in ")
-    assert "member nf-weekly (wk inc covid hosp): raised RuntimeError" in last["message"]
+    assert "member nf-context (wk inc covid hosp): raised RuntimeError" in last["message"]
     refits = _dropped(summary, "refit")
     assert refits and {t for t, _ in refits} <= {HOSP, ED}
     assert all(name.startswith("nf-real 20") for _, name in refits)

@@ -192,12 +192,14 @@ class HubMembersConfig:
     # it, and with ``boosting_beside`` everywhere (the benches)
     boosting: BoostingConfig | None = field(default_factory=BoostingConfig)
     boosting_beside: bool = False
-    # Admissions: the context flow (its seeds mixed), the weekly flow, the seasonal member and
-    # gbqr (since 2026-11-30). Over COVID-19's 44 design rounds 0.775 against 0.785 without
-    # gbqr (0.520 against 0.549 with the ED climatology, 0.873 against 0.878 before it; h0
-    # 0.769 against 0.767), coverage 0.47 / 0.92 (the same); gbqr reading admissions alone:
-    # 0.782 (bench/results/nhsn.json; docs/forecasting.md "The pooled gradient-boosted member")
-    published: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY, SEASONAL, GBQR)
+    # Admissions, all three hubs: the context flow (its seeds mixed) and gbqr (since
+    # 2026-12-01). Measured on each hub's design rounds against the four-member average
+    # published before (nf-context, nf-weekly, seasonal, gbqr; docs/forecasting.md "Two
+    # members for admissions"): COVID-19's 44 rounds 0.773 against 0.775 (the 15 with the ED
+    # climatology 0.488 against 0.525; the 29 before it 0.882 against 0.870), the worst window
+    # of 15 origins 1.025 against 1.040; RSV's 43 rounds (the combiner's captured inputs) 0.806
+    # against 0.819, better at every horizon; FluSight (below)
+    published: tuple[str, ...] = (NF_CONTEXT, GBQR)
     # A share (the ED visits): the context flow, refitted globally on the share's own windows
     # since 2022-10 with admissions and the climatology as context, with the seasonal member:
     # 0.618 over the 15 ED rounds, against nf-real + seasonal's 0.647 (0.612 while the flow
@@ -206,12 +208,11 @@ class HubMembersConfig:
     # [0.914, 0.939]) against 0.947 [0.933, 0.958]: skill bought with coverage, not taken
     published_share: tuple[str, ...] = (NF_CONTEXT, SEASONAL)
     # Admissions whose seasonal member reads their own earlier seasons (influenza: no ED
-    # vintage): the context flow reads those same seasons as its climatology, and the seasonal
-    # member (0.939 alone) is scored beside the average, not in it. Over FluSight's 59 rounds
-    # the two flows scored 0.652 (2023-24 / 2024-25: 0.773 / 0.601) against 0.704 with the
-    # seasonal member; the context flow alone 0.619 (0.791 / 0.540)
+    # vintage): the same pair. Over FluSight's 59 rounds it ties the two flows published
+    # before (0.643 each; 2023-24 0.745 against 0.779, 2024-25 0.600 against 0.583), with
+    # coverage 0.48 / 0.94 against 0.47 / 0.93; one rule for every hub's admissions
     # (bench/results/flusight.json)
-    published_own_seasons: tuple[str, ...] = (NF_CONTEXT, NF_WEEKLY)
+    published_own_seasons: tuple[str, ...] = (NF_CONTEXT, GBQR)
     flow_samples: int = 1000
     baseline_samples: int = BASELINE_SAMPLES
     # A round from an empty model store trains its members in a background process too,
