@@ -18,10 +18,11 @@ past round; each later one, the store and the memo carried over, forecasts one r
 median and max of the later ones) and each round's ``target_seconds``.
 
 ``injected``: one-Wednesday replays (the tiny preset; the releases before it imported at its
-start) with a failure injected: ``member_raises`` (nf-weekly raises), ``member_nan`` (seasonal
-returns a NaN median), ``refit_diverges`` (every nf-real fine-tune diverges), ``location_revised`` (the
-week's admissions release revises California's settled weeks tenfold), ``target_stale`` (the
-ED share's last five releases withheld): each ``{"published", "valid", "dropped"}``, valid =
+start) with a failure injected: ``member_raises`` (nf-context raises: a published member of
+both targets), ``member_nan`` (gbqr, admissions' other published member, and seasonal, the ED
+share's, return a NaN median), ``refit_diverges`` (every nf-real fine-tune diverges),
+``location_revised`` (the week's admissions release revises California's settled weeks
+tenfold), ``target_stale`` (the ED share's last five releases withheld): each ``{"published", "valid", "dropped"}``, valid =
 the round's file validated against the hub's tasks.json again and read back by hubdata.
 
 ``refits``: nf-real's fine-tuning at every refit date of the design rounds (both targets) × 3
@@ -299,16 +300,19 @@ def _stale(releases: list[Any], due: str) -> list[Any]:
 def run_injected(args: argparse.Namespace, releases: list[Any], path: Path) -> None:
     import pytest
 
+    from pipeline.members.boosting import PooledBoostingMember
     from pipeline.members.nf import real
-    from pipeline.members.nf.weekly import WeeklyFlowMember
+    from pipeline.members.nf.context import ContextFlowMember
     from pipeline.members.seasonal import SeasonalGrowthMember
 
+    def nan_medians(mp: pytest.MonkeyPatch) -> None:
+        for member in (PooledBoostingMember, SeasonalGrowthMember):
+            mp.setattr(member, "forecast", _nan_median(member.forecast))
+
     cases: dict[str, tuple[Callable[[pytest.MonkeyPatch], None], list[Any]]] = {
-        "member_raises": (lambda mp: mp.setattr(WeeklyFlowMember, "forecast", _raise),
+        "member_raises": (lambda mp: mp.setattr(ContextFlowMember, "forecast", _raise),
                           releases),
-        "member_nan": (lambda mp: mp.setattr(SeasonalGrowthMember, "forecast",
-                                             _nan_median(SeasonalGrowthMember.forecast)),
-                       releases),
+        "member_nan": (nan_medians, releases),
         "refit_diverges": (lambda mp: mp.setattr(real, "stored_refit", _diverge), releases),
         "location_revised": (lambda mp: None, _revised(releases, INJECTED_DUE)),
         "target_stale": (lambda mp: None, _stale(releases, INJECTED_DUE)),

@@ -109,3 +109,20 @@ def test_the_models_metadata_ship_inside_the_package():
         "tool"]["setuptools"]["package-data"]["pipeline"]
     assert all(any(fnmatch.fnmatch(str(f.relative_to(package)), g) for g in shipped)
                for f in files)
+
+
+def test_the_shipped_metadata_meet_the_hubs_schema():
+    """Each shipped model's metadata meets the hub's model-metadata schema (its 200-character
+    ``methods`` included): a description edited past the limit fails here, not at a round."""
+    import json
+    from pathlib import Path
+
+    from pipeline.outputs.hubverse_round import (MODEL_METADATA_DIR, load_model_metadata,
+                                                 validate_model_metadata)
+
+    schema = json.loads((Path(__file__).resolve().parents[1] / "hub-config"
+                         / "model-metadata-schema.json").read_text())
+    for path in sorted(MODEL_METADATA_DIR.glob("*.yml")):
+        metadata = load_model_metadata(path)
+        validate_model_metadata(metadata, path.stem, schema)
+        assert 0 < len(metadata["methods"]) <= 200, path.name
