@@ -193,12 +193,11 @@ class HubMembersConfig:
     boosting: BoostingConfig | None = field(default_factory=BoostingConfig)
     boosting_beside: bool = False
     # Admissions, all three hubs: the context flow (its seeds mixed) and gbqr (since
-    # 2026-12-01). Measured on each hub's design rounds against the four-member average
-    # published before (nf-context, nf-weekly, seasonal, gbqr; docs/forecasting.md "Two
-    # members for admissions"): COVID-19's 44 rounds 0.773 against 0.775 (the 15 with the ED
-    # climatology 0.488 against 0.525; the 29 before it 0.882 against 0.870), the worst window
-    # of 15 origins 1.025 against 1.040; RSV's 43 rounds (the combiner's captured inputs) 0.806
-    # against 0.819, better at every horizon; FluSight (below)
+    # 2026-12-01), against the four members published before (+ nf-weekly, seasonal;
+    # docs/forecasting.md "Two members for admissions"): COVID-19's 44 rounds 0.773 against
+    # 0.775 (with the ED climatology 0.488 against 0.525; before it 0.882 against 0.870), its
+    # worst window of 15 origins 1.025 against 1.040; RSV's 43 rounds 0.760 against 0.769,
+    # better at every horizon (bench/results/nhsn.json, rsv.json); FluSight (below)
     published: tuple[str, ...] = (NF_CONTEXT, GBQR)
     # A share (the ED visits): the context flow, refitted globally on the share's own windows
     # since 2022-10 with admissions and the climatology as context, with the seasonal member:
