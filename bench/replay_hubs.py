@@ -24,7 +24,9 @@ the weekly rule (a release serves the first Saturday at least two days on) would
 the deployment's flow, default members): rounds due, published, failed, valid files, seconds;
 and the published forecast's relative WIS against the product's hub baseline (the RSV hub has
 no team forecasts before its first round, 2025-09-20: the baseline is the only reference), per
-target and horizon, scored on the newest release, from the last round's track record.
+target and horizon, scored on the newest release, from the last round's track record, with its
+50 % / 95 % coverage (bootstrap intervals over rounds) and the online calibration's cost over
+every round and in the worst window of 15 (``calibration_cost_by_window``).
 
     python -m bench.replay_hubs --part held
     python -m bench.replay_hubs --part calendar
@@ -190,8 +192,49 @@ def rsv_skill(out: Path) -> dict[str, Any]:
     if not folders:
         return {}
     scores = pd.read_csv(folders[-1])
+    relative = _relative(scores)
+    for target, part in scores[scores["horizon"] >= 0].groupby("target"):
+        relative[str(target)] |= _coverage_and_cost(part)
     return {"source": str(folders[-1].relative_to(out)), "columns": list(scores.columns),
-            **_relative(scores)}
+            **relative}
+
+
+def _cube(scores: pd.DataFrame, model: str, column: str, places: pd.Index,
+          columns: pd.MultiIndex) -> Any:
+    """``column`` of ``model``'s scores as a (location, reference date, horizon) array, NaN
+    where it has no score."""
+    frame = scores[scores["model_id"] == model]
+    wide = frame.pivot_table(index="location", columns=["reference_date", "horizon"],
+                             values=column).reindex(index=places, columns=columns)
+    return wide.to_numpy(dtype=float).reshape(len(places), *columns.levshape)
+
+
+def _coverage_and_cost(scores: pd.DataFrame) -> dict[str, Any]:
+    """The published forecast's 50 % / 95 % coverage over a target's horizons 0-3 with their
+    moving-block bootstrap intervals over rounds, and the online calibration's cost (its WIS ÷
+    the same average uncalibrated) over every round and in the worst window of 15."""
+    import numpy as np
+
+    from pipeline.evaluation.bootstrap import coverage_interval
+    from pipeline.evaluation.summary import calibration_cost
+
+    places = pd.Index(sorted(scores["location"].unique()))
+    dates = sorted(scores["reference_date"].unique())
+    columns = pd.MultiIndex.from_product([dates, sorted(scores["horizon"].unique())])
+    out: dict[str, Any] = {}
+    for level in ("50", "95"):
+        covered = _cube(scores, "published", f"coverage_{level}", places, columns)
+        interval = coverage_interval(covered, np.ones(covered.shape, dtype=bool))
+        out[f"coverage{level}"] = round(float(np.nanmean(covered)), 4)
+        out[f"coverage{level}_interval"] = (None if interval is None
+                                            else [round(float(x), 4) for x in interval])
+    if "ensemble-uncalibrated" in set(scores["model_id"]):
+        cost = calibration_cost(_cube(scores, "published", "wis", places, columns),
+                                _cube(scores, "ensemble-uncalibrated", "wis", places, columns),
+                                dates)
+        out["calibration_cost_by_window"] = {
+            k: (round(v, 4) if isinstance(v, float) else v) for k, v in cost.items()}
+    return out
 
 
 def _relative(scores: pd.DataFrame) -> dict[str, Any]:
