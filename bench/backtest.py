@@ -47,6 +47,16 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+CASES_ONLY = "gbqr-cases-only"
+
+
+def cases_only_gbqr() -> Any:
+    """gbqr on the target's series alone, not reading the panel's test positivity."""
+    from pipeline.members.boosting import PooledBoostingMember
+
+    return PooledBoostingMember(name=CASES_ONLY, reads_panel_signal=False)
+
+
 def design_variants() -> tuple[Any, ...]:
     """The published forecast's design choices against their alternatives, scored on the same
     origins by the one combiner (:mod:`pipeline.combine.combiner`; the SF-only design's skill
@@ -79,6 +89,10 @@ def design_variants() -> tuple[Any, ...]:
         Variant("growth-qr for gbqr (published until 2026-11-29)",
                 members=tuple("growth-qr" if n == "gbqr" else n for n in members)),
         Variant("with growth-qr", members=(*members, "growth-qr")),
+        # gbqr without the counties' test positivity beside the cases (published until
+        # 2026-12-01)
+        Variant(f"{CASES_ONLY} for gbqr (published until 2026-12-01)",
+                members=tuple(CASES_ONLY if n == "gbqr" else n for n in members)),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
         *bound_variants(CombineConfig(), prefix=""),
     )
@@ -127,10 +141,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.members.growth_regression import PooledGrowthMember
     from pipeline.data.california.cdph import find_vintage_files
     from pipeline.data.california.cdph_source import import_cdph_exports
-    from pipeline.forecast.sources import (SF_COUNTY, import_exports,
-                                           load_reference_histories, load_sf_history)
+    from pipeline.forecast.sources import (SF_COUNTY, import_exports, load_sf_history,
+                                           reference_panel)
     from pipeline.io import atomic_write_json
-    from pipeline.panels.california import place_panel
     from pipeline.training.model_store import default_store_root
 
     import_exports([args.data], if_empty=True)
@@ -138,7 +151,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         import_cdph_exports(find_vintage_files(args.cdph), if_empty=True, accept_revisions=True)
     source = fc.DataSourceConfig(kind="cache")
     history = load_sf_history(source)
-    reference = load_reference_histories()
     record = fc.resolve_config("default", seed=args.seed).track_record_config()
     record = dataclasses.replace(
         record, members=dataclasses.replace(record.members, include_nf=not args.no_nf))
@@ -150,9 +162,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if not args.no_smc:
         references, t_smc = smc_reference(history, reported, args.seed)
     if not args.quick:
-        references = [*references, PooledGrowthMember()]
+        references = [*references, PooledGrowthMember(), cases_only_gbqr()]
     t0 = time.perf_counter()
-    made = track_record(place_panel(SF_COUNTY, history, reference), SF_COUNTY, record,
+    panel = reference_panel(SF_COUNTY, history)
+    reference = panel.references
+    made = track_record(panel, SF_COUNTY, record,
                         default_store_root(), references=references, scored_only=True,
                         first=first)
     result = made.result

@@ -52,6 +52,8 @@ def design_variants() -> tuple[Any, ...]:
                                           tracking_rate_variants)
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
+    from bench.backtest import CASES_ONLY
+
     long = 1_000                       # every past scored origin
     uncalibrated = CombineConfig(calibration="none")
     return (
@@ -81,6 +83,8 @@ def design_variants() -> tuple[Any, ...]:
         Variant("v-growth-qr for gbqr (published until 2026-11-29)",
                 members=tuple("growth-qr" if n == "gbqr" else n for n in MEMBERS)),
         Variant("v-with-growth-qr", members=(*MEMBERS, "growth-qr")),
+        Variant(f"v-{CASES_ONLY} for gbqr (published until 2026-12-01)",
+                members=tuple(CASES_ONLY if n == "gbqr" else n for n in MEMBERS)),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
         *bound_variants(CombineConfig()),
     )
@@ -114,6 +118,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
+    from bench.backtest import CASES_ONLY, cases_only_gbqr
+
     vintage = (read_cdph_csv(args.vintage) if args.vintage
                else read_vintages(find_vintage_files(SHARED_CDPH))[-1])
     # the weekly run's own members and models (its seeds included), so the county backtest
@@ -123,14 +129,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     with rich_progress("cross-county backtest") as progress:
         result, chosen = county_backtest(vintage, config, default_store_root(),
                                          variants=design_variants(),
-                                         references=(AutoETSMember(), PooledGrowthMember()),
+                                         references=(AutoETSMember(), PooledGrowthMember(),
+                                                     cases_only_gbqr()),
                                          progress=progress)
     t_all = time.perf_counter() - started
     t_members = t_all - sum(result.seconds.values())
     counties, origins = result.places, result.origins
     t_backtest = t_all - t_members
     summary = result.summary()
-    reference_forecasters = ["published", *result.members, "autoets", "growth-qr"]
+    reference_forecasters = ["published", *result.members, "autoets", "growth-qr", CASES_ONLY]
     out = {
         **summary,
         "by_year": by_year(result, reference_forecasters),
@@ -141,6 +148,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                                                       "combine")), 2),
                     "references_and_variants": round(result.seconds["autoets"]
                                                      + result.seconds["growth-qr"]
+                                                     + result.seconds[CASES_ONLY]
                                                      + result.seconds["variants"], 2),
                     "wall": round(t_backtest, 2), "parts": summary["seconds"]},
         "flow_model": {"key": chosen.model_key, "reused": chosen.reused},

@@ -81,14 +81,13 @@ def san_francisco(config: Any) -> tuple[dict[str, Any], float]:
     from pipeline.backtest.track_record import track_record
     from pipeline.combine.combiner import LOG_AVERAGE
     from pipeline import forecast as fc
-    from pipeline.forecast.sources import SF_COUNTY, load_reference_histories, load_sf_history
-    from pipeline.panels.california import place_panel
+    from pipeline.forecast.sources import SF_COUNTY, load_sf_history, reference_panel
     from pipeline.training.model_store import default_store_root
 
     history = load_sf_history(fc.DataSourceConfig(kind="cache"))
     record = dataclasses.replace(config.track_record_config(),
                                  variants=(Variant(BEFORE, LOG_AVERAGE),))
-    made = track_record(place_panel(SF_COUNTY, history, load_reference_histories()), SF_COUNTY,
+    made = track_record(reference_panel(SF_COUNTY, history), SF_COUNTY,
                         record, default_store_root(), scored_only=True)
     summary = made.summary()["by_target"]["cases"]
     return panel_summary(summary, "relative_wis_vs_baseline"), summary["published"][

@@ -77,8 +77,7 @@ def backtest_command(
     from pipeline import forecast as fc
     from pipeline.backtest.track_record import track_record
     from pipeline.backtest.writers import write_backtest
-    from pipeline.forecast.sources import SF_COUNTY, load_reference_histories, load_sf_history
-    from pipeline.panels.california import place_panel
+    from pipeline.forecast.sources import SF_COUNTY, load_sf_history, reference_panel
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
@@ -88,7 +87,7 @@ def backtest_command(
             kind=_source_kind(source), import_paths=tuple(str(p) for p in import_from or [])))
         record = _without_flows(fc.resolve_config("default", seed=seed).track_record_config(),
                                 nf)
-        panel = place_panel(SF_COUNTY, history, load_reference_histories())
+        panel = reference_panel(SF_COUNTY, history)
         with rich_progress("backtest") as progress:
             made = track_record(panel, SF_COUNTY, record, default_store_root(), progress,
                                 scored_only=not all_origins, first=_date(first, "--from"),

@@ -77,15 +77,14 @@ def train_members(request: MemberTrainingRequest) -> None:
     """Train what the ``weekly-forecast`` and ``county-skill`` steps will look up: the same
     builder calls (refits newest first), so the same store keys and the same models."""
     from pipeline.forecast.county_skill import train_county_members
-    from pipeline.forecast.sources import load_reference_histories
+    from pipeline.forecast.sources import reference_panel
     from pipeline.members.published import build_members
-    from pipeline.panels.california import place_panel
     from pipeline.progress import LogProgress
 
     progress = LogProgress(log, "training", 500)
     config = request.config
     record = config.track_record_config()
-    panel = place_panel(config.data.place, request.history, load_reference_histories())
+    panel = reference_panel(config.data.place, request.history, config.data.folder)
     build_members(record.members, request.store_root, panel, record.origins(request.history),
                   progress, newest_refits_first=True)
     train_county_members(config, request.store_root, progress)

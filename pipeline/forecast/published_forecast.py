@@ -21,13 +21,12 @@ from pipeline.backtest.memo import ForecastMemo
 from pipeline.backtest.track_record import TrackRecord, track_record
 from pipeline.members.nf.flow import single_thread
 from pipeline.members.smc import NFSeededSMCMember, PrecomputedMember, batched_smc_forecasts
-from pipeline.panels.california import place_panel
 from pipeline.panels.targets import HORIZONS_WEEKS, HUB_QUANTILE_LEVELS
 from pipeline.forked import ChildBuild, start_in_child
 from pipeline.errors import ModelMissingError
 from pipeline.forecast.config import ForecastConfig
 from pipeline.forecast.nowcasting import RecentDays, mixture_start
-from pipeline.forecast.sources import load_reference_places
+from pipeline.forecast.sources import reference_panel
 from pipeline.forecast.results import TrainedModels
 from pipeline.progress import ProgressReporter
 from pipeline.training.model_store import stored_models_only
@@ -71,9 +70,7 @@ def weekly_forecast(recent: RecentDays, models: TrainedModels, config: ForecastC
 
     start = None if nowcast is None else mixture_start(nowcast, config.nowcast.mixture_weeks)
     memo = ForecastMemo.load(forecast_memo_path(place, config.data.folder))
-    reference_places = load_reference_places(folder=config.data.folder)
-    panel = place_panel(place, history, reference_places.histories,
-                        reference_places.skipped)
+    panel = reference_panel(place, history, config.data.folder)
     result = track_record(panel, place, record, config.store_root, progress,
                           references=references, nowcast=nowcast, mixture_from=start,
                           mixed_completions=config.nowcast.completions, memo=memo)

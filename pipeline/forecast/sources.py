@@ -28,7 +28,10 @@ from pipeline.data.sf.sir_transform import SIRConversionConfig, SIRSeries, to_si
 from pipeline.data.california.cdph_source import (CDPHConfig, CDPHProvenance,
                                                   import_cdph_exports, load_cdph,
                                                   load_cdph_vintage, require_cdph_cached)
-from pipeline.panels.history import EpiHistory, history_from_county, history_from_frames
+from pipeline.panels.california import place_panel, test_positivity
+from pipeline.panels.history import (EpiHistory, History, history_from_county,
+                                     history_from_frames)
+from pipeline.panels.panel import Panel
 from pipeline.errors import ConfigError, FlowcastError, OfflineError
 from pipeline.forecast.config import DataSourceConfig, DataSourceKind
 from pipeline.forecast.results import SIRArrays
@@ -218,6 +221,7 @@ class ReferencePlaces:
 
     histories: dict[str, EpiHistory]
     skipped: dict[str, str]
+    signal: Panel | None = None     # their test positivity (pipeline.panels.california)
 
 
 def load_reference_places(min_population: int = REFERENCE_MIN_POPULATION,
@@ -240,9 +244,18 @@ def load_reference_places(min_population: int = REFERENCE_MIN_POPULATION,
     if vintage.skipped:  # failed the gate or held for review: not in vintage.counties
         log.warning("the pooled members leave out %d county(ies) (each with why): %s",
                     len(vintage.skipped), "; ".join(vintage.skipped.values()))
+    counties = vintage.counties_with_population(min_population)
     return ReferencePlaces({c: history_from_county(vintage.county(c)).up_to(last)
-                            for c in vintage.counties_with_population(min_population)},
-                           dict(vintage.skipped))
+                            for c in counties},
+                           dict(vintage.skipped), test_positivity(vintage, counties, last))
+
+
+def reference_panel(place: str, history: History, folder: Path | None = None) -> Panel:
+    """``place``'s series pooled with :func:`load_reference_places`' counties, their test
+    positivity its panel's other signal (:func:`~pipeline.panels.california.place_panel`)."""
+    references = load_reference_places(folder=folder)
+    return place_panel(place, history, references.histories, references.skipped,
+                       references.signal)
 
 
 def load_reference_histories(min_population: int = REFERENCE_MIN_POPULATION,

@@ -22,7 +22,8 @@ The places' own histories at the origin (the nowcast's median where the engine n
 the rows predicted; the pool's rows train. Nothing after the origin enters, in any place.
 
 **The other signal** (``other``: the hub's ED share beside admissions, admissions beside the
-share; Flusion's several sources): its vintage as released by the cell's panel's release date
+share; Flusion's several sources; without ``other``, the panel's own ``signal``: California's
+test positivity beside the cases): its vintage as released by the cell's panel's release date
 (``as_of``) adds (a) its level and changes over 1 and 2 weeks at the same place and week as
 features (missing where it has no such week), and (b) its own series as training rows, with an
 indicator of the signal, each signal's row weights averaging 1: admissions, reported since
@@ -313,12 +314,15 @@ class PooledBoostingMember(ForecastsByPool):
     config: BoostingConfig = BoostingConfig()
     name: str = GBQR
     other: Sequence[tuple[pd.Timestamp, Panel]] = ()
+    # without ``other``: read the panel's own signal (False: the target's series alone)
+    reads_panel_signal: bool = True
     pools: ClassVar[bool] = True          # learns from the cell's panel (the memo keys on it)
 
     def other_for(self, panel: Panel) -> Panel | None:
-        """The other signal as released by ``panel``'s release date (none before its first)."""
+        """The other signal as released by ``panel``'s release date (none before its first);
+        without ``other``, the panel's own :attr:`~Panel.signal` (the same download's)."""
         if not self.other:
-            return None
+            return panel.signal if self.reads_panel_signal else None
         if panel.as_of is None:
             raise TargetError(f"{self.name}: the cell's panel has no release date to choose "
                               "the other signal known then")

@@ -70,13 +70,16 @@ class Panel:
     places only pooled (a place's own reference series is never in its pool); ``skipped``:
     places the data gate left out, with why (the run names them); ``name``: what the panel is
     (``san-francisco``, ``california-counties``, ``nhsn-covid-hosp``); ``as_of``: the
-    vintage's release date, where the source has vintages."""
+    vintage's release date, where the source has vintages; ``signal``: another signal of the
+    same places from the same download (the counties' test positivity beside their cases),
+    which a pooling member may read up to each cell's origin."""
 
     histories: Mapping[str, History]
     references: Mapping[str, History] = field(default_factory=dict)
     skipped: Mapping[str, str] = field(default_factory=dict)
     name: str = "panel"
     as_of: pd.Timestamp | None = None       # when this vintage of the data was released
+    signal: Panel | None = None
 
     def __post_init__(self) -> None:
         if not self.histories:
@@ -121,8 +124,10 @@ class Panel:
         def cut(histories: Mapping[str, History]) -> dict[str, History]:
             return {p: h.up_to(date) for p, h in histories.items() if h.dates[0] <= date}
 
+        signal = (None if self.signal is None or self.signal.first_date > date
+                  else self.signal.up_to(date))
         return Panel(cut(self.histories), cut(self.references), self.skipped, self.name,
-                     self.as_of)
+                     self.as_of, signal)
 
     def only(self, places: Sequence[str]) -> Panel:
         """The same panel forecasting only ``places`` (the others become references)."""
@@ -132,7 +137,7 @@ class Panel:
         return Panel({p: self.histories[p] for p in places},
                      {**self.references, **{p: h for p, h in self.histories.items()
                                             if p not in places}}, self.skipped, self.name,
-                     self.as_of)
+                     self.as_of, self.signal)
 
     def _pool_rows(self, place: str) -> list[tuple[str, History]]:
         """:meth:`pool`'s rows: the references other than ``place``, then every place of the

@@ -9,7 +9,10 @@ counties, plus ``Unknown`` and ``Out of state``) or ``State``; one more row per 
   definition of DataSF's specimen-collection series). Recent days fill in as late reports arrive,
   so every download is a **vintage**: the same days as CDPH knew them on that day;
 * ``reported_cases``: cases by the day CDPH reported them (complete on arrival, never revised);
-* ``deaths`` (date of death), ``population`` (CDPH's estimate, San Francisco 892,280).
+* ``deaths`` (date of death), ``population`` (CDPH's estimate, San Francisco 892,280);
+* ``total_tests``, ``positive_tests``: tests by specimen collection date, where the file has
+  them. Not gated (the forecast's own series are the cases): an empty, unreadable or negative
+  count reads as missing (NaN), and the vintage is kept without them.
 
 Vintages differ in their date format (``M/D/YYYY`` in early 2021, ISO later) and columns (the
 cumulative columns came later); both are read. The vintage's date is its last dated row.
@@ -58,6 +61,7 @@ COUNTY = "County"
 REQUIRED_COLUMNS: tuple[str, ...] = ("date", "area", "area_type", "population", "cases",
                                      "deaths", "reported_cases")
 COUNT_COLUMNS: tuple[str, ...] = ("cases", "deaths", "reported_cases")
+TEST_COLUMNS: tuple[str, ...] = ("total_tests", "positive_tests")
 NOT_COUNTIES: frozenset[str] = frozenset({"Unknown", "Out of state"})
 DATE_FORMATS: tuple[str, ...] = ("%Y-%m-%d", "%m/%d/%Y")
 CALIFORNIA_COUNTIES = 58
@@ -87,6 +91,9 @@ class CountySeries:
     cases: NDArray[np.int64]            # by episode date (revised as reports arrive)
     reported_cases: NDArray[np.int64]   # by report date (final on arrival)
     deaths: NDArray[np.int64]
+    # by specimen collection date; NaN where the file has none
+    total_tests: NDArray[np.float64] | None = None
+    positive_tests: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return len(self.dates)
@@ -101,7 +108,7 @@ class CDPHVintage:
     """Every county of one CDPH download. ``as_of``: its last date; ``source``: where it came
     from (a path or a URL)."""
 
-    frame: pd.DataFrame      # date, area, population, cases, deaths, reported_cases (counties)
+    frame: pd.DataFrame      # date, area, population, cases, deaths, reported_cases, tests
     as_of: pd.Timestamp
     source: str
     skipped: Mapping[str, str] = field(default_factory=dict)  # county -> why the gate dropped it
@@ -134,7 +141,8 @@ class CDPHVintage:
             dates=pd.DatetimeIndex(rows["date"]).as_unit("ns"),
             cases=rows["cases"].to_numpy(np.int64),
             reported_cases=rows["reported_cases"].to_numpy(np.int64),
-            deaths=rows["deaths"].to_numpy(np.int64))
+            deaths=rows["deaths"].to_numpy(np.int64),
+            **{c: rows[c].to_numpy(np.float64) for c in TEST_COLUMNS if c in rows})
 
 
 # ------------------------------------------------------------------------------------ parsing
@@ -152,7 +160,7 @@ def _parse_dates(values: pd.Series) -> pd.Series:
 # (reference counties, nowcast, county skill); parsing a 4 MB file takes most of a second.
 _PARSED: dict[str, CDPHVintage] = {}
 _PARSED_LIMIT = 16
-PARSED_FORMAT = f"flowcast-cdph-parsed-2-{CDPH_GATE.fingerprint()}"
+PARSED_FORMAT = f"flowcast-cdph-parsed-3-{CDPH_GATE.fingerprint()}"
 
 
 def parse_cdph_csv(data: bytes, source: str, parsed_dir: Path | None = None) -> CDPHVintage:
@@ -181,7 +189,8 @@ def _write_parsed(path: Path, vintage: CDPHVintage) -> None:
              date=vintage.frame["date"].to_numpy("datetime64[ns]").astype(np.int64),
              population=vintage.frame["population"].to_numpy(np.int64),
              skipped=np.array(json.dumps(dict(vintage.skipped))),
-             **{c: vintage.frame[c].to_numpy(np.int64) for c in COUNT_COLUMNS})
+             **{c: vintage.frame[c].to_numpy(np.int64) for c in COUNT_COLUMNS},
+             **{c: vintage.frame[c].to_numpy(np.float64) for c in TEST_COLUMNS})
     try:
         atomic_write_bytes(path, buffer.getvalue())
     except OSError:
@@ -198,7 +207,7 @@ def _read_parsed(path: Path) -> CDPHVintage | None:
             frame = pd.DataFrame({"date": pd.to_datetime(npz["date"]).as_unit("ns"),
                                   "area": areas[codes].astype(object),
                                   "population": npz["population"],
-                                  **{c: npz[c] for c in COUNT_COLUMNS}})
+                                  **{c: npz[c] for c in (*COUNT_COLUMNS, *TEST_COLUMNS)}})
             as_of = pd.Timestamp(int(npz["as_of"]))
             skipped = json.loads(str(npz["skipped"]))
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
@@ -233,9 +242,22 @@ def _parse(data: bytes, source: str) -> CDPHVintage:
     gated = gate(rows, CDPH_GATE, source=source)
     frame = gated.frame.rename(columns={"place": "area"})[
         ["date", "area", "population", *COUNT_COLUMNS]]
+    frame = frame.merge(_tests(dated, rows), on=["area", "date"], how="left", validate="1:1")
     frame["area"] = frame["area"].astype(object)
     return CDPHVintage(frame=frame, as_of=pd.Timestamp(last), source=source,
                        skipped=gated.skipped)
+
+
+def _tests(dated: pd.DataFrame, rows: pd.DataFrame) -> pd.DataFrame:
+    """``area``, ``date`` and :data:`TEST_COLUMNS` of the dated county rows: NaN where the file
+    has no such column, or a count is empty, unreadable or negative; one row per area and day
+    (a repeated day is the gate's to refuse, and reads as missing here)."""
+    out = pd.DataFrame({"area": rows["place"], "date": rows["date"]})
+    for column in TEST_COLUMNS:
+        text = dated[column] if column in dated.columns else pd.Series("", index=dated.index)
+        value = pd.to_numeric(text.astype("string").str.strip(), errors="coerce")
+        out[column] = value.where(value >= 0).to_numpy(np.float64)
+    return out.dropna(subset=["date"]).drop_duplicates(["area", "date"], keep=False)
 
 
 def read_cdph_csv(path: str | os.PathLike[str]) -> CDPHVintage:
