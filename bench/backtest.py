@@ -50,11 +50,26 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
 CASES_ONLY = "gbqr-cases-only"
 
 
-def cases_only_gbqr() -> Any:
-    """gbqr on the target's series alone, not reading the panel's test positivity."""
-    from pipeline.members.boosting import PooledBoostingMember
+def gbqr_references() -> list[Any]:
+    """gbqr on the target's series alone, not reading the panel's test positivity
+    (:data:`CASES_ONLY`), and gbqr with the trees published until 79ea0ca."""
+    from pipeline.members.boosting import PooledBoostingMember, shallow_trees
 
-    return PooledBoostingMember(name=CASES_ONLY, reads_panel_signal=False)
+    return [PooledBoostingMember(name=CASES_ONLY, reads_panel_signal=False),
+            shallow_trees(PooledBoostingMember())]
+
+
+def gbqr_variants(members: tuple[str, ...], prefix: str = "") -> tuple[Any, ...]:
+    """The published average with each of :func:`gbqr_references` in gbqr's place."""
+    from pipeline.backtest.config import Variant
+    from pipeline.members.boosting import SHALLOW_GBQR
+
+    def swapped(name: str) -> tuple[str, ...]:
+        return tuple(name if n == "gbqr" else n for n in members)
+    return (Variant(f"{prefix}{CASES_ONLY} for gbqr (without test positivity)",
+                    members=swapped(CASES_ONLY)),
+            Variant(f"{prefix}{SHALLOW_GBQR} for gbqr (15 leaves at rate 0.05: published "
+                    "until 79ea0ca)", members=swapped(SHALLOW_GBQR)))
 
 
 def design_variants() -> tuple[Any, ...]:
@@ -90,9 +105,8 @@ def design_variants() -> tuple[Any, ...]:
                 members=tuple("growth-qr" if n == "gbqr" else n for n in members)),
         Variant("with growth-qr", members=(*members, "growth-qr")),
         # gbqr without the counties' test positivity beside the cases (published until
-        # 2026-12-01)
-        Variant(f"{CASES_ONLY} for gbqr (published until 2026-12-01)",
-                members=tuple(CASES_ONLY if n == "gbqr" else n for n in members)),
+        # e88096a), and with the trees published until 79ea0ca
+        *gbqr_variants(members),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
         *bound_variants(CombineConfig(), prefix=""),
     )
@@ -162,7 +176,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if not args.no_smc:
         references, t_smc = smc_reference(history, reported, args.seed)
     if not args.quick:
-        references = [*references, PooledGrowthMember(), cases_only_gbqr()]
+        references = [*references, PooledGrowthMember(), *gbqr_references()]
     t0 = time.perf_counter()
     panel = reference_panel(SF_COUNTY, history)
     reference = panel.references

@@ -52,7 +52,7 @@ def design_variants() -> tuple[Any, ...]:
                                           tracking_rate_variants)
     from pipeline.combine.combiner import LOG_AVERAGE, CombineConfig
 
-    from bench.backtest import CASES_ONLY
+    from bench.backtest import gbqr_variants
 
     long = 1_000                       # every past scored origin
     uncalibrated = CombineConfig(calibration="none")
@@ -83,8 +83,7 @@ def design_variants() -> tuple[Any, ...]:
         Variant("v-growth-qr for gbqr (published until 2026-11-29)",
                 members=tuple("growth-qr" if n == "gbqr" else n for n in MEMBERS)),
         Variant("v-with-growth-qr", members=(*MEMBERS, "growth-qr")),
-        Variant(f"v-{CASES_ONLY} for gbqr (published until 2026-12-01)",
-                members=tuple(CASES_ONLY if n == "gbqr" else n for n in MEMBERS)),
+        *gbqr_variants(MEMBERS, prefix="v-"),
         # the published rule's bound on falls (issue 51): left off, and put on rises too
         *bound_variants(CombineConfig()),
     )
@@ -118,7 +117,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from pipeline.progress import rich_progress
     from pipeline.training.model_store import default_store_root
 
-    from bench.backtest import CASES_ONLY, cases_only_gbqr
+    from bench.backtest import CASES_ONLY, gbqr_references
+    from pipeline.members.boosting import SHALLOW_GBQR
 
     vintage = (read_cdph_csv(args.vintage) if args.vintage
                else read_vintages(find_vintage_files(SHARED_CDPH))[-1])
@@ -130,14 +130,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         result, chosen = county_backtest(vintage, config, default_store_root(),
                                          variants=design_variants(),
                                          references=(AutoETSMember(), PooledGrowthMember(),
-                                                     cases_only_gbqr()),
+                                                     *gbqr_references()),
                                          progress=progress)
     t_all = time.perf_counter() - started
     t_members = t_all - sum(result.seconds.values())
     counties, origins = result.places, result.origins
     t_backtest = t_all - t_members
     summary = result.summary()
-    reference_forecasters = ["published", *result.members, "autoets", "growth-qr", CASES_ONLY]
+    reference_forecasters = ["published", *result.members, "autoets", "growth-qr", CASES_ONLY,
+                             SHALLOW_GBQR]
     out = {
         **summary,
         "by_year": by_year(result, reference_forecasters),
@@ -149,6 +150,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     "references_and_variants": round(result.seconds["autoets"]
                                                      + result.seconds["growth-qr"]
                                                      + result.seconds[CASES_ONLY]
+                                                     + result.seconds[SHALLOW_GBQR]
                                                      + result.seconds["variants"], 2),
                     "wall": round(t_backtest, 2), "parts": summary["seconds"]},
         "flow_model": {"key": chosen.model_key, "reused": chosen.reused},

@@ -215,6 +215,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                                           skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
+    from pipeline.members.boosting import shallow_trees
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.training.model_store import default_store_root
 
@@ -224,6 +225,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     members = build_hub_members(HubMembersConfig(boosting_beside=True),
                                 default_store_root(), vintages, (),
                                 target=HOSP_FLU, seasonal_own_seasons=True)
+    shallow = shallow_trees(next(m for m in members.published if m.name == "gbqr"))
     t_members = time.perf_counter() - started
     reach = HubBacktestConfig().combine      # the published rule (the hub's 95 % outer interval)
     pair = ("nf-weekly", "seasonal")        # COVID-19's admissions pair
@@ -246,6 +248,8 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                         reach, ("nf-context", "nf-weekly")),
                 Variant("v-nf-context+nf-weekly+gbqr", reach,
                         ("nf-context", "nf-weekly", "gbqr")),
+                Variant(f"v-nf-context+{shallow.name} (15 leaves at rate 0.05: published until "
+                        "79ea0ca)", reach, ("nf-context", shallow.name)),
                 Variant("v-nf-context+nf-weekly+gbqr+growth-qr", reach,
                         ("nf-context", "nf-weekly", "gbqr", "growth-qr")),
                 *skill_weighted_variants(reach, ("nf-context", "gbqr")),
@@ -260,7 +264,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                         dataclasses.replace(reach, calibration="none")))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=seed),
-                            references=members.references)
+                            references=(*members.references, shallow))
     return result, t_members, time.perf_counter() - started - t_members
 
 

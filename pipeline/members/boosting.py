@@ -31,6 +31,7 @@ indicator of the signal, each signal's row weights averaging 1: admissions, repo
 """
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -61,8 +62,10 @@ class BoostingConfig:
     scale_quantile: float = 0.95
     local_weeks: int = 6
     n_estimators: int = 100
-    learning_rate: float = 0.05
-    num_leaves: int = 15
+    # LightGBM's own defaults since 2026-12-01: 15 leaves at 0.05 (:data:`SHALLOW_GBQR`) cost
+    # the average 1-2 % on California's panels (docs/forecasting.md, "gbqr's trees")
+    learning_rate: float = 0.1
+    num_leaves: int = 31
     min_child_samples: int = 40
     subsample: float = 0.7
     colsample: float = 0.8
@@ -362,3 +365,14 @@ class PooledBoostingMember(ForecastsByPool):
         u = u_now[:, None, None] + change.reshape(n_b, n_h, len(fitted))
         return np.maximum.accumulate(quantiles_at(fitted, counts_of(u, mine.block, self.config),
                                                   levels), axis=-1)
+
+
+# gbqr with the trees published until 79ea0ca (15 leaves at a learning rate of 0.05), scored
+# beside the published gbqr by the benches
+SHALLOW_GBQR = "gbqr-shallow"
+
+
+def shallow_trees(member: PooledBoostingMember) -> PooledBoostingMember:
+    """``member`` with the trees published until 79ea0ca, named :data:`SHALLOW_GBQR`."""
+    return dataclasses.replace(member, name=SHALLOW_GBQR, config=dataclasses.replace(
+        member.config, learning_rate=0.05, num_leaves=15))
