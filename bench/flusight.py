@@ -215,7 +215,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                                           skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
-    from pipeline.members.boosting import shallow_trees
+    from pipeline.members.boosting import shallow_trees, the_gbqr
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.training.model_store import default_store_root
 
@@ -225,7 +225,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     members = build_hub_members(HubMembersConfig(boosting_beside=True),
                                 default_store_root(), vintages, (),
                                 target=HOSP_FLU, seasonal_own_seasons=True)
-    shallow = shallow_trees(next(m for m in members.published if m.name == "gbqr"))
+    shallow = shallow_trees(the_gbqr(members.published))
     t_members = time.perf_counter() - started
     reach = HubBacktestConfig().combine      # the published rule (the hub's 95 % outer interval)
     pair = ("nf-weekly", "seasonal")        # COVID-19's admissions pair

@@ -314,7 +314,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
-    from pipeline.members.boosting import BoostingConfig, PooledBoostingMember, shallow_trees
+    from pipeline.members.boosting import (BoostingConfig, PooledBoostingMember, shallow_trees,
+                                          the_gbqr)
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
     from pipeline.panels.hub import HOSP_COVID, hub_rounds, is_share
@@ -334,8 +335,7 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     t_ablations = time.perf_counter() - started - t_members
     # gbqr on the target's own signal alone (issue 51: the published gbqr reads both)
     own_signal = PooledBoostingMember(BoostingConfig(), name="gbqr-own-signal")
-    shallow = shallow_trees(next(m for m in (*members.published, *members.references)
-                                 if m.name == "gbqr"))
+    shallow = shallow_trees(the_gbqr((*members.published, *members.references)))
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")

@@ -376,3 +376,11 @@ def shallow_trees(member: PooledBoostingMember) -> PooledBoostingMember:
     """``member`` with the trees published until 79ea0ca, named :data:`SHALLOW_GBQR`."""
     return dataclasses.replace(member, name=SHALLOW_GBQR, config=dataclasses.replace(
         member.config, learning_rate=0.05, num_leaves=15))
+
+
+def the_gbqr(members: Sequence[object]) -> PooledBoostingMember:
+    """The member named :data:`GBQR` among ``members``."""
+    found = [m for m in members if isinstance(m, PooledBoostingMember) and m.name == GBQR]
+    if len(found) != 1:
+        raise ConfigError(f"expected one {GBQR} member, found {len(found)}")
+    return found[0]
