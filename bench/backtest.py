@@ -53,10 +53,12 @@ CASES_ONLY = "gbqr-cases-only"
 def gbqr_references() -> list[Any]:
     """gbqr on the target's series alone, not reading the panel's test positivity
     (:data:`CASES_ONLY`), and gbqr with the trees published until 79ea0ca."""
-    from pipeline.members.boosting import PooledBoostingMember, shallow_trees
+    from pipeline.members.boosting import (SHALLOW_GBQR, BoostingConfig, PooledBoostingMember,
+                                           deep_trees)
 
-    return [PooledBoostingMember(name=CASES_ONLY, reads_panel_signal=False),
-            shallow_trees(PooledBoostingMember())]
+    return [PooledBoostingMember(deep_trees(BoostingConfig()), name=CASES_ONLY,
+                                 reads_panel_signal=False),
+            PooledBoostingMember(BoostingConfig(), name=SHALLOW_GBQR)]
 
 
 def gbqr_variants(members: tuple[str, ...], prefix: str = "") -> tuple[Any, ...]:

@@ -215,7 +215,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                                           skill_weighted_variants, tracking_rate_variants)
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.data.hub.nhsn_vintages import HOSP_FLU
-    from pipeline.members.boosting import shallow_trees, the_gbqr
+    from pipeline.members.boosting import DEEP_GBQR, deep_trees, the_gbqr
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.training.model_store import default_store_root
 
@@ -225,7 +225,8 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
     members = build_hub_members(HubMembersConfig(boosting_beside=True),
                                 default_store_root(), vintages, (),
                                 target=HOSP_FLU, seasonal_own_seasons=True)
-    shallow = shallow_trees(the_gbqr(members.published))
+    gbqr = the_gbqr(members.published)
+    deep = dataclasses.replace(gbqr, name=DEEP_GBQR, config=deep_trees(gbqr.config))
     t_members = time.perf_counter() - started
     reach = HubBacktestConfig().combine      # the published rule (the hub's 95 % outer interval)
     pair = ("nf-weekly", "seasonal")        # COVID-19's admissions pair
@@ -248,8 +249,8 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                         reach, ("nf-context", "nf-weekly")),
                 Variant("v-nf-context+nf-weekly+gbqr", reach,
                         ("nf-context", "nf-weekly", "gbqr")),
-                Variant(f"v-nf-context+{shallow.name} (15 leaves at rate 0.05: published until "
-                        "79ea0ca)", reach, ("nf-context", shallow.name)),
+                Variant(f"v-nf-context+{deep.name} (31 leaves at rate 0.1, California's)",
+                        reach, ("nf-context", deep.name)),
                 Variant("v-nf-context+nf-weekly+gbqr+growth-qr", reach,
                         ("nf-context", "nf-weekly", "gbqr", "growth-qr")),
                 *skill_weighted_variants(reach, ("nf-context", "gbqr")),
@@ -264,7 +265,7 @@ def _backtest(vintages: Any, rounds: Any, latest: Any, seed: int) -> tuple[Any, 
                         dataclasses.replace(reach, calibration="none")))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=seed),
-                            references=(*members.references, shallow))
+                            references=(*members.references, deep))
     return result, t_members, time.perf_counter() - started - t_members
 
 

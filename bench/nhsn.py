@@ -286,18 +286,18 @@ def ablation_members(target: str, vintages: list[Any], climatology: list[Any],
 
 def gbqr_variants(reach: Any, names: list[str], own_signal: str) -> list[Any]:
     """gbqr beside the published members ``names``: on the target's own signal alone
-    (``own_signal``) or with the trees published until 79ea0ca in place of the published gbqr,
-    or each put in where the average leaves it out (the ED share)."""
+    (``own_signal``) or with LightGBM's own trees (California's) in place of the published
+    gbqr, or each put in where the average leaves it out (the ED share)."""
     from pipeline.backtest.config import Variant
-    from pipeline.members.boosting import SHALLOW_GBQR
+    from pipeline.members.boosting import DEEP_GBQR
 
     without = [n for n in names if n != "gbqr"]
     own = Variant("v-published, gbqr on its own signal", reach, (*without, own_signal))
-    shallow = Variant(f"v-published, {SHALLOW_GBQR} (15 leaves at rate 0.05: published until "
-                      "79ea0ca)", reach, (*without, SHALLOW_GBQR))
+    deep = Variant(f"v-published, {DEEP_GBQR} (31 leaves at rate 0.1, California's)", reach,
+                   (*without, DEEP_GBQR))
     if "gbqr" in names:
-        return [own, shallow]
-    return [Variant("v-published+gbqr", reach, (*names, "gbqr")), own, shallow]
+        return [own, deep]
+    return [Variant("v-published+gbqr", reach, (*names, "gbqr")), own, deep]
 
 
 def run_target(target: str, args: argparse.Namespace, climatology: list[Any], teams: Any,
@@ -314,8 +314,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     from pipeline.backtest.hub_rounds import HubBacktestConfig, run_hub_rounds
     from pipeline.combine.combiner import LOG_AVERAGE, PUBLISHED, UNCALIBRATED
     from pipeline.hub_round.run import load_vintages
-    from pipeline.members.boosting import (BoostingConfig, PooledBoostingMember, shallow_trees,
-                                          the_gbqr)
+    from pipeline.members.boosting import (DEEP_GBQR, BoostingConfig, PooledBoostingMember,
+                                           deep_trees, the_gbqr)
     from pipeline.members.published import HubMembersConfig, build_hub_members
     from pipeline.members.seasonal import SeasonalGrowthMember
     from pipeline.panels.hub import HOSP_COVID, hub_rounds, is_share
@@ -335,7 +335,8 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
     t_ablations = time.perf_counter() - started - t_members
     # gbqr on the target's own signal alone (issue 51: the published gbqr reads both)
     own_signal = PooledBoostingMember(BoostingConfig(), name="gbqr-own-signal")
-    shallow = shallow_trees(the_gbqr((*members.published, *members.references)))
+    gbqr = the_gbqr((*members.published, *members.references))
+    deep = dataclasses.replace(gbqr, name=DEEP_GBQR, config=deep_trees(gbqr.config))
     first_ed = climatology[0]
     pseudo = SeasonalGrowthMember(((pd.Timestamp("2000-01-01"), first_ed[1]),),
                                   name="seasonal-pseudo")
@@ -385,17 +386,17 @@ def run_target(target: str, args: argparse.Namespace, climatology: list[Any], te
                                          "growth-qr"), ("inverse-wis",)),
     )
     built = {m.name for m in (*members.published, *members.references)} | {
-        pseudo.name, own_signal.name, shallow.name}
+        pseudo.name, own_signal.name, deep.name}
     variants = tuple(v for v in variants if set(v.members or ()) <= built
                      and not (v.combine == reach and set(v.members or ()) == set(names)))
     result = run_hub_rounds(rounds, latest, members.published,
                             HubBacktestConfig(variants=variants, seed=args.seed),
-                            references=(*members.references, pseudo, own_signal, shallow,
+                            references=(*members.references, pseudo, own_signal, deep,
                                         *[m for _, m in ablated]))
     t_backtest = time.perf_counter() - started - t_members - t_ablations
     ours = ours_all = result.scores()
     board_names = [PUBLISHED, UNRECONCILED, RECONCILED, *[m.name for m in members.published],
-                   *[m.name for m in (*members.references, pseudo, own_signal, shallow)],
+                   *[m.name for m in (*members.references, pseudo, own_signal, deep)],
                    *[v.name for v in variants]]
     ours = ours[ours["model_id"].isin(board_names)]
     per_model = {}

@@ -20,7 +20,7 @@ from pipeline.training.model_store import MODELS_FOLDER
 from pipeline.backtest.track_record import TrackRecordConfig
 from pipeline.members.nf.growth import GrowthModelConfig
 from pipeline.members.nf.real import FineTuneConfig
-from pipeline.members.boosting import BoostingConfig
+from pipeline.members.boosting import BoostingConfig, deep_trees
 from pipeline.members.published import MembersConfig
 from pipeline.errors import ConfigError
 from pipeline.forecast.settings import (EstimateSettings, NowcastSettings, OutputSettings,
@@ -205,7 +205,7 @@ FORECAST_PRESETS: dict[str, ForecastConfig] = {
                                                            batch_size=256,
                                                            prior=WavePrior(days=140)),
                                   finetune=FineTuneConfig(iterations=10, refit_every_weeks=26),
-                                  boosting=BoostingConfig(n_estimators=10)),
+                                  boosting=deep_trees(BoostingConfig(n_estimators=10))),
             n_paths=100, recent_origins=30),
         nowcast=NowcastSettings(completions=8, nowcast_samples=100),
         data=DataSourceConfig(http_retries=2, http_backoff_s=0.0, task_retries=1,

@@ -43,7 +43,7 @@ from pipeline.members.nf.context import (NF_CONTEXT, ContextFlowConfig, ContextF
                                          TrainingPool, fit_context_member)
 from pipeline.members.nf.context_features import ContextChannels, ContextSources
 from pipeline.data.hub.locations import POPULATION
-from pipeline.members.boosting import GBQR, BoostingConfig, PooledBoostingMember
+from pipeline.members.boosting import GBQR, BoostingConfig, PooledBoostingMember, deep_trees
 from pipeline.members.growth_regression import (GROWTH_QR, GrowthRegressionConfig,
                                                 PooledGrowthMember)
 from pipeline.members.hub_baseline import HubBaseline, HubBaselineConfig
@@ -73,7 +73,8 @@ class MembersConfig:
 
     growth: GrowthModelConfig = field(default_factory=GrowthModelConfig)
     regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
-    boosting: BoostingConfig = field(default_factory=BoostingConfig)
+    # gbqr on California's panels: LightGBM's own trees (issue 51; docs/forecasting.md)
+    boosting: BoostingConfig = field(default_factory=lambda: deep_trees(BoostingConfig()))
     # the member pooled over the panel's places: gbqr, or growth-qr (published until 2026-11-29)
     pooled: PooledMember = GBQR
     finetune: FineTuneConfig = field(default_factory=FineTuneConfig)
