@@ -67,13 +67,12 @@ BASELINE_SAMPLES = 10_000
 @dataclass(frozen=True)
 class MembersConfig:
     """The published members' settings: the flow's (``growth``), growth-qr's (``regression``),
-    nf-real's refits (``finetune``), which members run, and the draws per forecast of each flow
-    (500 keep the Monte Carlo error of the 5 %/95 % quantiles near 2 % of the spread, at half
-    the cost of 1,000 over a panel's thousands of cells)."""
+    gbqr's (``boosting``: :func:`deep_trees`), nf-real's refits (``finetune``), which members
+    run, and the draws per forecast of each flow (500 keep the Monte Carlo error of the 5 %/95 %
+    quantiles near 2 % of the spread, at half the cost of 1,000 over a panel's many cells)."""
 
     growth: GrowthModelConfig = field(default_factory=GrowthModelConfig)
     regression: GrowthRegressionConfig = field(default_factory=GrowthRegressionConfig)
-    # gbqr on California's panels: LightGBM's own trees (issue 51; docs/forecasting.md)
     boosting: BoostingConfig = field(default_factory=lambda: deep_trees(BoostingConfig()))
     # the member pooled over the panel's places: gbqr, or growth-qr (published until 2026-11-29)
     pooled: PooledMember = GBQR
